@@ -1,0 +1,1 @@
+"""Orchestration: configuration (params.yaml), caching, the command line."""

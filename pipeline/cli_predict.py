@@ -1,0 +1,3 @@
+"""The `cnnps predict` command(s)."""
+from pipeline.app import app  # noqa: F401
+
