@@ -1,0 +1,128 @@
+"""`cnnps predict` end to end: the summary line, DiLiGenT BALL, one-line errors."""
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.cli import main
+from tests.cnnps.synthetic import write_capture
+from tests.cnnps.test_capture import BAD_INPUTS, make_bad_capture
+
+
+def run_cli(argv, capsys):
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    out, err = capsys.readouterr()
+    code = info.value.code
+    return (0 if code is None else code), out, err
+
+
+def test_predict_lambertian_synthetic(tmp_path, capsys):
+    write_capture(tmp_path / "cap", fmt="png16", m=16, max_tilt_deg=45)
+    out = tmp_path / "out"
+    code, stdout, stderr = run_cli(
+        ["predict", str(tmp_path / "cap"), "--out", str(out), "--method", "lambertian",
+         "--shadow-threshold", "0.01", "--no-progress"], capsys)
+    assert code == 0, stderr
+    lines = stdout.strip().splitlines()
+    assert len(lines) == 1 and "cap (lambertian, 16 images" in lines[0] and "mean" in lines[0]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["mean_deg"] < 0.2  # 16-bit quantisation only
+    assert f"mean {metrics['mean_deg']:.2f} deg" in lines[0]
+
+
+def test_predict_drop_option_and_bear_note(tmp_path, capsys):
+    write_capture(tmp_path / "bearPNG", fmt="png8", size=12, m=24, gt=None)
+    code, stdout, stderr = run_cli(["predict", str(tmp_path / "bearPNG"), "--out", str(tmp_path / "o"),
+                                    "--method", "lambertian", "--no-progress"], capsys)
+    assert code == 0, stderr
+    assert "note: bearPNG: dropped the first 20 images" in stdout and "4 images" in stdout
+    code, stdout, _ = run_cli(["predict", str(tmp_path / "bearPNG"), "--out", str(tmp_path / "o"),
+                               "--method", "lambertian", "--drop", "0-2,5", "--no-progress"], capsys)
+    assert code == 0 and "20 images" in stdout and "note" not in stdout
+    info = json.loads((tmp_path / "o" / "prediction.json").read_text())
+    assert info["dropped"] == [0, 1, 2, 5]
+    code, _, _ = run_cli(["predict", str(tmp_path / "bearPNG"), "--out", str(tmp_path / "o"),
+                          "--method", "lambertian", "--drop", "none", "--no-progress"], capsys)
+    assert code == 0
+    assert json.loads((tmp_path / "o" / "prediction.json").read_text())["n_images"] == 24
+
+
+@pytest.mark.parametrize(
+    "extra, words",
+    [
+        (["--method", "svm"], "--method"),
+        (["--method", "lambertian", "--rotations", "ten"], "--rotations"),
+        (["--method", "lambertian", "--batch-size", "-4"], "--batch-size"),
+        (["--method", "lambertian", "--device", "gpu"], "--device"),
+        (["--method", "lambertian", "--precision", "int8"], "--precision"),
+        (["--method", "lambertian", "--drop", "1,x"], "--drop"),
+        (["--method", "lambertian", "--drop", "9"], "out of range"),
+        (["--method", "lambertian", "--grey", "green"], "--grey"),
+        (["--method", "lambertian", "--shadow-threshold", "2"], "--shadow-threshold"),
+        (["--method", "lambertian", "--shadow-threshold", "dark"], "--shadow-threshold"),
+        (["--model", "/nonexistent/model.pt"], "model.pt: model file not found"),
+    ],
+)
+def test_bad_options_are_one_line(tmp_path, capsys, extra, words):
+    write_capture(tmp_path / "cap", fmt="exr", size=8, m=6)
+    out = tmp_path / "out"
+    code, stdout, stderr = run_cli(["predict", str(tmp_path / "cap"), "--out", str(out), *extra], capsys)
+    assert code == 2
+    assert stderr.count("\n") == 1 and stderr.startswith("cnnps: error: ") and words in stderr
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_every_bad_input_exits_2_naming_the_file(tmp_path, capsys, case):
+    cap, name, words = make_bad_capture(tmp_path, case)
+    out = tmp_path / "out"
+    code, stdout, stderr = run_cli(["predict", str(cap), "--out", str(out), "--method", "lambertian",
+                                    "--no-progress"], capsys)
+    assert code == 2
+    assert stderr.count("\n") == 1 and stderr.startswith("cnnps: error: ")
+    assert f"{name}: " in stderr and words in stderr
+    assert not out.exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["cap"]  # no temporary leftovers
+
+
+def test_missing_capture_folder(tmp_path, capsys):
+    code, _, stderr = run_cli(["predict", str(tmp_path / "nope"), "--out", str(tmp_path / "o"),
+                               "--method", "lambertian"], capsys)
+    assert code == 2 and "nope: capture folder not found" in stderr
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.shared
+@pytest.mark.slow
+@pytest.mark.parametrize("grey, low, high", [("mean", 3.9, 4.4), ("luminance", 3.9, 4.4)])
+def test_ball_lambertian(ball_dir, tmp_path, capsys, grey, low, high):
+    """Plain least squares on DiLiGenT BALL, every mask pixel.
+
+    Measured: mean grey 4.29 deg, luminance grey 4.17 deg (published: 4.10 deg).
+    """
+    out = tmp_path / "ball"
+    code, stdout, stderr = run_cli(["predict", str(ball_dir), "--method", "lambertian", "--out", str(out),
+                                    "--grey", grey, "--no-progress"], capsys)
+    assert code == 0, stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert low < metrics["mean_deg"] < high
+    assert metrics["pixels"] == 15791 and metrics["n_images"] == 96
+    normal = np.load(out / "normal.npy")
+    assert normal.shape == (512, 612, 3) and normal.dtype == np.float32
+    assert f"mean {metrics['mean_deg']:.2f} deg" in stdout
+
+
+def test_cuda_requested_without_cuda(tmp_path, capsys):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA device is present")
+    write_capture(tmp_path / "cap", fmt="exr", size=8, m=6)
+    model = tmp_path / "m.pt"
+    model.write_bytes(b"x")
+    code, _, stderr = run_cli(["predict", str(tmp_path / "cap"), "--out", str(tmp_path / "o"),
+                               "--model", str(model), "--device", "cuda"], capsys)
+    assert code == 2 and stderr.count("\n") == 1 and "--device cuda" in stderr
+    assert not (tmp_path / "o").exists()
