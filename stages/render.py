@@ -1,0 +1,493 @@
+"""The ``render`` stage: every scene (mesh view x material) rendered under many suns.
+
+For each ``data_dir/materials/<scene_id>/`` (written by the materials stage, naming its
+mesh view in ``material.json``) this writes ``data_dir/render/<scene_id>/``, a capture
+folder (docs/ARCHITECTURE.md): ``000.exr ...`` (float32 linear RGB, names zero-padded to
+the light count), ``filenames.txt``, ``light_directions.txt`` (unit, camera frame),
+``light_intensities.txt``, ``mask.png``, ``normal_gt.npy`` and ``scene.json``.
+
+Caching and resuming. A scene's ``key`` hashes the mesh file, the material files and the
+parameters that change the pictures (not the device, workers or threads). A folder whose
+``scene.json`` holds the current key and all its images is skipped. Otherwise the folder
+starts with ``.pending.json`` (the key) and the three text files, so the light directions
+are fixed FIRST; each image is written atomically (temp name, rename); ``scene.json`` is
+written LAST as the completion marker. A rerun after a kill finds ``.pending.json`` with
+the same key and renders only the missing images with the same lights; a different key
+clears the folder.
+
+Mask and ground-truth normals come from Blender itself (one extra 1-sample render): the
+mask is the alpha of the camera rays through the pixel centres and ``normal_gt`` is the
+smooth shading normal at those hits, i.e. exactly the normal the BSDFs were lit with
+(agreeing with the shading by construction; for meshes of the meshes stage it matches the
+analytic/rasterised normal up to Blender's vertex-normal interpolation). The material's
+per-pixel maps are extended outward by nearest neighbour, so a silhouette pixel that
+Blender covers but the materials' rasteriser did not still gets its neighbour's material.
+
+Only :mod:`stages.blender_renderer` imports bpy; it is imported lazily here.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from cnnps.atomic import atomic_path, write_text
+from cnnps.errors import ConfigError, InputError
+
+VERSION = 1  # bump when what is written changes
+MATERIAL_KINDS = ("lambertian", "diffuse", "specular", "metallic")
+
+
+@dataclass(frozen=True)
+class Params:
+    size: int = 128  # image width = height (pixels); the camera covers x, y in [-1, 1]
+    samples: int = 64  # Cycles path samples per pixel
+    lights: int = 50  # lights per scene
+    jitter_deg: float = 3.0  # random offset of each direction from the Fibonacci spiral
+    min_elevation_deg: float = 5.0  # lights stay this far above the horizon
+    light_intensity: float = 1.0  # sun irradiance: a white Lambertian patch facing it reads this
+    max_bounces: int = 8  # Cycles max bounces (all kinds): global illumination
+    device: str = "cpu"  # cpu | gpu
+    seed: int = 0
+    workers: int = 1  # scenes rendered in parallel (processes)
+    threads: int = 0  # Cycles threads per process (0 = cores / workers)
+    prune: bool = True  # remove render folders of scenes no longer in materials/
+
+    def __post_init__(self):
+        def bad(msg):
+            raise ConfigError(f"render.{msg}")
+
+        for name in ("size", "samples", "lights"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
+                bad(f"{name} must be a positive integer, got {v!r}")
+        if self.lights < 3:
+            bad(f"lights must be >= 3 (photometric stereo needs three), got {self.lights}")
+        if self.size > 8192:
+            bad(f"size must be <= 8192, got {self.size}")
+        if not 0.0 <= self.jitter_deg <= 90.0:
+            bad(f"jitter_deg must be in [0, 90], got {self.jitter_deg}")
+        if not 0.0 <= self.min_elevation_deg < 90.0:
+            bad(f"min_elevation_deg must be in [0, 90), got {self.min_elevation_deg}")
+        if not (self.light_intensity > 0 and np.isfinite(self.light_intensity)):
+            bad(f"light_intensity must be > 0, got {self.light_intensity}")
+        if not isinstance(self.max_bounces, int) or self.max_bounces < 0:
+            bad(f"max_bounces must be an integer >= 0, got {self.max_bounces!r}")
+        if self.device not in ("cpu", "gpu"):
+            bad(f"device must be 'cpu' or 'gpu', got {self.device!r}")
+        if self.workers < 0 or self.threads < 0:
+            bad(f"workers and threads must be >= 0, got {self.workers}, {self.threads}")
+
+    def picture_params(self) -> dict:
+        """The parameters that change the rendered pictures (part of the content key)."""
+        d = asdict(self)
+        for k in ("device", "workers", "threads", "prune"):
+            d.pop(k)
+        return d
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def stable_hash(obj) -> str:
+    import hashlib
+
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def _sha256_files(paths: list[Path]) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    for p in sorted(paths, key=lambda p: p.name):
+        h.update(p.name.encode() + b"\0")
+        with open(p, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+    return h.hexdigest()
+
+
+def derive_seed(seed: int, name: str) -> int:
+    """A 31-bit seed for ``name`` from the stage seed (stable across runs and machines)."""
+    return int(stable_hash([int(seed), str(name)])[:8], 16) & 0x7FFFFFFF
+
+
+def image_names(n: int) -> list[str]:
+    width = max(3, len(str(n - 1)))
+    return [f"{i:0{width}d}.exr" for i in range(n)]
+
+
+def extend_maps(maps: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, np.ndarray]:
+    """Fill every map outside ``mask`` with its nearest mask pixel's value."""
+    from scipy.ndimage import distance_transform_edt
+
+    if not mask.any() or mask.all():
+        return maps
+    _, (ri, ci) = distance_transform_edt(~mask, return_indices=True)
+    return {k: (v[ri, ci] if np.ndim(v) >= 2 else v) for k, v in maps.items()}
+
+
+def lambertian_material(albedo=1.0) -> dict:
+    return {"bsdf": "lambertian", "Color": albedo}
+
+
+def principled_material(params: dict[str, np.ndarray]) -> dict:
+    """Renderer material (Blender Principled inputs) from paper parameter maps, through
+    :func:`stages.bsdf.to_blender_inputs`: RGBA colours become RGB, maps that hold one
+    value everywhere become constants (no texture)."""
+    from stages.bsdf import to_blender_inputs
+
+    out: dict[str, Any] = {"bsdf": "principled"}
+    for name, value in to_blender_inputs(params).items():
+        arr = np.asarray(value, dtype=np.float32)
+        if arr.ndim >= 1 and arr.shape[-1] == 4 and (arr.ndim == 1 or arr.ndim == 3):
+            arr = arr[..., :3]  # RGBA -> RGB (alpha 1)
+        if arr.ndim >= 2:
+            flat = arr.reshape(arr.shape[0] * arr.shape[1], -1)
+            if np.all(flat == flat[0]):
+                arr = flat[0] if flat.shape[1] > 1 else flat[0, 0]
+        out[name] = arr
+    return out
+
+
+def _write_lights(out: Path, L: np.ndarray, intensity: float, names: list[str]) -> None:
+    write_text(out / "light_directions.txt", "".join(f"{x:.9f} {y:.9f} {z:.9f}\n" for x, y, z in L))
+    write_text(out / "light_intensities.txt", "".join(f"{intensity:.9g} {intensity:.9g} {intensity:.9g}\n" for _ in L))
+    write_text(out / "filenames.txt", "".join(n + "\n" for n in names))
+
+
+def _read_json(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def is_complete(out: Path, key: str) -> bool:
+    meta = _read_json(out / "scene.json")
+    if not meta or meta.get("key") != key:
+        return False
+    names = meta.get("filenames") or []
+    return bool(names) and all((out / n).is_file() for n in names) and (out / "normal_gt.npy").is_file()
+
+
+# --------------------------------------------------------------------------- one capture
+
+
+def render_into(
+    out: Path,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    material: dict | Any,
+    *,
+    key: str,
+    lights: np.ndarray,
+    intensity: float,
+    size: int,
+    samples: int,
+    seed: int,
+    max_bounces: int = 8,
+    device: str = "cpu",
+    threads: int = 0,
+    meta: dict | None = None,
+    progress: bool = True,
+    desc: str = "render",
+) -> dict:
+    """Render one capture folder, resuming a partial one with the same ``key``.
+
+    ``material``: a renderer material dict (see :mod:`stages.blender_renderer`), or a
+    callable ``mask -> material dict`` called with Blender's mask (for maps drawn on it).
+    Returns ``{"rendered": number of images rendered now, "skipped": bool}``.
+    """
+    out = Path(out)
+    if is_complete(out, key):
+        return {"rendered": 0, "skipped": True}
+    from cnnps.imageio import write_exr, write_png
+    from stages.blender_renderer import BlenderRenderer, blender_version
+
+    t0 = time.perf_counter()
+    rendered = 0
+    # the renderer first: a bad device fails before the folder is touched
+    with BlenderRenderer(size, samples, device=device, threads=threads, seed=seed, max_bounces=max_bounces) as r:
+        names = image_names(len(lights))
+        pending = _read_json(out / ".pending.json") or {}
+        done_meta = _read_json(out / "scene.json") or {}
+        resume = key in (pending.get("key"), done_meta.get("key")) and (out / "light_directions.txt").is_file()
+        if resume:
+            try:
+                L = np.loadtxt(out / "light_directions.txt", ndmin=2)
+            except ValueError:
+                L = np.zeros((0, 3))
+            resume = L.shape == np.shape(lights)
+        if resume:
+            lights = L  # the directions of the interrupted run
+            (out / "scene.json").unlink(missing_ok=True)  # not complete any more
+        else:
+            if out.exists():
+                shutil.rmtree(out)
+            out.mkdir(parents=True)
+            write_text(out / ".pending.json", json.dumps({"key": key}) + "\n")
+            _write_lights(out, lights, intensity, names)
+
+        r.load_scene(vertices, faces, material if isinstance(material, dict) else lambertian_material())
+        have_geometry = (out / "mask.png").is_file() and (out / "normal_gt.npy").is_file()
+        if not have_geometry or callable(material):
+            mask, normal = r.render_geometry()
+            if not mask.any():
+                raise InputError(out, "the mesh covers no pixel of the image (empty mask)")
+            if callable(material):
+                r.set_material(material(mask))
+            if not have_geometry:
+                with atomic_path(out / "normal_gt.npy") as tmp:
+                    np.save(tmp, normal)
+                write_png(out / "mask.png", mask.astype(np.uint8) * 255)
+        todo = [i for i, n in enumerate(names) if not (out / n).is_file()]
+        for i in tqdm(todo, desc=desc, unit="light", leave=False, disable=not progress or not todo):
+            write_exr(out / names[i], r.render(lights[i], intensity))
+            rendered += 1
+        gpus = getattr(r, "gpu_devices", None)
+    scene = dict(meta or {})
+    scene.update(
+        {
+            "key": key,
+            "filenames": names,
+            "n_lights": len(names),
+            "size": size,
+            "samples": samples,
+            "max_bounces": max_bounces,
+            "light_intensity": intensity,
+            "seed": seed,
+            "device": device,
+            "gpu_devices": gpus,
+            "blender_version": blender_version(),
+            "renderer": "Cycles: orthographic camera, sun lamps (angle 0), black world, "
+            "Gaussian 0.01 px filter, no denoising, no clamping",
+            "mask_normal_source": "Blender camera rays through pixel centres: alpha and smooth shading normal",
+            "render_seconds": round(time.perf_counter() - t0, 3),
+            "images_rendered_last_run": rendered,
+            "version": VERSION,
+        }
+    )
+    write_text(out / "scene.json", json.dumps(scene, indent=2) + "\n")
+    (out / ".pending.json").unlink(missing_ok=True)
+    return {"rendered": rendered, "skipped": False}
+
+
+def _load_mesh_arg(mesh) -> tuple[Any, dict]:
+    """A trimesh from a Trimesh, a file path or ``procedural:<kind>[:seed]``."""
+    import trimesh
+
+    if isinstance(mesh, trimesh.Trimesh):
+        return mesh, {"mesh": "in-memory"}
+    text = str(mesh)
+    if text.startswith("procedural:"):
+        from stages.procedural import make_shape
+
+        parts = text.split(":")
+        kind = parts[1] if len(parts) > 1 else ""
+        try:
+            shape_seed = int(parts[2]) if len(parts) > 2 else 0
+        except ValueError:
+            raise ConfigError(f"procedural mesh seed must be an integer: {text!r}") from None
+        return make_shape(kind, shape_seed), {"mesh": text}
+    from stages.meshes import file_sha256, load_mesh
+
+    path = Path(text)
+    return load_mesh(path), {"mesh": str(path), "mesh_sha256": file_sha256(path) if path.is_file() else None}
+
+
+def render_capture(
+    mesh,
+    out_dir: str | Path,
+    lights: int = 40,
+    size: int = 64,
+    samples: int = 16,
+    material: str = "lambertian",
+    superpixels: int = 20,
+    seed: int = 0,
+    device: str = "cpu",
+    jitter_deg: float = 0.0,
+    light_intensity: float = 1.0,
+    max_bounces: int = 8,
+    threads: int = 0,
+    progress: bool = True,
+) -> Path:
+    """Render one capture folder of ``mesh`` (a Trimesh in the camera frame, a mesh file,
+    normalised into the unit sphere, or ``procedural:<kind>[:seed]``) and return its path.
+
+    material: ``lambertian`` (white Lambertian, albedo 1: pixel = max(0, n.l) plus
+    interreflections) or a category of the materials stage (``diffuse``, ``specular``,
+    ``metallic``) drawn on ``superpixels`` superpixels of the mask with ``seed``.
+    """
+    if material not in MATERIAL_KINDS:
+        raise ConfigError(f"material must be one of {', '.join(MATERIAL_KINDS)}, got {material!r}")
+    if superpixels < 1:
+        raise ConfigError(f"superpixels must be >= 1, got {superpixels}")
+    p = Params(
+        size=size, samples=samples, lights=lights, jitter_deg=jitter_deg, light_intensity=light_intensity,
+        max_bounces=max_bounces, device=device, seed=seed, threads=threads,
+    )  # validation
+    from stages.lights import hemisphere_lights
+
+    tm, info = _load_mesh_arg(mesh)
+    vertices = np.asarray(tm.vertices, dtype=np.float64)
+    faces = np.asarray(tm.faces, dtype=np.int64)
+    import hashlib
+
+    mesh_hash = hashlib.sha256(vertices.astype(np.float32).tobytes() + faces.astype(np.int64).tobytes()).hexdigest()
+    L = hemisphere_lights(p.lights, p.jitter_deg, seed=derive_seed(seed, "lights"), min_elevation_deg=p.min_elevation_deg)
+    if material == "lambertian":
+        mat: Any = lambertian_material()
+    else:
+        def mat(mask: np.ndarray) -> dict:
+            from stages.materials import sample_material_maps
+
+            maps = sample_material_maps(mask, material, superpixels, derive_seed(seed, "material"))
+            return principled_material(extend_maps(dict(maps.params), mask))
+
+    key = stable_hash({"mesh": mesh_hash, "material": [material, superpixels], "params": p.picture_params(), "v": VERSION})
+    out = Path(out_dir)
+    meta = {"mesh_sha256": mesh_hash, "material": material, "superpixels": superpixels, **info}
+    render_into(
+        out, vertices, faces, mat, key=key, lights=L, intensity=p.light_intensity, size=p.size,
+        samples=p.samples, seed=seed, max_bounces=p.max_bounces, device=p.device, threads=p.threads,
+        meta=meta, progress=progress, desc=out.name,
+    )
+    return out
+
+
+# --------------------------------------------------------------------------- the stage
+
+
+def _scene_jobs(params: Params, data_dir: Path) -> list[dict]:
+    mat_root = data_dir / "materials"
+    if not mat_root.is_dir():
+        raise InputError(mat_root, "no materials folder (run the materials stage first)")
+    jobs = []
+    for sdir in sorted(p for p in mat_root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        mjson = sdir / "material.json"
+        meta = _read_json(mjson)
+        if meta is None:
+            continue  # not (yet) a finished scene folder: the materials stage writes atomically
+        view_id = meta.get("view_id")
+        if not view_id:
+            raise InputError(mjson, "names no 'view_id' (the mesh view this material belongs to)")
+        view_dir = data_dir / "meshes" / view_id
+        mesh_path = view_dir / "mesh.ply"
+        if not mesh_path.is_file():
+            raise InputError(mesh_path, f"mesh of scene {sdir.name} not found (run the meshes stage)")
+        from stages.meshes import file_sha256
+
+        mesh_sha = file_sha256(mesh_path)
+        mat_sha = _sha256_files([p for p in sdir.iterdir() if p.is_file() and p.suffix in (".npy", ".json", ".png")
+                                 and p.name != "preview.png"])
+        view_meta = _read_json(view_dir / "view.json") or {}
+        key = stable_hash({"mesh": mesh_sha, "material": mat_sha, "params": params.picture_params(), "v": VERSION})
+        jobs.append(
+            {
+                "scene_id": sdir.name,
+                "material_dir": str(sdir),
+                "mesh_path": str(mesh_path),
+                "out": str(data_dir / "render" / sdir.name),
+                "key": key,
+                "params": asdict(params),
+                "meta": {
+                    "scene_id": sdir.name,
+                    "view_id": view_id,
+                    "category": meta.get("category"),
+                    "mesh_sha256": mesh_sha,
+                    "material_sha256": mat_sha,
+                    "pose": view_meta.get("rotation"),
+                    "view_key": view_meta.get("key"),
+                    "material_key": meta.get("key"),
+                },
+            }
+        )
+    return jobs
+
+
+def _material_from_dir(sdir: Path, meta: dict) -> dict:
+    """Renderer material of a materials-stage folder (maps extended past their mask)."""
+    from cnnps.imageio import read_mask
+
+    mask = read_mask(sdir / "mask.png")
+    if meta.get("category") == "lambertian" or meta.get("bsdf") == "lambertian":
+        albedo = np.load(sdir / "base_color.npy") if (sdir / "base_color.npy").is_file() else 1.0
+        return lambertian_material(extend_maps({"a": albedo}, mask)["a"] if np.ndim(albedo) >= 2 else albedo)
+    names = ("base_color", "metallic", "specular", "roughness", "sheen", "sheen_tint")
+    maps = {}
+    for n in names:
+        p = sdir / f"{n}.npy"
+        if not p.is_file():
+            raise InputError(p, "material parameter map missing")
+        try:
+            maps[n] = np.load(p, allow_pickle=False).astype(np.float32)
+        except Exception as exc:
+            raise InputError(p, f"unreadable .npy file ({exc})") from exc
+        if maps[n].shape[:2] != mask.shape:
+            raise InputError(p, f"map is {maps[n].shape}, mask is {mask.shape}")
+    return principled_material(extend_maps(maps, mask))
+
+
+def render_scene_job(job: dict) -> dict:
+    """Top-level (picklable) job: render one scene of the stage."""
+    p = Params(**job["params"])
+    sid = job["scene_id"]
+    out = Path(job["out"])
+    if is_complete(out, job["key"]):
+        return {"scene_id": sid, "rendered": 0, "skipped": True}
+    from stages.lights import hemisphere_lights
+    from stages.meshes import read_view_mesh
+
+    sdir = Path(job["material_dir"])
+    mesh = read_view_mesh(Path(job["mesh_path"]).parent)
+    material = _material_from_dir(sdir, _read_json(sdir / "material.json") or {})
+    if isinstance(material.get("Color"), np.ndarray) and material["Color"].shape[:2] != (p.size, p.size):
+        raise InputError(sdir, f"material maps are {material['Color'].shape[:2]}, render size is {p.size}")
+    scene_seed = derive_seed(p.seed, sid)
+    L = hemisphere_lights(p.lights, p.jitter_deg, seed=scene_seed, min_elevation_deg=p.min_elevation_deg)
+    res = render_into(
+        out, np.asarray(mesh.vertices), np.asarray(mesh.faces), material, key=job["key"], lights=L,
+        intensity=p.light_intensity, size=p.size, samples=p.samples, seed=scene_seed, max_bounces=p.max_bounces,
+        device=p.device, threads=job.get("threads", p.threads), meta=job["meta"], desc=sid,
+    )
+    return {"scene_id": sid, **res}
+
+
+def run(params: Params, data_dir: Path, executor=None) -> dict:
+    """Render every scene of ``data_dir/materials`` into ``data_dir/render`` (skipping
+    current ones, resuming partial ones). Returns counts."""
+    from pipeline.executor import ExecutorParams, cores, get_executor
+
+    data_dir = Path(data_dir)
+    jobs = _scene_jobs(params, data_dir)
+    out_root = data_dir / "render"
+    out_root.mkdir(parents=True, exist_ok=True)
+    if params.prune:
+        wanted = {j["scene_id"] for j in jobs}
+        for d in out_root.iterdir():
+            if d.is_dir() and d.name not in wanted and ((d / "scene.json").exists() or (d / ".pending.json").exists()):
+                shutil.rmtree(d)
+    todo = [j for j in jobs if not is_complete(Path(j["out"]), j["key"])]
+    executor = executor or get_executor(ExecutorParams(workers=params.workers or 0))
+    if params.threads > 0:
+        threads = params.threads
+    elif hasattr(executor, "threads_per_worker"):
+        threads = executor.threads_per_worker(len(todo))
+    else:
+        threads = cores()
+    for j in todo:
+        j["threads"] = threads
+    results = executor.map(render_scene_job, todo, desc="render") if todo else []
+    return {
+        "scenes": len(jobs),
+        "skipped": len(jobs) - len(todo),
+        "rendered_images": int(sum(r["rendered"] for r in results)),
+    }
