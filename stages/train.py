@@ -1,0 +1,353 @@
+"""Stage ``train``: fit CNN-PS on the extracted shards.
+
+Reads ``data_dir/extract/manifest.json`` and streams the ``train`` shards through
+:class:`stages.shards.ShardStream` (row groups shuffled per epoch, a shuffle buffer;
+the data never has to fit in memory). Loss: MSE between the predicted and the true unit
+normal; Adam. Validation (mean / median angular error in degrees over up to
+``val_max_rows`` maps of the ``val`` scenes, each map on its own, no rotation
+averaging) runs every ``val_every`` steps and at the end.
+
+Resuming: every ``checkpoint_every`` steps (and at the end) ``data_dir/train/
+checkpoints/step-NNNNNNNN.pt`` is written atomically with model, optimiser, torch RNG
+states, the step (= loader position: epoch and batches consumed; the batch order of an
+epoch is a function of (seed, epoch)) and the metric history. ``run`` continues from the
+newest checkpoint whose run key (the params that change the result + the manifest hash)
+matches, so a killed run resumed to N steps ends with the same weights as an
+uninterrupted run (tests/stages/test_train.py checks it). ``epochs``, ``max_steps`` and
+the logging/checkpoint intervals are not part of the key: raising ``max_steps`` or
+``epochs`` continues a finished run.
+
+Outputs: ``data_dir/train/model.pt`` (``models.checkpoint.save_checkpoint``; config w,
+dropout; meta steps, val error, manifest hash), ``metrics.json``, ``plots/loss.csv``
+(step, loss) and ``plots/val.csv`` (step, val_mean_deg, val_median_deg) for
+``dvc plots``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from contextlib import nullcontext
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from cnnps.atomic import atomic_path, write_text
+from cnnps.errors import ConfigError, InputError
+from stages.shards import MANIFEST, ShardDataset, ShardStream, load_manifest, manifest_files
+
+CKPT_FORMAT = 1
+
+
+@dataclass(frozen=True)
+class Params:
+    epochs: int = 10
+    max_steps: int = 0  # 0 = no limit; otherwise stop after this many optimiser steps
+    batch_size: int = 128
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    dropout: float = 0.2
+    seed: int = 0
+    shuffle_buffer: int = 65536  # rows
+    val_every: int = 2000  # steps; 0 = only at the end
+    val_max_rows: int = 50000
+    checkpoint_every: int = 1000  # steps
+    keep_checkpoints: int = 2
+    log_every: int = 50  # steps between loss points in plots/loss.csv
+    device: str = "auto"  # auto | cpu | cuda
+    precision: str = "fp32"  # fp32 | bf16 (autocast)
+    threads: int = 0  # torch CPU threads; 0 = one per core
+    channels_last: bool = False
+    num_workers: int = 0  # DataLoader worker processes; 0 = load in the main process
+    progress: bool = True
+
+    def __post_init__(self):
+        for name in ("epochs", "batch_size", "shuffle_buffer", "val_max_rows", "checkpoint_every", "keep_checkpoints", "log_every"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"train.{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("max_steps", "val_every", "threads", "num_workers"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"train.{name} must be >= 0, got {getattr(self, name)}")
+        if not self.lr > 0:
+            raise ConfigError(f"train.lr must be > 0, got {self.lr}")
+        if not 0 <= self.dropout < 1:
+            raise ConfigError(f"train.dropout must be in [0, 1), got {self.dropout}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ConfigError(f"train.device must be auto, cpu or cuda, got {self.device!r}")
+        if self.precision not in ("fp32", "bf16"):
+            raise ConfigError(f"train.precision must be fp32 or bf16, got {self.precision!r}")
+
+    def result_key(self) -> dict:
+        """Params that change the trained weights (a resume needs them equal)."""
+        d = asdict(self)
+        for k in ("epochs", "max_steps", "val_every", "val_max_rows", "checkpoint_every", "keep_checkpoints",
+                  "log_every", "threads", "num_workers", "progress"):
+            d.pop(k)
+        return d
+
+
+# -- pieces shared with benchmarks/bench_train.py ---------------------------------------
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("train.device is 'cuda' but no CUDA device is available")
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    return torch.device(name)
+
+
+def autocast(device: torch.device, precision: str):
+    if precision == "bf16":
+        return torch.autocast(device.type, dtype=torch.bfloat16)
+    return nullcontext()
+
+
+def make_model(w: int, params: Params, device: torch.device):
+    from models.network import CNNPS
+
+    torch.manual_seed(params.seed)
+    model = CNNPS(w=w, dropout=params.dropout).to(device)
+    if params.channels_last:
+        model = model.to(memory_format=torch.channels_last)
+    opt = torch.optim.Adam(model.parameters(), lr=params.lr, weight_decay=params.weight_decay)
+    return model, opt
+
+
+def train_step(model, opt, maps: torch.Tensor, normals: torch.Tensor, device, precision: str, channels_last: bool) -> float:
+    maps = maps.to(device, non_blocking=True)
+    normals = normals.to(device, non_blocking=True)
+    if channels_last:
+        maps = maps.contiguous(memory_format=torch.channels_last)
+    with autocast(device, precision):
+        pred = model(maps)
+    loss = F.mse_loss(pred.float(), normals)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return loss.detach()
+
+
+@torch.no_grad()
+def predict(model, maps: np.ndarray, device, precision: str, batch: int = 2048) -> np.ndarray:
+    model.eval()
+    out = []
+    for s in range(0, len(maps), batch):
+        x = torch.from_numpy(np.ascontiguousarray(maps[s : s + batch])).float().unsqueeze(1).to(device)
+        with autocast(device, precision):
+            out.append(model(x).float().cpu().numpy())
+    model.train()
+    return np.concatenate(out) if out else np.zeros((0, 3), np.float32)
+
+
+def load_val(files, w: int, max_rows: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Up to max_rows (maps float16, normals) from the val shards, a fixed random sample
+    of row groups (the same for every run with this seed)."""
+    if not files:
+        return np.zeros((0, w, w), np.float16), np.zeros((0, 3), np.float32)
+    stream = ShardStream(files, w, batch_size=4096, seed=seed + 1, buffer_rows=4096, shuffle=True, drop_last=False)
+    ms, ns, n = [], [], 0
+    for m, nn_ in stream.iter_epoch(0):
+        ms.append(m)
+        ns.append(nn_)
+        n += len(m)
+        if n >= max_rows:
+            break
+    return np.concatenate(ms)[:max_rows], np.concatenate(ns)[:max_rows]
+
+
+def angular_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    from cnnps.metrics import angular_error_deg
+
+    return angular_error_deg(pred, gt)
+
+
+# -- checkpoints ------------------------------------------------------------------------
+
+
+def _ckpt_path(ckpt_dir: Path, step: int) -> Path:
+    return ckpt_dir / f"step-{step:08d}.pt"
+
+
+def _list_ckpts(ckpt_dir: Path) -> list[Path]:
+    return sorted(ckpt_dir.glob("step-*.pt"))
+
+
+def save_training_state(ckpt_dir: Path, state: dict, keep: int) -> Path:
+    path = _ckpt_path(ckpt_dir, state["step"])
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+    for old in _list_ckpts(ckpt_dir)[:-keep]:
+        old.unlink(missing_ok=True)
+    return path
+
+
+def load_training_state(ckpt_dir: Path, run_key: str) -> dict | None:
+    """The newest readable checkpoint of this run key; others are deleted."""
+    for path in reversed(_list_ckpts(ckpt_dir)):
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception:
+            path.unlink(missing_ok=True)  # unreadable: cannot be one we finished writing
+            continue
+        if state.get("run_key") == run_key and state.get("format") == CKPT_FORMAT:
+            return state
+        path.unlink(missing_ok=True)  # from another configuration or data
+    return None
+
+
+# -- the stage --------------------------------------------------------------------------
+
+
+def run(params: Params, data_dir: Path, *, _stop_after_step: int | None = None) -> dict:
+    """Train; returns the final metrics. ``_stop_after_step`` (tests only) raises
+    ``KeyboardInterrupt`` after that step, like a killed run."""
+    data_dir = Path(data_dir)
+    extract_dir = data_dir / "extract"
+    out_dir = data_dir / "train"
+    ckpt_dir = out_dir / "checkpoints"
+    manifest = load_manifest(extract_dir)
+    manifest_hash = hashlib.sha256((extract_dir / MANIFEST).read_bytes()).hexdigest()
+    w = int(manifest["w"])
+    train_files = manifest_files(extract_dir, manifest, "train")
+    val_files = manifest_files(extract_dir, manifest, "val")
+    if not train_files:
+        raise InputError(extract_dir / MANIFEST, "lists no training shards")
+    for f in train_files + val_files:
+        if not f.is_file():
+            raise InputError(f, "shard listed in the manifest is missing (rerun extract)")
+    run_key = hashlib.sha256(json.dumps([params.result_key(), manifest_hash], sort_keys=True).encode()).hexdigest()
+
+    if params.threads:
+        torch.set_num_threads(params.threads)
+    device = pick_device(params.device)
+    model, opt = make_model(w, params, device)
+    stream = ShardStream(train_files, w, params.batch_size, seed=params.seed, buffer_rows=params.shuffle_buffer)
+    steps_per_epoch = stream.batches_per_epoch()
+    if steps_per_epoch == 0:
+        raise ConfigError(f"train.batch_size {params.batch_size} is larger than the {stream.rows()} training rows")
+    total_steps = params.epochs * steps_per_epoch
+    if params.max_steps:
+        total_steps = min(total_steps, params.max_steps)
+
+    step, history = 0, {"loss": [], "val": []}
+    state = load_training_state(ckpt_dir, run_key) if ckpt_dir.is_dir() else None
+    if state is not None:
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optim"])
+        torch.set_rng_state(state["torch_rng"])
+        if device.type == "cuda" and state.get("cuda_rng") is not None:
+            torch.cuda.set_rng_state(state["cuda_rng"])
+        step, history = int(state["step"]), state["history"]
+    model.train()
+
+    val_maps, val_normals = load_val(val_files, w, params.val_max_rows, params.seed)
+
+    def validate() -> dict:
+        if len(val_maps) == 0:
+            return {}
+        err = angular_errors(predict(model, val_maps, device, params.precision), val_normals)
+        return {"val_mean_deg": float(err.mean()), "val_median_deg": float(np.median(err))}
+
+    def checkpoint():
+        save_training_state(
+            ckpt_dir,
+            {
+                "format": CKPT_FORMAT,
+                "run_key": run_key,
+                "step": step,
+                "model": model.state_dict(),
+                "optim": opt.state_dict(),
+                "torch_rng": torch.get_rng_state(),
+                "cuda_rng": torch.cuda.get_rng_state() if device.type == "cuda" else None,
+                "history": history,
+            },
+            params.keep_checkpoints,
+        )
+        _write_plots(out_dir, history)
+
+    ds = ShardDataset(stream)
+    if params.num_workers:
+        # its own generator: creating a DataLoader iterator must not draw from the global
+        # torch RNG (that would shift the dropout masks of a resumed run)
+        loader = torch.utils.data.DataLoader(
+            ds, batch_size=None, num_workers=params.num_workers, pin_memory=device.type == "cuda",
+            generator=torch.Generator().manual_seed(params.seed),
+        )
+    else:
+        loader = ds  # main-process loading: no DataLoader machinery needed
+    bar = tqdm(total=total_steps * params.batch_size, initial=step * params.batch_size, unit="sample",
+               unit_scale=True, desc="train", disable=not params.progress)
+    t0, step0 = time.perf_counter(), step
+    loss_acc, loss_n = torch.zeros(()), 0
+    while step < total_steps:
+        epoch, skip = divmod(step, steps_per_epoch)
+        ds.set_epoch(epoch)
+        ds.set_skip(skip)
+        for maps, normals in loader:
+            loss = train_step(model, opt, maps, normals, device, params.precision, params.channels_last)
+            step += 1
+            loss_acc += loss.float().cpu()
+            loss_n += 1
+            bar.update(params.batch_size)
+            if step % params.log_every == 0 or step == total_steps:
+                history["loss"].append([step, float(loss_acc) / loss_n])
+                bar.set_postfix(loss=f"{history['loss'][-1][1]:.4f}")
+                loss_acc, loss_n = torch.zeros(()), 0
+            if params.val_every and step % params.val_every == 0 and step != total_steps:
+                v = validate()
+                if v:
+                    history["val"].append([step, v["val_mean_deg"], v["val_median_deg"]])
+            if step % params.checkpoint_every == 0 or step == total_steps:
+                checkpoint()
+            if _stop_after_step is not None and step >= _stop_after_step:
+                bar.close()
+                raise KeyboardInterrupt(f"stopped after step {step} (test)")
+            if step >= total_steps:
+                break
+    bar.close()
+    seconds = time.perf_counter() - t0
+    v = validate()
+    if v and (not history["val"] or history["val"][-1][0] != step):
+        history["val"].append([step, v["val_mean_deg"], v["val_median_deg"]])
+    if step > 0 and not _list_ckpts(ckpt_dir):
+        checkpoint()
+    _write_plots(out_dir, history)
+
+    metrics = {
+        "steps": step,
+        "epochs": round(step / steps_per_epoch, 3),
+        "samples": step * params.batch_size,
+        "train_loss": history["loss"][-1][1] if history["loss"] else None,
+        **v,
+        "val_rows": int(len(val_maps)),
+        "train_rows": stream.rows(),
+        "samples_per_s": round((step - step0) * params.batch_size / seconds, 1) if step > step0 and seconds > 0 else None,
+        "device": str(device),
+        "precision": params.precision,
+    }
+    from models.checkpoint import save_checkpoint
+
+    save_checkpoint(
+        out_dir / "model.pt",
+        model.cpu(),
+        config={"w": w, "dropout": params.dropout},
+        meta={"steps": step, "val_mean_deg": v.get("val_mean_deg"), "val_median_deg": v.get("val_median_deg"),
+              "data_manifest_sha256": manifest_hash, "params": asdict(params)},
+    )
+    write_text(out_dir / "metrics.json", json.dumps(metrics, indent=1))
+    return metrics
+
+
+def _write_plots(out_dir: Path, history: dict) -> None:
+    plots = out_dir / "plots"
+    write_text(plots / "loss.csv", "step,loss\n" + "".join(f"{s},{l:.6g}\n" for s, l in history["loss"]))
+    write_text(
+        plots / "val.csv",
+        "step,val_mean_deg,val_median_deg\n" + "".join(f"{s},{a:.4f},{b:.4f}\n" for s, a, b in history["val"]),
+    )

@@ -1,0 +1,313 @@
+"""Tests of the extract stage on small synthetic Lambertian captures (no Blender)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from cnnps.imageio import write_exr, write_png
+from cnnps.obsmap import observation_maps
+from cnnps.rotation import rotate_z, rotation_angles
+from stages import extract
+from stages.extract import Params, sample_light_masks
+from stages.shards import decode_maps, decode_normals, load_manifest
+
+# -- synthetic captures (also used by test_train.py) ----------------------------------
+
+
+def random_lights(rng: np.random.Generator, m: int, min_z: float = 0.05) -> np.ndarray:
+    """m unit directions spread over the upper hemisphere (z >= min_z)."""
+    z = rng.uniform(min_z, 1.0, m)
+    phi = rng.uniform(0, 2 * np.pi, m)
+    r = np.sqrt(1 - z**2)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def sphere_normals(size: int, radius: float = 0.45, center=(0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """(mask (H,W), normals (H,W,3)) of a sphere; row 0 on top, y up."""
+    c = (np.arange(size) + 0.5) / size - 0.5
+    x = c[None, :] - center[0]
+    y = -c[:, None] - center[1]
+    x, y = np.broadcast_arrays(x, y)
+    rr = (x**2 + y**2) / radius**2
+    mask = rr < 0.97
+    z = np.sqrt(np.clip(1 - rr, 0, None))
+    n = np.stack([x / radius, y / radius, z], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n[~mask] = 0
+    return mask, n.astype(np.float32)
+
+
+def make_scene(root: Path, scene_id: str, seed: int, size: int = 24, m: int = 60, view_id: str | None = None) -> Path:
+    """Write a rendered-scene folder: Lambertian sphere, m random lights, EXR images."""
+    rng = np.random.default_rng(seed)
+    d = Path(root) / scene_id
+    d.mkdir(parents=True)
+    mask, n = sphere_normals(size, radius=rng.uniform(0.3, 0.48), center=rng.uniform(-0.03, 0.03, 2))
+    L = random_lights(rng, m)
+    albedo = rng.uniform(0.3, 1.0)
+    shading = np.clip(np.einsum("hwc,mc->mhw", n, L), 0, None) * albedo
+    names = []
+    for j in range(m):
+        name = f"{j:03d}.exr"
+        write_exr(d / name, (shading[j] * mask).astype(np.float32))
+        names.append(name)
+    (d / "filenames.txt").write_text("\n".join(names) + "\n")
+    np.savetxt(d / "light_directions.txt", L)
+    np.savetxt(d / "light_intensities.txt", np.ones((m, 3)))
+    write_png(d / "mask.png", (mask * 255).astype(np.uint8))
+    np.save(d / "normal_gt.npy", n)
+    meta = {"key": f"{scene_id}-{seed}"}
+    if view_id:
+        meta["view_id"] = view_id
+    (d / "scene.json").write_text(json.dumps(meta))
+    return d
+
+
+def make_render_dir(data_dir: Path, n_scenes: int = 3, size: int = 24, m: int = 60) -> Path:
+    for i in range(n_scenes):
+        make_scene(data_dir / "render", f"s{i:02d}", seed=100 + i, size=size, m=m)
+    return data_dir
+
+
+SMALL = dict(min_lights=10, max_lights=40, rotations=4, rows_per_group=500, rows_per_shard=1500, chunk_pixels=100)
+
+
+def read_all(data_dir: Path):
+    import pyarrow as pa
+
+    man = load_manifest(data_dir / "extract")
+    tables = [pq.read_table(data_dir / "extract" / s["file"]) for s in man["shards"]]
+    return man, pa.concat_tables(tables)
+
+
+@pytest.fixture(scope="module")
+def extracted(tmp_path_factory):
+    data = tmp_path_factory.mktemp("ex")
+    make_render_dir(data, n_scenes=3)
+    params = Params(val_fraction=0.34, seed=7, **SMALL)
+    extract.run(params, data)
+    return data, params
+
+
+# -- sampling ---------------------------------------------------------------------------
+
+
+def test_light_subsets_respect_cone_and_size_bounds():
+    rng = np.random.default_rng(0)
+    L = random_lights(rng, 300)
+    mask, cone_deg, k = sample_light_masks(np.random.default_rng(1), L, 2000, 50, 200, 20.0, 90.0)
+    z = L[:, 2]
+    # every used light lies inside the row's cone
+    used_angle = np.degrees(np.arccos(np.clip(z, -1, 1)))[None, :]
+    assert np.all(np.where(mask, used_angle, 0) <= cone_deg[:, None] + 1e-9)
+    assert np.array_equal(k, mask.sum(1))
+    assert k.min() >= 50 and k.max() <= 200
+    # cones are drawn from [20, 90]; those too narrow for 50 lights were widened to hold exactly >= 50
+    assert cone_deg.min() >= 20.0 and cone_deg.max() <= 90.0
+    n_in = (used_angle <= cone_deg[:, None] + 1e-9).sum(1)
+    assert np.all(n_in >= 50)
+    # a subset takes every cone light when the cone holds fewer than the drawn size: here
+    # narrow cones (few lights) must have k == n_in far more often than wide ones
+    narrow = cone_deg < 35
+    assert np.mean(k[narrow] == n_in[narrow]) > 0.9
+    assert np.mean(k[~narrow] == n_in[~narrow]) < 0.5
+
+
+def test_light_subsets_when_fewer_lights_than_min():
+    L = random_lights(np.random.default_rng(0), 30)
+    mask, cone_deg, k = sample_light_masks(np.random.default_rng(1), L, 100, 50, 1300, 20.0, 90.0)
+    assert np.all(k == 30) and mask.all()  # everything, cone widened to hold all 30
+
+
+def test_subset_sizes_cover_range_uniformly():
+    L = random_lights(np.random.default_rng(0), 400, min_z=0.999)  # all lights near the axis: cone never binds
+    _, _, k = sample_light_masks(np.random.default_rng(2), L, 20000, 50, 250, 20.0, 90.0)
+    assert k.min() == 50 and k.max() == 250
+    assert abs(k.mean() - 150) < 3
+
+
+# -- the stage --------------------------------------------------------------------------
+
+
+def test_schema_and_manifest(extracted):
+    data, params = extracted
+    man, table = read_all(data)
+    f = pq.ParquetFile(data / "extract" / man["shards"][0]["file"])
+    schema = f.schema_arrow
+    assert str(schema.field("map").type) == f"fixed_size_binary[{params.w * params.w * 2}]"
+    ntype = schema.field("normal").type
+    assert ntype.list_size == 3 and str(ntype.value_type) == "float"
+    assert str(schema.field("scene").type) == "dictionary<values=string, indices=int32, ordered=0>"
+    assert [str(schema.field(c).type) for c in ("row", "col", "n_lights", "cone_deg", "rotation", "angle_deg")] == [
+        "int32", "int32", "int16", "float", "int8", "float"
+    ]
+    assert f.metadata.row_group(0).column(0).compression == "ZSTD"
+    assert man["total_rows"] == table.num_rows == man["train_rows"] + man["val_rows"]
+    assert sum(s["rows"] for s in man["shards"]) == table.num_rows
+    assert len(man["val_scenes"]) == 1 and len(man["train_scenes"]) == 2
+    for s in man["shards"]:
+        assert s["rows"] <= params.rows_per_shard
+        meta = pq.read_metadata(data / "extract" / s["file"])
+        assert all(meta.row_group(g).num_rows <= params.rows_per_group for g in range(meta.num_row_groups))
+        assert s["split"] == man["scenes"][s["scene"]]["split"]
+    # every foreground pixel appears with every rotation
+    for sid, rec in man["scenes"].items():
+        assert rec["rows"] == rec["pixels"] * params.rotations
+        mask = np.load(data / "render" / sid / "normal_gt.npy").any(-1)
+        assert rec["pixels"] + rec["dropped_dark_pixels"] == mask.sum()
+    n = decode_normals(table.column("normal"))
+    assert np.allclose(np.linalg.norm(n, axis=1), 1, atol=1e-5)
+    maps = decode_maps(table.column("map"), params.w).astype(np.float32)
+    assert np.allclose(maps.reshape(len(maps), -1).max(1), 1.0)  # every map scaled to max 1
+    assert set(table.column("rotation").to_numpy()) == set(range(params.rotations))
+
+
+def test_rows_match_recomputation(extracted):
+    """Each row equals a map rebuilt from the capture: lights inside the cone, lights and
+    normal of rotation r turned by rotation_angles(R)[r]."""
+    from cnnps.capture import load_capture
+
+    data, params = extracted
+    man, table = read_all(data)
+    sid = man["train_scenes"][0]
+    import pyarrow.compute as pc
+
+    t = table.filter(pc.equal(table.column("scene").cast("string"), sid))
+    cap = load_capture(data / "render" / sid)
+    rows, cols = t.column("row").to_numpy(), t.column("col").to_numpy()
+    rot = t.column("rotation").to_numpy()
+    ang = np.radians(t.column("angle_deg").to_numpy().astype(np.float64))
+    assert np.allclose(ang, rotation_angles(params.rotations)[rot], atol=1e-6)
+    maps = decode_maps(t.column("map"), params.w).astype(np.float32)
+    normals = decode_normals(t.column("normal"))
+    # normal of every row is the ground truth turned by its angle
+    gt = cap.normal_gt[rows, cols]
+    assert np.allclose(normals, rotate_z(gt, ang), atol=1e-5)
+    # rotating back: every rotation of one pixel uses the same light subset, so the
+    # map of rotation r equals observation_maps(I, lights turned by angle_r) with that subset
+    cone = t.column("cone_deg").to_numpy()
+    k = t.column("n_lights").to_numpy()
+    I = cap.images[:, rows, cols].T  # (n, m)
+    for i in range(0, len(rows), 37):
+        # infer the subset from the map is impossible; check instead that the map cells
+        # only hold lights inside the cone: a cell is non-zero only if a lit in-cone light falls in it
+        Lr = rotate_z(cap.lights, ang[i])
+        in_cone = cap.lights[:, 2] >= np.cos(np.radians(cone[i])) - 1e-6
+        allowed = observation_maps(I[i : i + 1], Lr, params.w, light_mask=in_cone[None])[0] > 0
+        assert np.all(allowed[maps[i] > 0]), i
+        assert k[i] <= in_cone.sum()
+    # pixels repeated over rotations: same cone, same subset size
+    key = rows * 10000 + cols
+    for p in np.unique(key)[:20]:
+        sel = key == p
+        assert len(np.unique(cone[sel])) == 1 and len(np.unique(k[sel])) == 1
+        assert sorted(rot[sel]) == list(range(params.rotations))
+
+
+def test_build_rows_equals_rotated_observation_maps():
+    rng = np.random.default_rng(3)
+    L = random_lights(rng, 80)
+    I = rng.random((50, 80)).astype(np.float32)
+    n = rotate_z(np.tile([[0.3, 0.2, 0.93]], (50, 1)), rng.uniform(0, 6, 50))
+    mask, _, _ = sample_light_masks(rng, L, 50, 20, 60, 30, 80)
+    angles = rotation_angles(10)
+    maps, rn = extract.build_rows(I, n, L, mask, angles, 32)
+    for r in (0, 3, 7):
+        ref = observation_maps(I, rotate_z(L, angles[r]), 32, light_mask=mask)
+        assert np.array_equal(maps[r], ref.astype(np.float16))
+        assert np.allclose(rn[r], rotate_z(n, angles[r]))
+    # rotation by 36 degrees moves the map (not the identity)
+    assert not np.array_equal(maps[0], maps[1])
+
+
+def test_deterministic_and_independent_of_other_scenes(tmp_path, extracted):
+    data, params = extracted
+    # same seed, same renders -> identical shard bytes
+    other = tmp_path / "d2"
+    make_render_dir(other, n_scenes=3)
+    extract.run(params, other)
+    m1, m2 = load_manifest(data / "extract"), load_manifest(other / "extract")
+    assert [s["sha256"] for s in m1["shards"]] == [s["sha256"] for s in m2["shards"]]
+    # add a scene: other scenes' shards unchanged and not rewritten (cached)
+    before = {p.name: p.stat().st_mtime_ns for p in (other / "extract").glob("shard-*.parquet")}
+    make_scene(other / "render", "s99", seed=999)
+    extract.run(params, other)
+    m3 = load_manifest(other / "extract")
+    sha3 = {s["file"]: s["sha256"] for s in m3["shards"]}
+    for s in m2["shards"]:
+        assert sha3[s["file"]] == s["sha256"]
+    after = {p.name: p.stat().st_mtime_ns for p in (other / "extract").glob("shard-*.parquet")}
+    assert all(after[k] == v for k, v in before.items())
+    assert "s99" in m3["scenes"]
+    # a different seed changes the rows
+    extract.run(Params(**{**params.__dict__, "seed": 8}), other)
+    m4 = load_manifest(other / "extract")
+    assert {s["sha256"] for s in m4["shards"]}.isdisjoint({s["sha256"] for s in m3["shards"]})
+    # removed scene: its shards disappear from disk and manifest
+    import shutil
+
+    shutil.rmtree(other / "render" / "s99")
+    extract.run(Params(**{**params.__dict__, "seed": 8}), other)
+    assert not list((other / "extract").glob("shard-s99-*")) and "s99" not in load_manifest(other / "extract")["scenes"]
+
+
+def test_pixels_per_scene_and_explicit_val(tmp_path):
+    make_render_dir(tmp_path, n_scenes=2)
+    params = Params(pixels_per_scene=30, val_scenes=("s01",), **SMALL)
+    extract.run(params, tmp_path)
+    man = load_manifest(tmp_path / "extract")
+    assert man["val_scenes"] == ["s01"] and man["train_scenes"] == ["s00"]
+    for rec in man["scenes"].values():
+        assert rec["pixels"] + rec["dropped_dark_pixels"] == 30
+    from cnnps.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="nope"):
+        extract.run(Params(val_scenes=("nope",), **SMALL), tmp_path)
+
+
+def test_split_groups_views():
+    scenes = [(f"v{v}_m{k}", Path("."), {"key": "x", "view_id": f"v{v}"}) for v in range(5) for k in range(3)]
+    split = extract.split_scenes(scenes, Params(val_fraction=0.4))
+    val_views = {s.split("_")[0] for s, sp in split.items() if sp == "val"}
+    train_views = {s.split("_")[0] for s, sp in split.items() if sp == "train"}
+    assert len(val_views) == 2 and not (val_views & train_views)
+
+
+def test_failure_mid_write_leaves_no_shard(tmp_path, monkeypatch):
+    make_render_dir(tmp_path, n_scenes=2)
+    calls = {"n": 0}
+    real = extract.build_rows
+
+    def failing(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 3:  # scene s00 has several chunks; fail inside it
+            raise RuntimeError("simulated crash")
+        return real(*a, **k)
+
+    monkeypatch.setattr(extract, "build_rows", failing)
+    with pytest.raises(RuntimeError, match="simulated"):
+        extract.run(Params(**SMALL), tmp_path)
+    out = tmp_path / "extract"
+    assert not list(out.glob("shard-*.parquet")) and not (out / "manifest.json").exists()
+    assert not list(out.glob("scene-*.json"))
+    assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
+    # rerun completes
+    monkeypatch.setattr(extract, "build_rows", real)
+    extract.run(Params(**SMALL), tmp_path)
+    assert load_manifest(out)["total_rows"] > 0
+
+
+def test_bad_params_and_missing_renders(tmp_path):
+    from cnnps.errors import ConfigError, InputError
+
+    with pytest.raises(ConfigError):
+        Params(min_lights=100, max_lights=50)
+    with pytest.raises(ConfigError):
+        Params(cone_min_deg=60, cone_max_deg=30)
+    with pytest.raises(InputError, match="render"):
+        extract.run(Params(), tmp_path)
