@@ -23,11 +23,17 @@ Randomness: scene ``s`` uses ``numpy.random.default_rng([seed, h(s.key)])`` and 
 ``c`` of it the child stream ``[seed, h(key), c]`` (pixel order, cones, subsets), so a
 scene's rows depend only on its own key and the params, never on the other scenes.
 
-Output in ``data_dir/extract/``: ``shard-<scene_id>-NNN.parquet`` (see
-:mod:`stages.shards` for the schema), one ``scene-<scene_id>.json`` marker per finished
-scene (its cache key and shard list, written after its shards are renamed into place),
-and ``manifest.json`` written last. A rerun skips scenes whose marker has the same
-cache key and whose shards still exist with their recorded sizes.
+Output in ``data_dir/extract/`` (or at ``output``: a path or an fsspec URL such as
+``s3://bucket/run/extract``, ``file:///shared/run/extract`` or, for one process only,
+``memory://run/extract``): ``shard-<scene_id>-NNN.parquet`` (see :mod:`stages.shards`
+for the schema), one ``scene-<scene_id>.json`` marker per finished scene (its cache key
+and shard list, written after its shards are moved into place), and ``manifest.json``
+written last. A rerun skips scenes whose marker has the same cache key and whose shards
+still exist with their recorded sizes.
+
+Scenes are independent jobs run by the executor (:mod:`pipeline.executor`: ``local``
+process pool or ``ray``); each job writes only its own shards and marker, atomically and
+deterministically, so a retried or duplicated job rewrites the same bytes.
 
 Validation split is by scene (grouped by ``scene.json``'s ``view_id`` when present, so
 the same posed mesh never lands in both splits): ``val_scenes`` lists them explicitly,
@@ -42,17 +48,19 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
+from fnmatch import fnmatch
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from cnnps.atomic import write_text
 from cnnps.errors import ConfigError, InputError
 from cnnps.obsmap import observation_maps
 from cnnps.rotation import rotate_z, rotation_angles
-from stages.shards import MANIFEST, SceneShardWriter, make_batch, shard_schema
+from pipeline import storage
+from pipeline.executor import ExecutorParams
+from stages.shards import MANIFEST, SceneShardWriter, file_size, make_batch, shard_path, shard_schema
 
 FORMAT_VERSION = 1  # bump when the rows written for the same inputs change
 
@@ -72,7 +80,13 @@ class Params:
     rows_per_group: int = 8192
     rows_per_shard: int = 262144
     chunk_pixels: int = 2048
-    workers: int = 1  # scenes extracted in parallel processes (0 = one per core)
+    # how scenes are run: params.yaml's shared ``executor`` section (None = in this process);
+    # ``workers`` overrides executor.workers when set (1 = in this process, 0 = one per core)
+    executor: ExecutorParams | None = None
+    workers: int | None = None
+    # where shards + manifest go: a path or an fsspec URL (s3://, gs://, file://, memory://);
+    # None = data_dir/extract. The train stage reads the same place (train.shards).
+    output: str | None = None
 
     def __post_init__(self):
         if not 4 <= self.w <= 256:
@@ -94,16 +108,25 @@ class Params:
         for name in ("rows_per_group", "rows_per_shard", "chunk_pixels"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"extract.{name} must be >= 1, got {getattr(self, name)}")
-        if self.workers < 0:
+        if self.workers is not None and self.workers < 0:
             raise ConfigError(f"extract.workers must be >= 0, got {self.workers}")
+        if self.output is not None and (not isinstance(self.output, str) or not self.output.strip()):
+            raise ConfigError(f"extract.output must be a folder path or URL, got {self.output!r}")
         object.__setattr__(self, "val_scenes", tuple(self.val_scenes))
 
     def row_key(self) -> dict:
         """The params that change the rows of a scene (not the split, not parallelism)."""
-        d = asdict(self)
-        for k in ("val_fraction", "val_scenes", "workers"):
+        d = self.manifest_params()
+        for k in ("val_fraction", "val_scenes"):
             d.pop(k)
         d["format"] = FORMAT_VERSION
+        return d
+
+    def manifest_params(self) -> dict:
+        """The params recorded in the manifest: not where or how the stage ran."""
+        d = asdict(self)
+        for k in ("executor", "workers", "output"):
+            d.pop(k)
         return d
 
 
@@ -166,11 +189,13 @@ def build_rows(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Maps (R, P, w, w) float16 and normals (R, P, 3) float32 for every rotation angle:
     rotation r uses lights and normals rotated about z by ``angles[r]``."""
-    R, P = len(angles), intensities.shape[0]
-    maps = np.empty((R, P, w, w), np.float16)
-    rot_normals = np.empty((R, P, 3), np.float32)
+    from cnnps.obsmap import observation_maps_multi  # same maps as observation_maps per angle
+
+    # one call for all angles: the masked values are shared, only the cells move
+    rot_lights = np.stack([rotate_z(lights, a) for a in angles])
+    maps = observation_maps_multi(intensities, rot_lights, w, light_mask=light_mask, dtype=np.float16)
+    rot_normals = np.empty((len(angles), len(normals), 3), np.float32)
     for r, a in enumerate(angles):
-        maps[r] = observation_maps(intensities, rotate_z(lights, a), w, light_mask=light_mask, dtype=np.float16)
         rot_normals[r] = rotate_z(normals, a)
     return maps, rot_normals
 
@@ -205,7 +230,7 @@ class SceneJob:
     folder: Path
     key: str  # cache key (scene key + row params)
     scene_key: str
-    out_dir: Path
+    out_dir: str | Path  # local folder or fsspec URL
     params: Params
     threads: int = 0
     progress: bool = True
@@ -284,7 +309,7 @@ def extract_scene(job: SceneJob) -> dict:
         "seconds": round(time.perf_counter() - t0, 3),
         "shards": [asdict(s) for s in wr.infos],
     }
-    write_text(job.out_dir / f"scene-{job.scene_id}.json", json.dumps(record, indent=1))
+    storage.write_text(shard_path(job.out_dir, f"scene-{job.scene_id}.json"), json.dumps(record, indent=1))
     return record
 
 
@@ -297,19 +322,18 @@ def _limit_threads(n: int) -> None:
         pass
 
 
-def _cached(out_dir: Path, scene_id: str, key: str) -> dict | None:
-    marker = out_dir / f"scene-{scene_id}.json"
-    if not marker.is_file():
+def _cached(out_dir: str | Path, scene_id: str, key: str) -> dict | None:
+    marker = shard_path(out_dir, f"scene-{scene_id}.json")
+    if not storage.exists(marker):
         return None
     try:
-        rec = json.loads(marker.read_text())
-    except json.JSONDecodeError:
+        rec = json.loads(storage.read_text(marker))
+    except (json.JSONDecodeError, InputError):
         return None
     if rec.get("key") != key:
         return None
     for s in rec.get("shards", []):
-        f = out_dir / s["file"]
-        if not f.is_file() or f.stat().st_size != s["bytes"]:
+        if file_size(shard_path(out_dir, s["file"])) != s["bytes"]:
             return None
     return rec
 
@@ -335,9 +359,33 @@ def split_scenes(scenes: list[tuple[str, Path, dict]], params: Params) -> dict[s
     return {sid: ("val" if group_of[sid] in val else "train") for sid, _, _ in scenes}
 
 
-def run(params: Params, data_dir: Path) -> None:
+def output_location(params: Params, data_dir: Path) -> str | Path:
+    """Where the stage writes: ``params.output`` (path or URL) or ``data_dir/extract``."""
+    if params.output is None:
+        return Path(data_dir) / "extract"
+    if storage.is_local(params.output):
+        return storage.local_path(params.output)
+    storage.fsspec_fs(params.output)  # an unknown scheme / missing backend: ConfigError now
+    return params.output.rstrip("/")
+
+
+def _in_process(ex, n_jobs: int) -> bool:
+    """Whether ``ex.map`` runs the jobs in this process (local executor, one worker or job)."""
+    from pipeline.executor import LocalExecutor
+
+    return isinstance(ex, LocalExecutor) and (ex.workers == 1 or n_jobs == 1)
+
+
+def run(params: Params, data_dir: Path, executor=None) -> None:
+    """Extract every rendered scene (skipping cached ones) and write the manifest.
+
+    ``executor``: runs the per-scene jobs (``pipeline.executor``); None = one made from
+    ``params.executor`` / ``params.workers`` (default: in this process), closed at the end.
+    """
+    from pipeline.executor import get_executor
+
     data_dir = Path(data_dir)
-    out_dir = data_dir / "extract"
+    out_dir = output_location(params, data_dir)
     scenes = list_scenes(data_dir / "render")
     split = split_scenes(scenes, params)
     jobs, records = [], {}
@@ -349,14 +397,27 @@ def run(params: Params, data_dir: Path) -> None:
         else:
             jobs.append(SceneJob(sid, folder, key, str(meta["key"]), out_dir, params))
     if jobs:
-        from pipeline.executor import LocalExecutor
-
-        ex = LocalExecutor(params.workers)
-        if ex.workers > 1 and len(jobs) > 1:
-            threads = ex.threads_per_worker(len(jobs))
-            jobs = [SceneJob(**{**j.__dict__, "threads": threads, "progress": False}) for j in jobs]
-        for rec in ex.map(extract_scene, jobs, desc="extract scenes"):
-            records[rec["scene"]] = rec
+        own = executor is None
+        if own:
+            ep = params.executor or ExecutorParams(workers=1)
+            if params.workers is not None:
+                ep = replace(ep, workers=params.workers)
+            executor = get_executor(ep)
+        try:
+            in_process = _in_process(executor, len(jobs))
+            if storage.protocol(out_dir) == "memory" and not in_process:
+                raise ConfigError(
+                    f"extract.output {out_dir}: memory:// exists in one process only; use workers: 1 "
+                    "(executor kind local) or a shared location (a path, file://, s3://)"
+                )
+            threads = executor.threads_per_job(len(jobs))
+            if not in_process:
+                jobs = [replace(j, threads=threads, progress=False) for j in jobs]
+            for rec in executor.map(extract_scene, jobs, desc="extract scenes", num_cpus=threads):
+                records[rec["scene"]] = rec
+        finally:
+            if own:
+                executor.close()
     shards, total = [], {"train": 0, "val": 0}
     for sid, _, _ in scenes:
         rec = records[sid]
@@ -367,7 +428,7 @@ def run(params: Params, data_dir: Path) -> None:
         "format": FORMAT_VERSION,
         "w": params.w,
         "map_dtype": "float16",
-        "params": asdict(params),
+        "params": params.manifest_params(),
         "total_rows": total["train"] + total["val"],
         "train_rows": total["train"],
         "val_rows": total["val"],
@@ -380,17 +441,19 @@ def run(params: Params, data_dir: Path) -> None:
         },
         "shards": shards,
     }
-    write_text(out_dir / MANIFEST, json.dumps(manifest, indent=1))
+    storage.write_text(shard_path(out_dir, MANIFEST), json.dumps(manifest, indent=1))
     _remove_stale(out_dir, {s["file"] for s in shards}, {sid for sid, _, _ in scenes})
 
 
-def _remove_stale(out_dir: Path, keep_files: set[str], keep_scenes: set[str]) -> None:
+def _remove_stale(out_dir: str | Path, keep_files: set[str], keep_scenes: set[str]) -> None:
     """Delete shards and markers no longer in the manifest (after it is written)."""
-    for f in out_dir.glob("shard-*.parquet"):
-        if f.name not in keep_files:
-            f.unlink(missing_ok=True)
-    for f in out_dir.glob("scene-*.json"):
-        if f.name[len("scene-") : -len(".json")] not in keep_scenes:
-            f.unlink(missing_ok=True)
-    for f in out_dir.glob(".shard-*.parquet.tmp"):
-        f.unlink(missing_ok=True)  # left by a killed run
+    for name in storage.listdir(out_dir):
+        stale = (
+            (fnmatch(name, "shard-*.parquet") and name not in keep_files)
+            or (fnmatch(name, "scene-*.json") and name[len("scene-") : -len(".json")] not in keep_scenes)
+        )
+        if stale:
+            storage.remove(shard_path(out_dir, name))
+    if storage.is_local(out_dir):
+        for f in Path(out_dir).glob(".shard-*.parquet.tmp"):
+            f.unlink(missing_ok=True)  # left by a killed run (storage.listdir hides them)

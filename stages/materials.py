@@ -401,8 +401,16 @@ def _scene_is_current(out_dir: Path, key: str) -> bool:
 
 
 def _scene_job(job: dict) -> str:
-    """Rasterise one view, sample one category's maps, write the scene (top level: picklable)."""
+    """Rasterise one view, sample one category's maps, write the scene (top level: picklable).
+
+    Idempotent: the folder's content depends only on the job (its key and seed), so a
+    retried job rewrites the same files, and one whose folder a duplicate already
+    finished returns at once."""
     from stages.meshes import read_view_mesh
+
+    out_dir = Path(job["out_dir"])
+    if _scene_is_current(out_dir, job["key"]):
+        return job["scene_id"]
 
     mesh = read_view_mesh(job["view_dir"])
     mask, normal = rasterize(mesh, job["size"])
@@ -423,7 +431,12 @@ def _scene_job(job: dict) -> str:
         "base_seed": job["base_seed"],
         "version": VERSION,
     }
-    write_material_maps(job["out_dir"], maps, normal, meta)
+    try:
+        write_material_maps(out_dir, maps, normal, meta)
+    except OSError:
+        if not _scene_is_current(out_dir, job["key"]):
+            raise
+        # a duplicate of this job (e.g. a Ray retry) renamed the same content in first
     return job["scene_id"]
 
 
@@ -436,13 +449,18 @@ def run(params: Params, data_dir: Path, executor=None) -> None:
     out_root.mkdir(parents=True, exist_ok=True)
     todo = [j for j in jobs if not _scene_is_current(Path(j["out_dir"]), j["key"])]
     if todo:
-        if executor is None:
+        own = executor is None
+        if own:
             ep = params.executor or ExecutorParams(workers=1)
             if params.workers is not None:
                 ep = dataclasses.replace(ep, workers=params.workers)
             executor = get_executor(ep)
-        ex = executor
-        ex.map(_scene_job, todo, desc="materials")
+        try:
+            # one CPU per job: the rasteriser and SLIC are single-threaded NumPy / scikit-image
+            executor.map(_scene_job, todo, desc="materials", num_cpus=1)
+        finally:
+            if own:
+                executor.close()
     if params.prune:
         wanted = {j["scene_id"] for j in jobs}
         for p in out_root.iterdir():

@@ -9,11 +9,20 @@ the light count), ``filenames.txt``, ``light_directions.txt`` (unit, camera fram
 Caching and resuming. A scene's ``key`` hashes the mesh file, the material files and the
 parameters that change the pictures (not the device, workers or threads). A folder whose
 ``scene.json`` holds the current key and all its images is skipped. Otherwise the folder
-starts with ``.pending.json`` (the key) and the three text files, so the light directions
-are fixed FIRST; each image is written atomically (temp name, rename); ``scene.json`` is
-written LAST as the completion marker. A rerun after a kill finds ``.pending.json`` with
-the same key and renders only the missing images with the same lights; a different key
-clears the folder.
+appears (built under a temporary name, then renamed) already holding ``.pending.json``
+(the key) and the three text files, so the light directions are fixed FIRST; each image
+is written atomically (temp name, rename); ``scene.json`` is written LAST as the
+completion marker. A rerun after a kill finds ``.pending.json`` with the same key and
+renders only the missing images with the same lights; a different key clears the folder.
+
+Scaling out. Scenes are independent jobs run by an executor (:mod:`pipeline.executor`:
+``local`` process pool, or ``ray`` on a cluster; params.yaml's ``executor`` section).
+Each job builds a fresh Blender scene (factory settings) in whatever worker process runs
+it, is told how many threads Cycles may use (``threads``, else the executor's
+``threads_per_job``), asks Ray for one GPU when ``device: gpu``, and is idempotent: the
+images of a scene depend only on its key and seeds (Cycles is deterministic per seed),
+so a retried job (its worker died) resumes the folder and a duplicated one rewrites
+the same pixels.
 
 Mask and ground-truth normals come from Blender itself (one extra 1-sample render): the
 mask is the alpha of the camera rays through the pixel centres and ``normal_gt`` is the
@@ -40,6 +49,7 @@ from tqdm import tqdm
 
 from cnnps.atomic import atomic_path, write_text
 from cnnps.errors import ConfigError, InputError
+from pipeline.executor import ExecutorParams
 
 VERSION = 1  # bump when what is written changes
 MATERIAL_KINDS = ("lambertian", "diffuse", "specular", "metallic")
@@ -56,8 +66,11 @@ class Params:
     max_bounces: int = 8  # Cycles max bounces (all kinds): global illumination
     device: str = "cpu"  # cpu | gpu
     seed: int = 0
-    workers: int = 1  # scenes rendered in parallel (processes)
-    threads: int = 0  # Cycles threads per process (0 = cores / workers)
+    # how scenes are run: params.yaml's shared ``executor`` section (None = in this process);
+    # ``workers`` overrides executor.workers when set (1 = in this process, 0 = one per core)
+    executor: ExecutorParams | None = None
+    workers: int | None = None
+    threads: int = 0  # Cycles threads per scene (0 = the executor's threads_per_job: cores / parallel jobs)
     prune: bool = True  # remove render folders of scenes no longer in materials/
 
     def __post_init__(self):
@@ -82,13 +95,13 @@ class Params:
             bad(f"max_bounces must be an integer >= 0, got {self.max_bounces!r}")
         if self.device not in ("cpu", "gpu"):
             bad(f"device must be 'cpu' or 'gpu', got {self.device!r}")
-        if self.workers < 0 or self.threads < 0:
+        if (self.workers is not None and self.workers < 0) or self.threads < 0:
             bad(f"workers and threads must be >= 0, got {self.workers}, {self.threads}")
 
     def picture_params(self) -> dict:
         """The parameters that change the rendered pictures (part of the content key)."""
         d = asdict(self)
-        for k in ("device", "workers", "threads", "prune"):
+        for k in ("device", "executor", "workers", "threads", "prune"):
             d.pop(k)
         return d
 
@@ -210,6 +223,8 @@ def render_into(
     if is_complete(out, key):
         return {"rendered": 0, "skipped": True}
     from cnnps.imageio import write_exr, write_png
+
+    _forget_inherited_blender_paths()
     from stages.blender_renderer import BlenderRenderer, blender_version
 
     t0 = time.perf_counter()
@@ -230,11 +245,7 @@ def render_into(
             lights = L  # the directions of the interrupted run
             (out / "scene.json").unlink(missing_ok=True)  # not complete any more
         else:
-            if out.exists():
-                shutil.rmtree(out)
-            out.mkdir(parents=True)
-            write_text(out / ".pending.json", json.dumps({"key": key}) + "\n")
-            _write_lights(out, lights, intensity, names)
+            lights = _start_folder(out, key, lights, intensity, names)
 
         r.load_scene(vertices, faces, material if isinstance(material, dict) else lambertian_material())
         have_geometry = (out / "mask.png").is_file() and (out / "normal_gt.npy").is_file()
@@ -265,6 +276,7 @@ def render_into(
             "light_intensity": intensity,
             "seed": seed,
             "device": device,
+            "threads": threads,  # Cycles threads (0 = Blender's default: all cores)
             "gpu_devices": gpus,
             "blender_version": blender_version(),
             "renderer": "Cycles: orthographic camera, sun lamps (angle 0), black world, "
@@ -278,6 +290,51 @@ def render_into(
     write_text(out / "scene.json", json.dumps(scene, indent=2) + "\n")
     (out / ".pending.json").unlink(missing_ok=True)
     return {"rendered": rendered, "skipped": False}
+
+
+def _forget_inherited_blender_paths() -> None:
+    """Drop Blender's script folders from ``sys.path`` in a process that has not imported bpy.
+
+    ``import bpy`` adds ``.../site-packages/bpy/<version>/scripts/modules`` (and others)
+    to ``sys.path``; that folder holds the *Python half* of bpy, also named ``bpy``. A
+    worker spawned by a process that had imported bpy (the local executor's pool after an
+    in-process render) inherits that ``sys.path``, and its ``import bpy`` then finds the
+    Python half first and fails with "No module named '_bpy'". bpy adds the folders back
+    when it is imported.
+    """
+    import os
+    import sys
+
+    if "bpy" in sys.modules:
+        return
+    marker = f"{os.sep}bpy{os.sep}"
+    sys.path[:] = [p for p in sys.path if not (marker in p and f"{os.sep}scripts" in p)]
+
+
+def _start_folder(out: Path, key: str, lights: np.ndarray, intensity: float, names: list[str]) -> np.ndarray:
+    """Create ``out`` holding ``.pending.json`` and the light files, atomically: it is built
+    under a temporary name and renamed into place, so a folder with this key always has
+    its lights. If a duplicate of this job created it meanwhile (same key), its lights
+    are used. Returns the light directions to render."""
+    import tempfile
+
+    if out.exists():
+        shutil.rmtree(out)  # another key, or not a scene folder of ours
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    try:
+        write_text(tmp / ".pending.json", json.dumps({"key": key}) + "\n")
+        _write_lights(tmp, lights, intensity, names)
+        try:
+            tmp.rename(out)
+        except OSError:  # out appeared meanwhile (a duplicate job): resume what it started
+            pending = _read_json(out / ".pending.json") or _read_json(out / "scene.json") or {}
+            if pending.get("key") != key or not (out / "light_directions.txt").is_file():
+                raise
+            return np.loadtxt(out / "light_directions.txt", ndmin=2)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return lights
 
 
 def _load_mesh_arg(mesh) -> tuple[Any, dict]:
@@ -397,7 +454,7 @@ def _scene_jobs(params: Params, data_dir: Path) -> list[dict]:
                 "mesh_path": str(mesh_path),
                 "out": str(data_dir / "render" / sdir.name),
                 "key": key,
-                "params": asdict(params),
+                "params": {k: v for k, v in asdict(params).items() if k != "executor"},
                 "meta": {
                     "scene_id": sdir.name,
                     "view_id": view_id,
@@ -457,14 +514,39 @@ def render_scene_job(job: dict) -> dict:
         out, np.asarray(mesh.vertices), np.asarray(mesh.faces), material, key=job["key"], lights=L,
         intensity=p.light_intensity, size=p.size, samples=p.samples, seed=scene_seed, max_bounces=p.max_bounces,
         device=p.device, threads=job.get("threads", p.threads), meta=job["meta"], desc=sid,
+        progress=job.get("progress", True),
     )
     return {"scene_id": sid, **res}
 
 
+def make_executor(params):
+    """The executor a stage makes for itself: ``params.executor`` (default: in this
+    process) with ``params.workers`` replacing its ``workers`` when set."""
+    import dataclasses
+
+    from pipeline.executor import get_executor
+
+    ep = params.executor or ExecutorParams(workers=1)
+    if params.workers is not None:
+        ep = dataclasses.replace(ep, workers=params.workers)
+    return get_executor(ep)
+
+
+def runs_in_process(executor, n_jobs: int) -> bool:
+    """Whether ``executor.map`` runs the jobs in this process (their own bars may show)."""
+    from pipeline.executor import LocalExecutor
+
+    return isinstance(executor, LocalExecutor) and (executor.workers == 1 or n_jobs == 1)
+
+
 def run(params: Params, data_dir: Path, executor=None) -> dict:
     """Render every scene of ``data_dir/materials`` into ``data_dir/render`` (skipping
-    current ones, resuming partial ones). Returns counts."""
-    from pipeline.executor import ExecutorParams, cores, get_executor
+    current ones, resuming partial ones). Returns counts.
+
+    ``executor``: runs the per-scene jobs (:mod:`pipeline.executor`); None = one made
+    from ``params.executor`` / ``params.workers`` (default: in this process), closed at
+    the end. Progress: scenes done / total (the executor's bar).
+    """
 
     data_dir = Path(data_dir)
     jobs = _scene_jobs(params, data_dir)
@@ -476,16 +558,21 @@ def run(params: Params, data_dir: Path, executor=None) -> dict:
             if d.is_dir() and d.name not in wanted and ((d / "scene.json").exists() or (d / ".pending.json").exists()):
                 shutil.rmtree(d)
     todo = [j for j in jobs if not is_complete(Path(j["out"]), j["key"])]
-    executor = executor or get_executor(ExecutorParams(workers=params.workers or 0))
-    if params.threads > 0:
-        threads = params.threads
-    elif hasattr(executor, "threads_per_worker"):
-        threads = executor.threads_per_worker(len(todo))
-    else:
-        threads = cores()
-    for j in todo:
-        j["threads"] = threads
-    results = executor.map(render_scene_job, todo, desc="render") if todo else []
+    results = []
+    if todo:
+        own = executor is None
+        executor = make_executor(params) if own else executor
+        try:
+            threads = params.threads or executor.threads_per_job(len(todo))
+            progress = runs_in_process(executor, len(todo))  # per-light bars only in this process
+            for j in todo:
+                j["threads"] = threads
+                j["progress"] = progress
+            gpus = 1 if params.device == "gpu" else 0
+            results = executor.map(render_scene_job, todo, desc="render", num_cpus=threads, num_gpus=gpus)
+        finally:
+            if own:
+                executor.close()
     return {
         "scenes": len(jobs),
         "skipped": len(jobs) - len(todo),

@@ -21,13 +21,22 @@ Columns (see :func:`shard_schema`):
 
 Files are written under a temporary name and renamed only when complete
 (:class:`SceneShardWriter`), so a file named ``shard-*.parquet`` is always whole.
+
+Shards can live at a local path or at an fsspec URL (``s3://bucket/run/extract``,
+``gs://...``, ``memory://...``; :mod:`pipeline.storage`): the writer stages a scene's
+files in a local temporary folder and uploads each one atomically (temporary name,
+then move) when the scene is complete; the readers (:func:`load_manifest`,
+:func:`row_group_units`, :func:`read_row_group`, :class:`ShardStream`) open URLs
+through a pyarrow filesystem. Local paths stay :class:`~pathlib.Path`, URLs stay strings.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
+import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +47,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from cnnps.errors import InputError
+from pipeline import storage
 
 MANIFEST = "manifest.json"
 MAP_DTYPE = np.dtype("<f2")
@@ -132,8 +142,12 @@ class SceneShardWriter:
         infos = wr.infos
     """
 
-    def __init__(self, directory: Path, prefix: str, schema: pa.Schema, rows_per_group: int, rows_per_shard: int):
-        self.directory = Path(directory)
+    def __init__(self, directory: str | Path, prefix: str, schema: pa.Schema, rows_per_group: int, rows_per_shard: int):
+        # ``directory``: a local folder, or an fsspec URL: files are then staged in a
+        # local temporary folder and uploaded (each atomically) by :meth:`commit`
+        self.url = str(directory)
+        self.remote = not storage.is_local(self.url)
+        self.directory = Path(tempfile.mkdtemp(prefix="cnnps-shards-")) if self.remote else storage.local_path(self.url)
         self.prefix = prefix
         self.schema = schema
         self.rows_per_group = rows_per_group
@@ -197,8 +211,14 @@ class SceneShardWriter:
         for tmp, final in zip(self._tmp, finals):
             meta = pq.read_metadata(tmp)
             infos.append(ShardInfo(final.name, meta.num_rows, meta.num_row_groups, tmp.stat().st_size, sha256_file(tmp)))
-        for tmp, final in zip(self._tmp, finals):
-            os.replace(tmp, final)
+        if self.remote:
+            for tmp, final in zip(self._tmp, finals):
+                with open(tmp, "rb") as src, storage.open_output(storage.join(self.url, final.name)) as dst:
+                    shutil.copyfileobj(src, dst, 1 << 22)
+            shutil.rmtree(self.directory, ignore_errors=True)
+        else:
+            for tmp, final in zip(self._tmp, finals):
+                os.replace(tmp, final)
         self._tmp = []
         self.infos = infos
         return infos
@@ -211,6 +231,8 @@ class SceneShardWriter:
         for tmp in self._tmp:
             tmp.unlink(missing_ok=True)
         self._tmp = []
+        if self.remote:
+            shutil.rmtree(self.directory, ignore_errors=True)
 
     def __enter__(self):
         return self
@@ -226,19 +248,58 @@ class SceneShardWriter:
 # -- reading ---------------------------------------------------------------------------
 
 
+def shard_path(extract_dir: str | Path, name: str) -> Path | str:
+    """``extract_dir/name``: a Path for a local folder, a URL string otherwise."""
+    if storage.is_local(extract_dir):
+        return storage.local_path(extract_dir) / name
+    return storage.join(extract_dir, name)
+
+
+def file_size(path: str | Path) -> int | None:
+    """Size in bytes of a local file or a URL; None when it does not exist."""
+    if storage.is_local(path):
+        p = storage.local_path(path)
+        return p.stat().st_size if p.is_file() else None
+    fs, p = storage.fsspec_fs(path)
+    return int(fs.size(p)) if fs.isfile(p) else None
+
+
 def load_manifest(extract_dir: str | Path) -> dict:
-    path = Path(extract_dir) / MANIFEST
-    if not path.is_file():
-        raise InputError(path, "no extract manifest (run the extract stage first)")
+    path = shard_path(extract_dir, MANIFEST)
+    if not storage.exists(path):
+        raise InputError(str(path), "no extract manifest (run the extract stage first)")
     try:
-        return json.loads(path.read_text())
+        return json.loads(storage.read_text(path))
     except json.JSONDecodeError as exc:
-        raise InputError(path, f"not valid JSON ({exc})") from exc
+        raise InputError(str(path), f"not valid JSON ({exc})") from exc
 
 
-def manifest_files(extract_dir: str | Path, manifest: dict, split: str) -> list[Path]:
-    """Shard paths of one split ('train' or 'val'), in manifest order."""
-    return [Path(extract_dir) / s["file"] for s in manifest["shards"] if s["split"] == split]
+def manifest_files(extract_dir: str | Path, manifest: dict, split: str) -> list[Path | str]:
+    """Shard paths (or URLs) of one split ('train' or 'val'), in manifest order."""
+    return [shard_path(extract_dir, s["file"]) for s in manifest["shards"] if s["split"] == split]
+
+
+@contextlib.contextmanager
+def open_parquet(path: str | Path) -> Iterator[pq.ParquetFile]:
+    """A ``ParquetFile`` of a local path or a URL (closed on exit); unreadable -> InputError."""
+    handle = None
+    try:
+        if storage.is_local(path):
+            pf = pq.ParquetFile(storage.local_path(path))
+        else:
+            fs, p = storage.filesystem_for(path)
+            handle = fs.open_input_file(p)
+            pf = pq.ParquetFile(handle)
+    except (OSError, pa.ArrowException) as exc:
+        if handle is not None:
+            handle.close()
+        raise InputError(str(path), f"unreadable shard ({exc})") from exc
+    try:
+        yield pf
+    finally:
+        pf.close()
+        if handle is not None:
+            handle.close()
 
 
 def decode_maps(column: pa.Array | pa.ChunkedArray, w: int) -> np.ndarray:
@@ -258,11 +319,12 @@ def decode_normals(column: pa.Array | pa.ChunkedArray) -> np.ndarray:
     return column.flatten().to_numpy(zero_copy_only=False).reshape(-1, 3).astype(np.float32, copy=False)
 
 
-def read_row_group(path: Path, index: int, w: int, columns: Sequence[str] = ("map", "normal")) -> dict:
-    try:
-        table = pq.ParquetFile(path).read_row_group(index, columns=list(columns))
-    except (OSError, pa.ArrowException) as exc:
-        raise InputError(path, f"unreadable shard ({exc})") from exc
+def read_row_group(path: str | Path, index: int, w: int, columns: Sequence[str] = ("map", "normal")) -> dict:
+    with open_parquet(path) as pf:
+        try:
+            table = pf.read_row_group(index, columns=list(columns))
+        except (OSError, pa.ArrowException) as exc:
+            raise InputError(str(path), f"unreadable shard ({exc})") from exc
     out = {}
     for name in columns:
         col = table.column(name)
@@ -277,14 +339,12 @@ def read_row_group(path: Path, index: int, w: int, columns: Sequence[str] = ("ma
     return out
 
 
-def row_group_units(files: Sequence[Path]) -> list[tuple[int, int, int]]:
+def row_group_units(files: Sequence[str | Path]) -> list[tuple[int, int, int]]:
     """(file index, row group index, rows) for every row group of every file."""
     units = []
     for fi, path in enumerate(files):
-        try:
-            meta = pq.read_metadata(path)
-        except (OSError, pa.ArrowException) as exc:
-            raise InputError(path, f"unreadable shard ({exc})") from exc
+        with open_parquet(path) as pf:
+            meta = pf.metadata
         for g in range(meta.num_row_groups):
             units.append((fi, g, meta.row_group(g).num_rows))
     return units
@@ -309,7 +369,7 @@ class ShardStream:
 
     def __init__(
         self,
-        files: Sequence[Path],
+        files: Sequence[str | Path],
         w: int,
         batch_size: int,
         seed: int = 0,
@@ -323,7 +383,7 @@ class ShardStream:
             raise ValueError("no shard files to read")
         if not 0 <= rank < world_size:
             raise ValueError(f"rank {rank} outside world of {world_size}")
-        self.files = [Path(f) for f in files]
+        self.files = [Path(f) if storage.is_local(f) else str(f) for f in files]
         self.w = w
         self.batch_size = batch_size
         self.seed = seed

@@ -17,6 +17,25 @@ uninterrupted run (tests/stages/test_train.py checks it). ``epochs``, ``max_step
 the logging/checkpoint intervals are not part of the key: raising ``max_steps`` or
 ``epochs`` continues a finished run.
 
+Shards: read from ``shards`` (a path or an fsspec URL, the extract stage's ``output``),
+by default ``data_dir/extract``.
+
+Several processes (DistributedDataParallel). Under ``torchrun`` (which sets
+``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK``), e.g.
+``torchrun --standalone --nproc-per-node 4 -m pipeline run-stage train``, every process
+trains a replica: NCCL on GPUs (process ``LOCAL_RANK`` uses ``cuda:LOCAL_RANK``), gloo on
+CPU. ``batch_size`` stays the *global* batch: each of the N ranks takes
+``batch_size / N`` rows a step (it must divide), from its own disjoint share of the row
+groups of every epoch (``ShardStream(rank, world_size)``), and DDP averages the
+gradients, so a step sees ``batch_size`` rows as in one process. Every rank runs the
+same number of steps per epoch: the rows the smallest possible share holds (sum of the
+``groups // N`` smallest row groups) / ``batch_size / N``. Only rank 0 validates and
+writes checkpoints, plots, metrics and the model; a checkpoint also holds every rank's
+RNG state, so a resumed run with the same number of processes ends with the same
+weights as an uninterrupted one (resuming with another number continues from the
+checkpoint, with a different data order from there). The logged loss is the mean over
+all ranks.
+
 Outputs: ``data_dir/train/model.pt`` (``models.checkpoint.save_checkpoint``; config w,
 dropout; meta steps, val error, manifest hash), ``metrics.json``, ``plots/loss.csv``
 (step, loss) and ``plots/val.csv`` (step, val_mean_deg, val_median_deg) for
@@ -27,6 +46,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import time
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass
@@ -39,7 +59,8 @@ from tqdm import tqdm
 
 from cnnps.atomic import atomic_path, write_text
 from cnnps.errors import ConfigError, InputError
-from stages.shards import MANIFEST, ShardDataset, ShardStream, load_manifest, manifest_files
+from pipeline import storage
+from stages.shards import MANIFEST, ShardDataset, ShardStream, load_manifest, manifest_files, shard_path
 
 CKPT_FORMAT = 1
 
@@ -65,6 +86,7 @@ class Params:
     channels_last: bool = False
     num_workers: int = 0  # DataLoader worker processes; 0 = load in the main process
     progress: bool = True
+    shards: str | None = None  # where extract wrote (its `output`: path or fsspec URL); None = data_dir/extract
 
     def __post_init__(self):
         for name in ("epochs", "batch_size", "shuffle_buffer", "val_max_rows", "checkpoint_every", "keep_checkpoints", "log_every"):
@@ -81,12 +103,14 @@ class Params:
             raise ConfigError(f"train.device must be auto, cpu or cuda, got {self.device!r}")
         if self.precision not in ("fp32", "bf16"):
             raise ConfigError(f"train.precision must be fp32 or bf16, got {self.precision!r}")
+        if self.shards is not None and (not isinstance(self.shards, str) or not self.shards.strip()):
+            raise ConfigError(f"train.shards must be a folder path or URL, got {self.shards!r}")
 
     def result_key(self) -> dict:
         """Params that change the trained weights (a resume needs them equal)."""
         d = asdict(self)
         for k in ("epochs", "max_steps", "val_every", "val_max_rows", "checkpoint_every", "keep_checkpoints",
-                  "log_every", "threads", "num_workers", "progress"):
+                  "log_every", "threads", "num_workers", "progress", "shards"):
             d.pop(k)
         return d
 
@@ -167,6 +191,88 @@ def angular_errors(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return angular_error_deg(pred, gt)
 
 
+# -- several processes (torchrun) -------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DistInfo:
+    """Where this process stands in a torchrun job (world 1 outside torchrun)."""
+
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+    local_world_size: int = 1
+
+    @property
+    def enabled(self) -> bool:
+        return self.world_size > 1
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def dist_env(environ=None) -> DistInfo:
+    """Read torchrun's ``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK`` (and ``LOCAL_WORLD_SIZE``)."""
+    env = os.environ if environ is None else environ
+    if "WORLD_SIZE" not in env:
+        return DistInfo()
+    try:
+        world = int(env["WORLD_SIZE"])
+        rank = int(env.get("RANK", 0))
+        local_rank = int(env.get("LOCAL_RANK", rank))
+        local_world = int(env.get("LOCAL_WORLD_SIZE", world))
+    except ValueError as exc:
+        raise ConfigError(f"bad torchrun environment (WORLD_SIZE / RANK / LOCAL_RANK): {exc}") from None
+    if world < 1 or not 0 <= rank < world or not 0 <= local_rank < max(local_world, 1):
+        raise ConfigError(f"bad torchrun environment: RANK {rank}, LOCAL_RANK {local_rank}, WORLD_SIZE {world}")
+    return DistInfo(rank, world, local_rank, max(local_world, 1))
+
+
+def _dist_device(params: Params, info: DistInfo) -> torch.device:
+    if not info.enabled:
+        return pick_device(params.device)
+    device = pick_device(params.device)
+    if device.type == "cuda":
+        if torch.cuda.device_count() < info.local_world_size:
+            raise ConfigError(
+                f"train: {info.local_world_size} processes on this node but only {torch.cuda.device_count()} "
+                "CUDA devices (use --nproc-per-node <= the GPU count)"
+            )
+        device = torch.device("cuda", info.local_rank)
+        torch.cuda.set_device(device)
+    return device
+
+
+def rank_steps_per_epoch(stream: ShardStream) -> int:
+    """Optimiser steps per epoch that every rank can make.
+
+    One process: its batches per epoch. N ranks: each epoch a rank gets every N-th row
+    group of a fresh permutation, so at least the ``groups // N`` smallest ones; that
+    many rows, in per-rank batches, is the same bound on every rank and every epoch.
+    """
+    if stream.world_size == 1:
+        return stream.batches_per_epoch()
+    sizes = sorted(u[2] for u in stream.units)
+    least = sum(sizes[: len(sizes) // stream.world_size])
+    return least // stream.batch_size
+
+
+def _broadcast(obj, info: DistInfo):
+    """rank 0's ``obj`` on every rank."""
+    if not info.enabled:
+        return obj
+    import torch.distributed as dist
+
+    box = [obj]
+    dist.broadcast_object_list(box, src=0)
+    return box[0]
+
+
+def _rng_states(device: torch.device) -> tuple:
+    return torch.get_rng_state(), torch.cuda.get_rng_state() if device.type == "cuda" else None
+
+
 # -- checkpoints ------------------------------------------------------------------------
 
 
@@ -206,70 +312,159 @@ def load_training_state(ckpt_dir: Path, run_key: str) -> dict | None:
 
 def run(params: Params, data_dir: Path, *, _stop_after_step: int | None = None) -> dict:
     """Train; returns the final metrics. ``_stop_after_step`` (tests only) raises
-    ``KeyboardInterrupt`` after that step, like a killed run."""
-    data_dir = Path(data_dir)
-    extract_dir = data_dir / "extract"
+    ``KeyboardInterrupt`` after that step, like a killed run.
+
+    Under torchrun (``WORLD_SIZE`` > 1) this process is one rank of a
+    DistributedDataParallel job (see the module docstring); the process group is
+    set up here unless the caller already did.
+    """
+    info = dist_env()
+    if info.enabled and params.batch_size % info.world_size:
+        raise ConfigError(
+            f"train.batch_size {params.batch_size} (the global batch) must be a multiple of the "
+            f"{info.world_size} processes"
+        )
+    if params.threads:
+        torch.set_num_threads(params.threads)
+    elif info.enabled:  # processes of this node share its cores
+        from pipeline.executor import cores
+
+        torch.set_num_threads(max(1, cores() // info.local_world_size))
+    device = _dist_device(params, info)
+    started = False
+    if info.enabled:
+        import torch.distributed as dist
+
+        if not dist.is_initialized():
+            dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+            started = True
+    try:
+        return _train(params, Path(data_dir), info, device, _stop_after_step)
+    finally:
+        if started:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
+
+
+def _train(params: Params, data_dir: Path, info: DistInfo, device: torch.device, _stop_after_step: int | None) -> dict:
+    extract_dir = params.shards.rstrip("/") if params.shards else data_dir / "extract"
     out_dir = data_dir / "train"
     ckpt_dir = out_dir / "checkpoints"
     manifest = load_manifest(extract_dir)
-    manifest_hash = hashlib.sha256((extract_dir / MANIFEST).read_bytes()).hexdigest()
+    manifest_url = shard_path(extract_dir, MANIFEST)
+    manifest_hash = hashlib.sha256(storage.read_bytes(manifest_url)).hexdigest()
     w = int(manifest["w"])
     train_files = manifest_files(extract_dir, manifest, "train")
     val_files = manifest_files(extract_dir, manifest, "val")
     if not train_files:
-        raise InputError(extract_dir / MANIFEST, "lists no training shards")
+        raise InputError(str(manifest_url), "lists no training shards")
     for f in train_files + val_files:
-        if not f.is_file():
-            raise InputError(f, "shard listed in the manifest is missing (rerun extract)")
+        if not storage.exists(f):
+            raise InputError(str(f), "shard listed in the manifest is missing (rerun extract)")
     run_key = hashlib.sha256(json.dumps([params.result_key(), manifest_hash], sort_keys=True).encode()).hexdigest()
 
-    if params.threads:
-        torch.set_num_threads(params.threads)
-    device = pick_device(params.device)
-    model, opt = make_model(w, params, device)
-    stream = ShardStream(train_files, w, params.batch_size, seed=params.seed, buffer_rows=params.shuffle_buffer)
-    steps_per_epoch = stream.batches_per_epoch()
+    main = info.is_main
+    raw, opt = make_model(w, params, device)
+    model = raw
+    if info.enabled:
+        from torch.nn.parallel import DistributedDataParallel as DDP
+
+        model = DDP(raw, device_ids=[device.index] if device.type == "cuda" else None)
+        torch.manual_seed(params.seed + 1_000_003 * info.rank)  # each rank its own dropout masks
+    local_batch = params.batch_size // info.world_size
+    stream = ShardStream(train_files, w, local_batch, seed=params.seed, buffer_rows=params.shuffle_buffer,
+                         rank=info.rank, world_size=info.world_size)
+    steps_per_epoch = rank_steps_per_epoch(stream)
     if steps_per_epoch == 0:
-        raise ConfigError(f"train.batch_size {params.batch_size} is larger than the {stream.rows()} training rows")
+        if info.enabled and len(stream.units) < info.world_size:
+            raise ConfigError(
+                f"train: {len(stream.units)} training row groups for {info.world_size} processes; "
+                "use fewer processes or a smaller extract.rows_per_group"
+            )
+        raise ConfigError(f"train.batch_size {params.batch_size} is larger than the {stream.rows()} training rows"
+                          + (" of a rank's share" if info.enabled else ""))
     total_steps = params.epochs * steps_per_epoch
     if params.max_steps:
         total_steps = min(total_steps, params.max_steps)
 
     step, history = 0, {"loss": [], "val": []}
-    state = load_training_state(ckpt_dir, run_key) if ckpt_dir.is_dir() else None
+    state = None
+    if main:
+        state = load_training_state(ckpt_dir, run_key) if ckpt_dir.is_dir() else None
+    if info.enabled:  # rank 0 chose (and kept) the checkpoint; the others read the same file
+        resume_step = _broadcast(None if state is None else int(state["step"]), info)
+        if not main and resume_step is not None:
+            state = torch.load(_ckpt_path(ckpt_dir, resume_step), map_location="cpu", weights_only=True)
     if state is not None:
-        model.load_state_dict(state["model"])
+        raw.load_state_dict(state["model"])
         opt.load_state_dict(state["optim"])
-        torch.set_rng_state(state["torch_rng"])
-        if device.type == "cuda" and state.get("cuda_rng") is not None:
-            torch.cuda.set_rng_state(state["cuda_rng"])
+        rngs = state.get("rank_rng")
+        if info.enabled and rngs is not None and len(rngs) == info.world_size:
+            cpu_rng, cuda_rng = rngs[info.rank]
+        elif info.enabled:  # saved by another number of processes: fresh per-rank streams
+            cpu_rng, cuda_rng = None, None
+            torch.manual_seed(params.seed + 1_000_003 * info.rank + 7919 * int(state["step"]))
+        else:
+            cpu_rng, cuda_rng = state["torch_rng"], state.get("cuda_rng")
+        if cpu_rng is not None:
+            torch.set_rng_state(cpu_rng)
+        if device.type == "cuda" and cuda_rng is not None:
+            torch.cuda.set_rng_state(cuda_rng)
         step, history = int(state["step"]), state["history"]
+        if info.enabled and main and state.get("world_size", 1) != info.world_size:
+            tqdm.write(f"train: resuming a checkpoint of {state.get('world_size', 1)} process(es) with "
+                       f"{info.world_size}: the data order differs from here on")
     model.train()
 
-    val_maps, val_normals = load_val(val_files, w, params.val_max_rows, params.seed)
+    if main:
+        val_maps, val_normals = load_val(val_files, w, params.val_max_rows, params.seed)
+    else:
+        val_maps, val_normals = np.zeros((0, w, w), np.float16), np.zeros((0, 3), np.float32)
 
     def validate() -> dict:
         if len(val_maps) == 0:
             return {}
-        err = angular_errors(predict(model, val_maps, device, params.precision), val_normals)
+        err = angular_errors(predict(raw, val_maps, device, params.precision), val_normals)
         return {"val_mean_deg": float(err.mean()), "val_median_deg": float(np.median(err))}
 
     def checkpoint():
+        rank_rng = None
+        if info.enabled:  # a collective: every rank checkpoints at the same steps
+            import torch.distributed as dist
+
+            rank_rng = [None] * info.world_size
+            dist.all_gather_object(rank_rng, _rng_states(device))
+        if not main:
+            return
+        cpu_rng, cuda_rng = _rng_states(device)
         save_training_state(
             ckpt_dir,
             {
                 "format": CKPT_FORMAT,
                 "run_key": run_key,
                 "step": step,
-                "model": model.state_dict(),
+                "model": raw.state_dict(),
                 "optim": opt.state_dict(),
-                "torch_rng": torch.get_rng_state(),
-                "cuda_rng": torch.cuda.get_rng_state() if device.type == "cuda" else None,
+                "torch_rng": cpu_rng,
+                "cuda_rng": cuda_rng,
+                "world_size": info.world_size,
+                "rank_rng": rank_rng,
                 "history": history,
             },
             params.keep_checkpoints,
         )
         _write_plots(out_dir, history)
+
+    def mean_loss(total: torch.Tensor, n: int) -> float:
+        value = float(total) / n
+        if info.enabled:
+            import torch.distributed as dist
+
+            t = torch.tensor([value], dtype=torch.float64, device=device)
+            dist.all_reduce(t)
+            value = float(t) / info.world_size
+        return value
 
     ds = ShardDataset(stream)
     if params.num_workers:
@@ -282,7 +477,8 @@ def run(params: Params, data_dir: Path, *, _stop_after_step: int | None = None) 
     else:
         loader = ds  # main-process loading: no DataLoader machinery needed
     bar = tqdm(total=total_steps * params.batch_size, initial=step * params.batch_size, unit="sample",
-               unit_scale=True, desc="train", disable=not params.progress)
+               unit_scale=True, desc="train" if not info.enabled else f"train ({info.world_size} processes)",
+               disable=not params.progress or not main)
     t0, step0 = time.perf_counter(), step
     loss_acc, loss_n = torch.zeros(()), 0
     while step < total_steps:
@@ -296,10 +492,10 @@ def run(params: Params, data_dir: Path, *, _stop_after_step: int | None = None) 
             loss_n += 1
             bar.update(params.batch_size)
             if step % params.log_every == 0 or step == total_steps:
-                history["loss"].append([step, float(loss_acc) / loss_n])
+                history["loss"].append([step, mean_loss(loss_acc, loss_n)])
                 bar.set_postfix(loss=f"{history['loss'][-1][1]:.4f}")
                 loss_acc, loss_n = torch.zeros(()), 0
-            if params.val_every and step % params.val_every == 0 and step != total_steps:
+            if params.val_every and step % params.val_every == 0 and step != total_steps and main:
                 v = validate()
                 if v:
                     history["val"].append([step, v["val_mean_deg"], v["val_median_deg"]])
@@ -308,16 +504,17 @@ def run(params: Params, data_dir: Path, *, _stop_after_step: int | None = None) 
             if _stop_after_step is not None and step >= _stop_after_step:
                 bar.close()
                 raise KeyboardInterrupt(f"stopped after step {step} (test)")
-            if step >= total_steps:
-                break
+            if step >= total_steps or step % steps_per_epoch == 0:
+                break  # the end, or this epoch's steps (ranks may hold a few more batches)
     bar.close()
     seconds = time.perf_counter() - t0
-    v = validate()
+    v = validate() if main else {}
     if v and (not history["val"] or history["val"][-1][0] != step):
         history["val"].append([step, v["val_mean_deg"], v["val_median_deg"]])
-    if step > 0 and not _list_ckpts(ckpt_dir):
+    if _broadcast(step > 0 and main and not _list_ckpts(ckpt_dir), info):
         checkpoint()
-    _write_plots(out_dir, history)
+    if main:
+        _write_plots(out_dir, history)
 
     metrics = {
         "steps": step,
@@ -326,21 +523,28 @@ def run(params: Params, data_dir: Path, *, _stop_after_step: int | None = None) 
         "train_loss": history["loss"][-1][1] if history["loss"] else None,
         **v,
         "val_rows": int(len(val_maps)),
-        "train_rows": stream.rows(),
+        "train_rows": int(sum(u[2] for u in stream.units)),  # all ranks together
         "samples_per_s": round((step - step0) * params.batch_size / seconds, 1) if step > step0 and seconds > 0 else None,
         "device": str(device),
         "precision": params.precision,
+        "processes": info.world_size,
     }
-    from models.checkpoint import save_checkpoint
+    if main:
+        from models.checkpoint import save_checkpoint
 
-    save_checkpoint(
-        out_dir / "model.pt",
-        model.cpu(),
-        config={"w": w, "dropout": params.dropout},
-        meta={"steps": step, "val_mean_deg": v.get("val_mean_deg"), "val_median_deg": v.get("val_median_deg"),
-              "data_manifest_sha256": manifest_hash, "params": asdict(params)},
-    )
-    write_text(out_dir / "metrics.json", json.dumps(metrics, indent=1))
+        save_checkpoint(
+            out_dir / "model.pt",
+            raw.cpu(),
+            config={"w": w, "dropout": params.dropout},
+            meta={"steps": step, "val_mean_deg": v.get("val_mean_deg"), "val_median_deg": v.get("val_median_deg"),
+                  "data_manifest_sha256": manifest_hash, "params": asdict(params)},
+        )
+        write_text(out_dir / "metrics.json", json.dumps(metrics, indent=1))
+    if info.enabled:
+        import torch.distributed as dist
+
+        metrics = _broadcast(metrics, info)  # rank 0's (with validation) everywhere
+        dist.barrier()  # every rank returns once rank 0's files are written
     return metrics
 
 
