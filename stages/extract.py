@@ -56,7 +56,7 @@ import numpy as np
 from tqdm import tqdm
 
 from cnnps.errors import ConfigError, InputError
-from cnnps.obsmap import observation_maps
+from cnnps.obsmap import observation_maps_multi
 from cnnps.rotation import rotate_z, rotation_angles
 from pipeline import storage
 from pipeline.executor import ExecutorParams
@@ -189,7 +189,6 @@ def build_rows(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Maps (R, P, w, w) float16 and normals (R, P, 3) float32 for every rotation angle:
     rotation r uses lights and normals rotated about z by ``angles[r]``."""
-    from cnnps.obsmap import observation_maps_multi  # same maps as observation_maps per angle
 
     # one call for all angles: the masked values are shared, only the cells move
     rot_lights = np.stack([rotate_z(lights, a) for a in angles])
