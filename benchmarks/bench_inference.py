@@ -1,0 +1,200 @@
+"""CNN-PS inference throughput on this machine.
+
+    .venv/bin/python benchmarks/bench_inference.py [--repeat 5] [--pixels 45000] [--no-k10]
+                                                   [--out benchmarks/results/inference.json]
+
+Measures network inferences per second (maps prebuilt) for
+  * eager fp32: the trained ``CNNPS`` as is (NCHW, batch 256) - the naive baseline;
+  * fast fp32: what ``predict_normals`` runs on CPU (``FastCNNPS``, channels_last, batch 64),
+    with all threads and with one thread (that one also in thread CPU time, which other
+    processes on a shared machine disturb much less than wall time);
+  * bf16: ``FoldedCNNPS`` under ``torch.autocast(bfloat16)`` (what precision="bf16" runs);
+and the wall time of ``predict_normals`` for a whole object (``--pixels``, 96 lights,
+observation maps included) at K = 1 (best of ``--repeat``) and K = 10 (one run).
+It also reports how far bf16 and the fast path move the predicted normals from the
+eager fp32 network, in degrees (random he-initialised weights: a proxy until a trained
+model exists). Speed does not depend on the weights' values.
+
+Timings are the best of ``--repeat`` runs, interleaved; on a shared machine they are
+noisy, so the load average before and after is recorded too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from cnnps.atomic import write_text  # noqa: E402
+from cnnps.obsmap import observation_maps  # noqa: E402
+from models.inference import MapPredictor, predict_normals  # noqa: E402
+from models.network import CNNPS  # noqa: E402
+
+
+def _cpu_info() -> dict:
+    model, flags = platform.processor(), []
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name") and ":" in line:
+                model = line.split(":", 1)[1].strip()
+            if line.startswith("flags") and ":" in line:
+                flags = line.split(":", 1)[1].split()
+    except OSError:
+        pass
+    wanted = ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8", "amx_tile")
+    return {
+        "model": model,
+        "logical_cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "flags": [f for f in wanted if f in flags],
+        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+    }
+
+
+def _scene(P: int, m: int = 96, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Lambertian pixels with cast-shadow-like dropouts under DiLiGenT-like lights."""
+    rng = np.random.default_rng(seed)
+    tilt = np.arccos(rng.uniform(np.cos(np.deg2rad(50)), 1.0, m))
+    az = rng.uniform(0, 2 * np.pi, m)
+    L = np.stack([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)], 1)
+    n = rng.normal(size=(P, 3))
+    n[:, 2] = np.abs(n[:, 2]) + 0.3
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    I = rng.uniform(0.2, 1.0, (P, 1)) * np.maximum(n @ L.T, 0.0)
+    I *= rng.uniform(size=I.shape) > 0.05  # a few cast shadows
+    I += rng.normal(0, 0.002, I.shape)
+    return np.maximum(I, 0).astype(np.float32), L
+
+
+def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip((a * b).sum(1), -1, 1)))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--pixels", type=int, default=45000)
+    ap.add_argument("--maps", type=int, default=2048, help="maps per throughput run")
+    ap.add_argument("--no-k10", action="store_true", help="skip the (long) K=10 whole-object run")
+    ap.add_argument("--k10-pixels", type=int, default=None,
+                    help="pixels for the K=10 run (default --pixels); fewer are scaled up to --pixels and marked so")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "inference.json")
+    args = ap.parse_args(argv)
+
+    threads = torch.get_num_threads()
+    load_before = os.getloadavg()
+    torch.manual_seed(0)
+    model = CNNPS().eval()
+    I, L = _scene(max(args.pixels, args.maps))
+    maps = observation_maps(I[: args.maps], L)
+    x_nchw = torch.from_numpy(maps).unsqueeze(1)
+
+    @torch.inference_mode()
+    def eager():
+        for s in range(0, len(x_nchw), 256):
+            model(x_nchw[s:s + 256])
+
+    fast = MapPredictor(model, device="cpu", precision="fp32")
+    bf16 = MapPredictor(model, device="cpu", precision="bf16")
+    runs = {"eager_fp32": eager, "fast_fp32": lambda: fast(maps), "bf16_autocast": lambda: bf16(maps)}
+    wall = {k: [] for k in runs}
+    for fn in runs.values():  # warm up (oneDNN primitive caches)
+        fn()
+    for _ in range(args.repeat):
+        for name, fn in runs.items():
+            t = time.perf_counter()
+            fn()
+            wall[name].append(time.perf_counter() - t)
+    # one thread: wall and thread CPU time
+    torch.set_num_threads(1)
+    one_wall, one_cpu = [], []
+    fast(maps[:256])
+    for _ in range(args.repeat):
+        t, c = time.perf_counter(), time.thread_time()
+        fast(maps)
+        one_wall.append(time.perf_counter() - t)
+        one_cpu.append(time.thread_time() - c)
+    torch.set_num_threads(threads)
+
+    n = len(maps)
+    throughput = {
+        name: {"threads": threads, "best_maps_per_s": n / min(ts), "median_maps_per_s": n / float(np.median(ts))}
+        for name, ts in wall.items()
+    }
+    throughput["fast_fp32_1thread"] = {
+        "threads": 1, "best_maps_per_s": n / min(one_wall), "median_maps_per_s": n / float(np.median(one_wall)),
+        "cpu_time_maps_per_s": n / min(one_cpu),
+    }
+
+    # agreement with the eager fp32 network (degrees)
+    with torch.inference_mode():
+        ref = model(x_nchw).numpy()
+    agreement = {}
+    for name, pred in (("fast_fp32", fast(maps)), ("bf16_autocast", bf16(maps))):
+        err = _angles(ref, pred)
+        agreement[name] = {"mean_deg": float(err.mean()), "p99_deg": float(np.percentile(err, 99)),
+                           "max_deg": float(err.max())}
+
+    # whole object, maps included
+    P = args.pixels
+    obj = {}
+    k1 = []
+    for _ in range(max(1, min(args.repeat, 3))):
+        t = time.perf_counter()
+        predict_normals(model, I[:P], L, rotations=1, device="cpu", progress=False)
+        k1.append(time.perf_counter() - t)
+    obj["k1"] = {"pixels": P, "lights": L.shape[0], "best_s": min(k1), "runs_s": k1}
+    if not args.no_k10:
+        p10 = min(P, args.k10_pixels or P)
+        t = time.perf_counter()
+        predict_normals(model, I[:p10], L, rotations=10, device="cpu", progress=True)
+        sec = time.perf_counter() - t
+        obj["k10"] = {"pixels": P, "lights": L.shape[0], "seconds": sec * P / p10, "runs": 1,
+                      "measured_pixels": p10, "extrapolated": p10 != P}
+
+    result = {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "cpu": _cpu_info(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "threads": threads,
+        "load_average_before": load_before,
+        "load_average_after": os.getloadavg(),
+        "maps_per_run": n,
+        "repeat": args.repeat,
+        "throughput": throughput,
+        "agreement_with_eager_fp32_random_weights": agreement,
+        "whole_object": obj,
+        "note": "best of interleaved repeats; shared machine, see load averages",
+    }
+
+    print(f"{result['cpu']['model']}, {threads} threads, torch {torch.__version__}, "
+          f"load {load_before[0]:.2f} -> {result['load_average_after'][0]:.2f}")
+    print(f"{'path':22s} {'best maps/s':>12s} {'median':>10s}")
+    for name, row in throughput.items():
+        print(f"{name:22s} {row['best_maps_per_s']:12.0f} {row['median_maps_per_s']:10.0f}")
+    print(f"{'fast_fp32 1 thread, CPU time':30s} {throughput['fast_fp32_1thread']['cpu_time_maps_per_s']:.0f} maps/s")
+    for name, row in agreement.items():
+        print(f"{name} vs eager fp32: mean {row['mean_deg']:.4f} deg, p99 {row['p99_deg']:.4f}, max {row['max_deg']:.4f}")
+    print(f"whole object {P} px, K=1: {obj['k1']['best_s']:.2f} s (maps included)")
+    if "k10" in obj:
+        k10 = obj["k10"]
+        how = f" (scaled from {k10['measured_pixels']} px)" if k10["extrapolated"] else ""
+        print(f"whole object {P} px, K=10: {k10['seconds']:.2f} s{how}")
+    write_text(args.out, json.dumps(result, indent=2) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,238 @@
+"""CNN-PS (Ikehata, ECCV 2018): observation map (B, 1, w, w) -> unit surface normal (B, 3).
+
+The layers follow the author's Keras model exactly ('same' padding, no batch norm):
+
+    conv3x3(16)
+    dense block 1: [relu, conv3x3(16), dropout, concat] x 2        -> 48 channels, w x w
+    transition:    relu, conv1x1(48), dropout, avgpool 2           -> 48 channels, w/2 x w/2
+    dense block 2: [relu, conv3x3(16), dropout, concat] x 2        -> 80 channels
+    relu, conv1x1(80), flatten, dense 128 + relu, dense 3, L2 normalise
+
+With w = 32 that is 2,654,051 parameters (the first dense layer alone has
+80 * 16 * 16 * 128 + 128 = 2,621,568). Note that the last 1x1 convolution has no
+activation: it is linear and followed directly by the dense layer (``fold_for_inference``
+uses that).
+
+``FoldedCNNPS`` is an inference-only equivalent (same outputs up to float rounding) that
+does ~20 % fewer operations: the transition's 1x1 convolution is moved after the average
+pooling (both linear, one acts on channels and the other on space, so they commute) and
+the last 1x1 convolution is multiplied into the first dense layer.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+# Bump whenever the layer layout or the state-dict names change: old checkpoints then
+# fail to load with a clear message instead of loading garbage.
+ARCH_VERSION = 1
+DEFAULT_W = 32
+DEFAULT_DROPOUT = 0.2
+GROWTH = 16  # channels added by each dense-block convolution
+
+
+class CNNPS(nn.Module):
+    """The CNN-PS network. ``w`` must be even (the transition pools by 2)."""
+
+    def __init__(self, w: int = DEFAULT_W, dropout: float = DEFAULT_DROPOUT):
+        super().__init__()
+        if w < 2 or w % 2:
+            raise ValueError(f"observation map width must be an even number >= 2, got {w}")
+        if not 0.0 <= dropout < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {dropout}")
+        self.w = int(w)
+        self.dropout_p = float(dropout)
+        g = GROWTH
+        self.conv0 = nn.Conv2d(1, g, 3, padding=1)
+        self.block1_conv1 = nn.Conv2d(g, g, 3, padding=1)
+        self.block1_conv2 = nn.Conv2d(2 * g, g, 3, padding=1)
+        self.trans_conv = nn.Conv2d(3 * g, 3 * g, 1)
+        self.block2_conv1 = nn.Conv2d(3 * g, g, 3, padding=1)
+        self.block2_conv2 = nn.Conv2d(4 * g, g, 3, padding=1)
+        self.final_conv = nn.Conv2d(5 * g, 5 * g, 1)
+        self.fc1 = nn.Linear(5 * g * (w // 2) ** 2, 128)
+        self.fc2 = nn.Linear(128, 3)
+        self.drop = nn.Dropout(dropout)
+        for mod in self.modules():  # he_normal, as the Keras model
+            if isinstance(mod, (nn.Conv2d, nn.Linear)):
+                nn.init.kaiming_normal_(mod.weight, nonlinearity="relu")
+                nn.init.zeros_(mod.bias)
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 1, w, w) -> (B, 80, w/2, w/2), the output of the last 1x1 convolution."""
+        x = self.conv0(x)
+        x = torch.cat([x, self.drop(self.block1_conv1(F.relu(x)))], dim=1)
+        x = torch.cat([x, self.drop(self.block1_conv2(F.relu(x)))], dim=1)
+        x = F.avg_pool2d(self.drop(self.trans_conv(F.relu(x))), 2)
+        x = torch.cat([x, self.drop(self.block2_conv1(F.relu(x)))], dim=1)
+        x = torch.cat([x, self.drop(self.block2_conv2(F.relu(x)))], dim=1)
+        return self.final_conv(F.relu(x))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = self.features(x).flatten(1)
+        x = self.fc2(F.relu(self.fc1(x)))
+        return F.normalize(x.float(), dim=1)
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
+class FoldedCNNPS(nn.Module):
+    """Eval-only CNN-PS with the linear layers folded (see the module docstring).
+
+    Built by ``fold_for_inference``; holds copies of the weights (float32), no dropout.
+    """
+
+    def __init__(self, model: CNNPS):
+        super().__init__()
+        g = GROWTH
+        src = model
+        self.w = src.w
+        self.conv0 = _copy_conv(src.conv0)
+        self.block1_conv1 = _copy_conv(src.block1_conv1)
+        self.block1_conv2 = _copy_conv(src.block1_conv2)
+        self.trans_conv = _copy_conv(src.trans_conv)  # applied after pooling: same result
+        self.block2_conv1 = _copy_conv(src.block2_conv1)
+        self.block2_conv2 = _copy_conv(src.block2_conv2)
+        # fc1(flatten(final_conv(z))) with final_conv = A z + a per pixel:
+        # W1 (128, C, S) . (A z + a) = (W1 contracted with A over C) z + W1 . a
+        h = (src.w // 2) ** 2
+        c = 5 * g
+        with torch.no_grad():
+            w1 = src.fc1.weight.detach().double().reshape(128, c, h)  # (o, c, s)
+            a_w = src.final_conv.weight.detach().double().reshape(c, c)  # (c_out, c_in)
+            a_b = src.final_conv.bias.detach().double()
+            w_fold = torch.einsum("ocs,ci->ois", w1, a_w).reshape(128, c * h)
+            b_fold = src.fc1.bias.detach().double() + torch.einsum("ocs,c->o", w1, a_b)
+        self.fc1 = nn.Linear(c * h, 128)
+        self.fc1.weight.data.copy_(w_fold.float())
+        self.fc1.bias.data.copy_(b_fold.float())
+        self.fc2 = nn.Linear(128, 3)
+        self.fc2.load_state_dict(src.fc2.state_dict())
+        self.eval()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        # Every consumer of a feature map sees it through a ReLU, and
+        # relu(cat(a, b)) = cat(relu(a), relu(b)): so each convolution is followed by its
+        # ReLU once (conv+relu fuse in oneDNN) instead of re-applying ReLU to the whole
+        # growing concatenation before each layer.
+        x = F.relu(self.conv0(x))
+        x = torch.cat([x, F.relu(self.block1_conv1(x))], dim=1)
+        x = torch.cat([x, F.relu(self.block1_conv2(x))], dim=1)
+        x = F.relu(self.trans_conv(F.avg_pool2d(x, 2)))
+        x = torch.cat([x, F.relu(self.block2_conv1(x))], dim=1)
+        x = torch.cat([x, F.relu(self.block2_conv2(x))], dim=1)
+        x = F.relu(self.fc1(x.flatten(1)))
+        return F.normalize(self.fc2(x).float(), dim=1)
+
+
+def _copy_conv(conv: nn.Conv2d) -> nn.Conv2d:
+    new = nn.Conv2d(conv.in_channels, conv.out_channels, conv.kernel_size, padding=conv.padding)
+    new.load_state_dict({k: v.detach().float().clone() for k, v in conv.state_dict().items()})
+    return new
+
+
+def fold_for_inference(model: CNNPS) -> FoldedCNNPS:
+    """An eval-only copy of ``model`` with the linear layers folded (same outputs)."""
+    if not isinstance(model, CNNPS):
+        raise TypeError(f"expected a CNNPS model, got {type(model).__name__}")
+    return FoldedCNNPS(model)
+
+
+@functools.lru_cache(maxsize=1)
+def _mkldnn_pointwise_available() -> bool:
+    try:
+        return torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")
+    except (AttributeError, RuntimeError):
+        return False
+
+
+class FastCNNPS(nn.Module):
+    """Eval-only CNN-PS for CPUs: folded as ``FoldedCNNPS`` and with no concatenation.
+
+    A convolution of a concatenation is the sum of convolutions of its parts, so each
+    dense-block convolution is split by input group and the partial results are added
+    inside the convolution (oneDNN "add" post-op, fused with the ReLU); the transition
+    and the first dense layer are split the same way. Nothing is ever copied into a
+    growing concatenated tensor, which on a 2-core Xeon was a quarter of the run time.
+    The first dense layer reads the channels_last features in their memory order (its
+    weight columns are permuted to match), so flattening copies nothing either.
+
+    Uses ``torch.ops.mkldnn._convolution_pointwise`` (the fused kernels torch.compile
+    emits) when available on CPU, else the same algebra with plain ``F.conv2d``.
+    Outputs equal the original network's up to float32 rounding (~1e-6).
+    """
+
+    def __init__(self, model: CNNPS):
+        super().__init__()
+        folded = model if isinstance(model, FoldedCNNPS) else fold_for_inference(model)
+        g = GROWTH
+        self.w = folded.w
+        sd = {k: v.detach().float().clone() for k, v in folded.state_dict().items()}
+        h = (self.w // 2) ** 2
+
+        def conv_w(t):
+            return t.contiguous(memory_format=torch.channels_last)
+
+        buffers = {
+            "c0_w": conv_w(sd["conv0.weight"]), "c0_b": sd["conv0.bias"],
+            "c11_w": conv_w(sd["block1_conv1.weight"]), "c11_b": sd["block1_conv1.bias"],
+            "c12a_w": conv_w(sd["block1_conv2.weight"][:, :g]), "c12b_w": conv_w(sd["block1_conv2.weight"][:, g:]),
+            "c12_b": sd["block1_conv2.bias"],
+            "t0_w": conv_w(sd["trans_conv.weight"][:, :g]), "t1_w": conv_w(sd["trans_conv.weight"][:, g:2 * g]),
+            "t2_w": conv_w(sd["trans_conv.weight"][:, 2 * g:]), "t_b": sd["trans_conv.bias"],
+            "c21_w": conv_w(sd["block2_conv1.weight"]), "c21_b": sd["block2_conv1.bias"],
+            "c22a_w": conv_w(sd["block2_conv2.weight"][:, :3 * g]), "c22b_w": conv_w(sd["block2_conv2.weight"][:, 3 * g:]),
+            "c22_b": sd["block2_conv2.bias"],
+            "fc1_b": sd["fc1.bias"], "fc2_wt": sd["fc2.weight"].t().contiguous(), "fc2_b": sd["fc2.bias"],
+        }
+        # fc1 columns are ordered (channel, pixel); channels_last features flatten as
+        # (pixel, channel): store one (pixels * channels_of_part, 128) matrix per part.
+        a = sd["fc1.weight"].reshape(128, 5 * g, h)
+        for name, (lo, hi) in (("fc1_z0", (0, 3 * g)), ("fc1_z1", (3 * g, 4 * g)), ("fc1_z2", (4 * g, 5 * g))):
+            buffers[name] = a[:, lo:hi, :].permute(2, 1, 0).reshape(h * (hi - lo), 128).contiguous()
+        for name, tensor in buffers.items():
+            self.register_buffer(name, tensor)
+        self.eval()
+
+    def _conv(self, x, w, b, pad, relu, add=None):
+        if x.device.type == "cpu" and x.dtype == torch.float32 and _mkldnn_pointwise_available():
+            p, one = [pad, pad], [1, 1]
+            if add is None:
+                return torch.ops.mkldnn._convolution_pointwise(x, w, b, p, one, one, 1, "relu" if relu else "none", [], "")
+            return torch.ops.mkldnn._convolution_pointwise.binary(
+                x, add, w, b, p, one, one, 1, "add", None, "relu" if relu else None, [], "")
+        y = F.conv2d(x, w, b, padding=pad)
+        if add is not None:
+            y = y + add
+        return F.relu(y) if relu else y
+
+    @staticmethod
+    def _flat(t: torch.Tensor) -> torch.Tensor:
+        return t.permute(0, 2, 3, 1).reshape(t.shape[0], -1)  # a view for channels_last
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x.contiguous(memory_format=torch.channels_last)
+        r0 = self._conv(x, self.c0_w, self.c0_b, 1, True)
+        y1 = self._conv(r0, self.c11_w, self.c11_b, 1, True)
+        y2 = self._conv(y1, self.c12b_w, None, 1, True, add=self._conv(r0, self.c12a_w, self.c12_b, 1, False))
+        u = self._conv(F.avg_pool2d(r0, 2), self.t0_w, self.t_b, 0, False)
+        u = self._conv(F.avg_pool2d(y1, 2), self.t1_w, None, 0, False, add=u)
+        z0 = self._conv(F.avg_pool2d(y2, 2), self.t2_w, None, 0, True, add=u)
+        z1 = self._conv(z0, self.c21_w, self.c21_b, 1, True)
+        z2 = self._conv(z1, self.c22b_w, None, 1, True, add=self._conv(z0, self.c22a_w, self.c22_b, 1, False))
+        h = torch.addmm(self.fc1_b, self._flat(z0), self.fc1_z0)
+        h = h.addmm_(self._flat(z1), self.fc1_z1).addmm_(self._flat(z2), self.fc1_z2).relu_()
+        return F.normalize(torch.addmm(self.fc2_b, h, self.fc2_wt).float(), dim=1)
+
+
+def fast_cpu_model(model: CNNPS) -> FastCNNPS:
+    """An eval-only copy of ``model`` tuned for CPU inference (same outputs)."""
+    if not isinstance(model, (CNNPS, FoldedCNNPS)):
+        raise TypeError(f"expected a CNNPS model, got {type(model).__name__}")
+    return FastCNNPS(model)

@@ -1,0 +1,132 @@
+from __future__ import annotations
+
+import pytest
+import torch
+
+from models.network import ARCH_VERSION, CNNPS, FoldedCNNPS, count_parameters, fold_for_inference
+
+
+def _expected_params(w: int) -> int:
+    conv = lambda cin, cout, k: cin * cout * k * k + cout  # noqa: E731
+    convs = (
+        conv(1, 16, 3) + conv(16, 16, 3) + conv(32, 16, 3)  # stem + dense block 1
+        + conv(48, 48, 1)  # transition
+        + conv(48, 16, 3) + conv(64, 16, 3)  # dense block 2
+        + conv(80, 80, 1)
+    )
+    return convs + (80 * (w // 2) ** 2 * 128 + 128) + (128 * 3 + 3)
+
+
+def _maps(n: int, w: int = 32, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, 1, w, w, generator=g) * (torch.rand(n, 1, w, w, generator=g) < 0.1)
+    return x / x.amax(dim=(2, 3), keepdim=True).clamp_min(1e-6)
+
+
+def test_parameter_count_matches_paper():
+    model = CNNPS()
+    n = count_parameters(model)
+    assert n == _expected_params(32) == 2_654_051
+    assert 2_650_000 < n < 2_660_000  # "about 2.65 M"
+    assert model.fc1.in_features == 80 * 16 * 16 == 20480
+
+
+def test_arch_version_is_int():
+    assert isinstance(ARCH_VERSION, int) and ARCH_VERSION >= 1
+
+
+@pytest.mark.parametrize("w", [8, 16, 32, 48])
+def test_shapes_and_unit_norm(w):
+    torch.manual_seed(w)
+    model = CNNPS(w=w).eval()
+    assert count_parameters(model) == _expected_params(w)
+    with torch.no_grad():
+        out = model(_maps(7, w))
+    assert out.shape == (7, 3) and out.dtype == torch.float32
+    assert torch.allclose(out.norm(dim=1), torch.ones(7), atol=1e-6)
+
+
+@pytest.mark.parametrize("w", [0, 7, 33])
+def test_bad_width(w):
+    with pytest.raises(ValueError, match="even"):
+        CNNPS(w=w)
+
+
+def test_dropout_only_in_training():
+    torch.manual_seed(0)
+    model = CNNPS()
+    x = _maps(16)
+    model.train()
+    with torch.no_grad():
+        a, b = model(x), model(x)
+    assert (a - b).abs().max() > 1e-4  # dropout active
+    model.eval()
+    with torch.no_grad():
+        c, d = model(x), model(x)
+    assert torch.equal(c, d)
+
+
+def test_folded_model_matches_original():
+    torch.manual_seed(1)
+    model = CNNPS().eval()
+    # give the biases non-zero values so the bias folding is exercised too
+    with torch.no_grad():
+        for mod in model.modules():
+            if isinstance(mod, (torch.nn.Conv2d, torch.nn.Linear)):
+                mod.bias.normal_(0.0, 0.05)
+    folded = fold_for_inference(model)
+    assert isinstance(folded, FoldedCNNPS) and not folded.training
+    x = _maps(64, seed=3)
+    with torch.no_grad():
+        ref, out = model(x), folded(x)
+        pre_ref = model.fc1(model.features(x).flatten(1))
+    # compare before the final normalisation too (the folded fc1 absorbs final_conv)
+    with torch.no_grad():
+        h = folded.conv0(x).relu()
+        h = torch.cat([h, folded.block1_conv1(h).relu()], 1)
+        h = torch.cat([h, folded.block1_conv2(h).relu()], 1)
+        h = folded.trans_conv(torch.nn.functional.avg_pool2d(h, 2)).relu()
+        h = torch.cat([h, folded.block2_conv1(h).relu()], 1)
+        h = torch.cat([h, folded.block2_conv2(h).relu()], 1)
+        pre_out = folded.fc1(h.flatten(1))
+    scale = pre_ref.abs().max()
+    assert (pre_ref - pre_out).abs().max() < 1e-5 * scale
+    assert (ref - out).abs().max() < 1e-5
+    # the original is untouched
+    assert model.final_conv.weight.shape == (80, 80, 1, 1)
+
+
+def test_fold_rejects_other_modules():
+    with pytest.raises(TypeError):
+        fold_for_inference(torch.nn.Linear(2, 3))
+
+
+@pytest.mark.parametrize("use_mkldnn", [True, False])
+@pytest.mark.parametrize("w", [16, 32])
+def test_fast_cpu_model_matches_original(monkeypatch, use_mkldnn, w):
+    import models.network as network
+
+    if not use_mkldnn:
+        monkeypatch.setattr(network, "_mkldnn_pointwise_available", lambda: False)
+    elif not network._mkldnn_pointwise_available():
+        pytest.skip("torch without oneDNN pointwise kernels")
+    torch.manual_seed(2)
+    model = CNNPS(w=w).eval()
+    with torch.no_grad():
+        for mod in model.modules():
+            if isinstance(mod, (torch.nn.Conv2d, torch.nn.Linear)):
+                mod.bias.normal_(0.0, 0.05)
+    fast = network.fast_cpu_model(model)
+    x = _maps(40, w, seed=4)
+    with torch.inference_mode():
+        ref = model(x)
+        out_nchw = fast(x)
+        out_cl = fast(x.contiguous(memory_format=torch.channels_last))
+    assert out_nchw.shape == (40, 3)
+    # measured max 1e-6 (float32 rounding of a different summation order)
+    assert (ref - out_nchw).abs().max() < 1e-5
+    assert (ref - out_cl).abs().max() < 1e-5
+    # it is a copy: changing the model afterwards does not change it
+    with torch.no_grad():
+        model.fc2.bias.add_(1.0)
+        assert (fast(x) - out_nchw).abs().max() < 1e-6
