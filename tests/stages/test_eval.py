@@ -1,0 +1,141 @@
+"""The eval stage: scoring, metrics.json, report and params validation (no model needed)."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cnnps.errors import ConfigError
+from cnnps.imageio import read_image, write_exr, write_png
+from stages import eval as ev
+
+S = 32
+
+
+def _sphere(S: int, max_deg: float):
+    c = (np.arange(S) + 0.5) * 2 / S - 1
+    x, y = np.meshgrid(c, -c)  # row 0 on top: y = +1
+    r2 = x**2 + y**2
+    mask = r2 < np.sin(np.radians(max_deg)) ** 2
+    z = np.sqrt(np.clip(1 - r2, 0, None))
+    n = np.stack([x, y, z], -1) * mask[..., None]
+    return n.astype(np.float32), mask
+
+
+def make_capture(root: Path, gt: bool = True, m: int = 12) -> Path:
+    """A Lambertian sphere cap (normals within 45 deg of the view) under lights within
+    40 deg of the view: every pixel sees every light, so least squares is exact."""
+    from stages.lights import uniform_lights
+
+    root.mkdir(parents=True)
+    n, mask = _sphere(S, 45)
+    L = uniform_lights(m, min_elevation_deg=50)
+    intens = np.linspace(1.0, 2.0, m)
+    names = []
+    for j in range(m):
+        img = np.clip(n @ L[j], 0, None) * 0.8 * intens[j]
+        names.append(f"{j:03d}.exr")
+        write_exr(root / names[-1], np.repeat(img[..., None], 3, axis=2))
+    (root / "filenames.txt").write_text("\n".join(names) + "\n")
+    np.savetxt(root / "light_directions.txt", L)
+    np.savetxt(root / "light_intensities.txt", np.repeat(intens[:, None], 3, axis=1))
+    write_png(root / "mask.png", (mask * 255).astype(np.uint8))
+    if gt:
+        np.save(root / "normal_gt.npy", n)
+    return root
+
+
+def fake_predict(I, L, k):
+    """Exact normals (least squares) for k=10, exactly 10 degrees off for k=1."""
+    n = I @ np.linalg.pinv(L).T
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    if k == 10:
+        return n
+    t = np.cross(n, [1.0, 0.0, 0.0])
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    a = np.radians(10.0)
+    return np.cos(a) * n + np.sin(a) * t
+
+
+def test_evaluate_all_numbers_report_and_pictures(tmp_path):
+    caps = [
+        ("ball", make_capture(tmp_path / "caps" / "ball"), "synthetic"),
+        ("nogt", make_capture(tmp_path / "caps" / "nogt", gt=False), "real"),
+    ]
+    params = ev.Params(real_captures=(str(tmp_path / "caps" / "nogt"),))
+    out = tmp_path / "eval"
+    metrics = ev.evaluate_all(caps, fake_predict, params, out, "fake-model")
+
+    assert metrics["methods"] == ["cnn_k1", "cnn_k10", "lambertian"]
+    ball = metrics["captures"]["ball"]
+    n, mask = _sphere(S, 45)
+    assert ball["pixels"] == ball["scored_pixels"] == int(mask.sum())
+    assert ball["n_images"] == 12
+    assert ball["methods"]["cnn_k1"]["mean_deg"] == pytest.approx(10.0, abs=1e-3)
+    assert ball["methods"]["cnn_k1"]["median_deg"] == pytest.approx(10.0, abs=1e-3)
+    assert ball["methods"]["cnn_k10"]["mean_deg"] < 0.05
+    assert ball["methods"]["lambertian"]["mean_deg"] < 0.05  # no shadows: exact
+    assert metrics["captures"]["nogt"]["methods"] == {}
+    assert metrics["summary"]["cnn_k1"]["mean_deg"] == pytest.approx(10.0, abs=1e-3)
+    assert metrics["summary"]["cnn_k1"]["captures"] == 1
+    assert metrics["summary_real"] == {}
+
+    on_disk = json.loads((out / "metrics.json").read_text())
+    assert on_disk["captures"]["ball"]["methods"]["cnn_k1"]["mean_deg"] == pytest.approx(10.0, abs=1e-3)
+
+    table = ev.format_table(on_disk)
+    assert re.search(r"ball\s+12\s+10\.00 /\s+10\.00\s+0\.0\d /\s+0\.0\d", table), table
+    assert "no GT" in table
+
+    report = (out / "report.md").read_text()
+    pics = re.findall(r"\]\((pictures/[^)]+)\)", report)
+    assert len(pics) == 6 + 3  # ball: input, 2 normals, gt, 2 errors; nogt: input, 2 normals
+    for p in pics:
+        assert (out / p).is_file(), p
+    # the ground-truth picture is the (n + 1) / 2 colouring of the ground truth
+    gt_pic = read_image(out / "pictures" / "ball_normal_gt.png")
+    f = ev.PICTURE_MIN_SIZE // S  # small captures are enlarged by a whole factor
+    assert gt_pic.shape == (S * f, S * f, 3)
+    gt_pic = gt_pic[::f, ::f]
+    expected = np.round((n[mask] + 1) * 127.5) / 255
+    assert np.abs(gt_pic[mask] - expected).max() < 1 / 255 + 1e-6
+    # the input picture is the most frontal light's image: brightest at the centre
+    inp = read_image(out / "pictures" / "ball_input.png")[::f, ::f, 0]
+    assert inp[S // 2, S // 2] > inp[mask].mean()
+
+
+def test_rerun_replaces_pictures(tmp_path):
+    cap = make_capture(tmp_path / "c" / "a")
+    params = ev.Params()
+    ev.evaluate_all([("a", cap, "synthetic")], fake_predict, params, tmp_path / "e", "m")
+    (tmp_path / "e" / "pictures" / "stale.png").write_bytes(b"x")
+    ev.evaluate_all([("a", cap, "synthetic")], fake_predict, params, tmp_path / "e", "m")
+    assert not (tmp_path / "e" / "pictures" / "stale.png").exists()
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"test_shapes": ("sphere", "cube")}, "unknown shape 'cube'"),
+        ({"light_sets": (17, 2)}, "light count must be >= 3"),
+        ({"rotations": (0,)}, "rotations"),
+        ({"superpixels": 0}, "superpixels"),
+        ({"synthetic": False}, "nothing to evaluate"),
+        ({"device": "tpu"}, "device"),
+        ({"lambertian_shadow_threshold": 1.5}, "shadow_threshold"),
+    ],
+)
+def test_params_validation(kwargs, message):
+    with pytest.raises(ConfigError, match=message):
+        ev.Params(**kwargs)
+
+
+def test_missing_model_is_one_clear_error(tmp_path):
+    from cnnps.errors import InputError
+
+    with pytest.raises(InputError, match="model not found"):
+        ev.run(ev.Params(), tmp_path)
