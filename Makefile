@@ -24,7 +24,7 @@ test: setup
 	$(VENV)/bin/python -m pytest -q
 
 bench: setup
-	$(VENV)/bin/python -m benchmarks
+	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
 
 clean-venv:
 	rm -rf $(VENV)
