@@ -30,6 +30,7 @@ import torch
 
 from cnnps.atomic import atomic_path
 from cnnps.errors import InputError
+from cnnps.hashing import file_sha256  # noqa: F401 (part of this module's API)
 from models.network import ARCH_VERSION, CNNPS
 
 FORMAT = "cnnps-checkpoint"
@@ -168,14 +169,3 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> tup
     return model, dict(config), dict(payload["meta"])
 
 
-def file_sha256(path: str | Path, chunk_size: int = 1 << 20) -> str:
-    """Hex SHA-256 of a file's bytes (read in chunks)."""
-    path = Path(path)
-    digest = hashlib.sha256()
-    try:
-        with path.open("rb") as fh:
-            while block := fh.read(chunk_size):
-                digest.update(block)
-    except OSError as exc:
-        raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
-    return digest.hexdigest()

@@ -29,7 +29,6 @@ in the file list, so adding or removing another mesh never changes a view.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 from dataclasses import dataclass, field
@@ -41,6 +40,7 @@ from tqdm import tqdm
 
 from cnnps.atomic import atomic_dir
 from cnnps.errors import ConfigError, InputError
+from cnnps.hashing import file_sha256, stable_hash  # noqa: F401 (re-exported for other stages)
 
 RADIUS = 0.95  # largest vertex norm after normalisation (unit sphere with a margin)
 MESH_EXTENSIONS = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
@@ -150,19 +150,6 @@ def read_view_mesh(view_dir: str | Path) -> trimesh.Trimesh:
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError(path, "view mesh holds no triangles")
     return mesh
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def stable_hash(obj) -> str:
-    """sha256 of a JSON-serialisable object (sorted keys): a content key."""
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 # --------------------------------------------------------------------------- stage

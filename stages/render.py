@@ -49,6 +49,7 @@ from tqdm import tqdm
 
 from cnnps.atomic import atomic_path, write_text
 from cnnps.errors import ConfigError, InputError
+from cnnps.hashing import file_sha256, files_sha256, stable_hash
 from pipeline.executor import ExecutorParams
 
 VERSION = 1  # bump when what is written changes
@@ -107,24 +108,6 @@ class Params:
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def stable_hash(obj) -> str:
-    import hashlib
-
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
-
-
-def _sha256_files(paths: list[Path]) -> str:
-    import hashlib
-
-    h = hashlib.sha256()
-    for p in sorted(paths, key=lambda p: p.name):
-        h.update(p.name.encode() + b"\0")
-        with open(p, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
-    return h.hexdigest()
 
 
 def derive_seed(seed: int, name: str) -> int:
@@ -354,7 +337,7 @@ def _load_mesh_arg(mesh) -> tuple[Any, dict]:
         except ValueError:
             raise ConfigError(f"procedural mesh seed must be an integer: {text!r}") from None
         return make_shape(kind, shape_seed), {"mesh": text}
-    from stages.meshes import file_sha256, load_mesh
+    from stages.meshes import load_mesh
 
     path = Path(text)
     return load_mesh(path), {"mesh": str(path), "mesh_sha256": file_sha256(path) if path.is_file() else None}
@@ -440,10 +423,9 @@ def _scene_jobs(params: Params, data_dir: Path) -> list[dict]:
         mesh_path = view_dir / "mesh.ply"
         if not mesh_path.is_file():
             raise InputError(mesh_path, f"mesh of scene {sdir.name} not found (run the meshes stage)")
-        from stages.meshes import file_sha256
 
         mesh_sha = file_sha256(mesh_path)
-        mat_sha = _sha256_files([p for p in sdir.iterdir() if p.is_file() and p.suffix in (".npy", ".json", ".png")
+        mat_sha = files_sha256([p for p in sdir.iterdir() if p.is_file() and p.suffix in (".npy", ".json", ".png")
                                  and p.name != "preview.png"])
         view_meta = _read_json(view_dir / "view.json") or {}
         key = stable_hash({"mesh": mesh_sha, "material": mat_sha, "params": params.picture_params(), "v": VERSION})
