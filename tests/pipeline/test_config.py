@@ -237,7 +237,8 @@ REAL = pytest.mark.skipif(not _real_stages_available(), reason="not every stage 
 def test_shipped_params_files_parse(repo_root, name):
     raw = yaml.safe_load((repo_root / name).read_text())
     c = cfg.config_from_dict(raw, name)
-    assert c.data_dir == Path("data")
+    # every preset keeps its outputs inside the git-ignored data/ folder
+    assert not c.data_dir.is_absolute() and c.data_dir.parts[0] == "data"
 
 
 @REAL
