@@ -63,14 +63,20 @@ class CNNPS(nn.Module):
                 nn.init.zeros_(mod.bias)
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, 1, w, w) -> (B, 80, w/2, w/2), the output of the last 1x1 convolution."""
-        x = self.conv0(x)
-        x = torch.cat([x, self.drop(self.block1_conv1(F.relu(x)))], dim=1)
-        x = torch.cat([x, self.drop(self.block1_conv2(F.relu(x)))], dim=1)
-        x = F.avg_pool2d(self.drop(self.trans_conv(F.relu(x))), 2)
-        x = torch.cat([x, self.drop(self.block2_conv1(F.relu(x)))], dim=1)
-        x = torch.cat([x, self.drop(self.block2_conv2(F.relu(x)))], dim=1)
-        return self.final_conv(F.relu(x))
+        """(B, 1, w, w) -> (B, 80, w/2, w/2), the output of the last 1x1 convolution.
+
+        Computed as ``x = cat(x, drop(conv(relu(x))))`` per dense layer, but since
+        relu(cat(a, b)) = cat(relu(a), relu(b)) each new piece is rectified once and the
+        rectified concatenation is grown instead (bit-identical outputs and gradients, the
+        same dropout draws in the same order; about half the ReLU work in training).
+        """
+        r = F.relu(self.conv0(x))
+        r = torch.cat([r, F.relu(self.drop(self.block1_conv1(r)))], dim=1)
+        r = torch.cat([r, F.relu(self.drop(self.block1_conv2(r)))], dim=1)
+        r = F.relu(F.avg_pool2d(self.drop(self.trans_conv(r)), 2))
+        r = torch.cat([r, F.relu(self.drop(self.block2_conv1(r)))], dim=1)
+        r = torch.cat([r, F.relu(self.drop(self.block2_conv2(r)))], dim=1)
+        return self.final_conv(r)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = self.features(x).flatten(1)

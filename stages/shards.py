@@ -513,7 +513,8 @@ class ShardStream:
             yield np.concatenate(carry_m), np.concatenate(carry_n)
 
 
-try:  # the torch side is optional for the numpy reader
+def _make_shard_dataset_class():
+    """Build :class:`ShardDataset` (imports torch; done on first use, see ``__getattr__``)."""
     import torch
     from torch.utils.data import IterableDataset, get_worker_info
 
@@ -544,9 +545,24 @@ try:  # the torch side is optional for the numpy reader
             part, parts = (0, 1) if info is None else (info.id, info.num_workers)
             skip = self.skip if parts == 1 else max(0, -(-(self.skip - part) // parts))
             for m, n in self.stream.iter_epoch(self.epoch, skip, part, parts):
-                yield torch.from_numpy(np.ascontiguousarray(m)).float().unsqueeze(1), torch.from_numpy(
+                # float16 -> float32 in one numpy pass straight into the tensor's memory
+                yield torch.from_numpy(m.astype(np.float32)).unsqueeze(1), torch.from_numpy(
                     np.ascontiguousarray(n)
                 )
 
-except ImportError:  # pragma: no cover
-    ShardDataset = None  # type: ignore
+    ShardDataset.__module__ = __name__
+    ShardDataset.__qualname__ = "ShardDataset"  # picklable by name (module __getattr__)
+    return ShardDataset
+
+
+def __getattr__(name: str):
+    # torch is imported only when ShardDataset is first used: the numpy reader (and
+    # `cnnps run-stage <another stage>`, which imports every stage module) do not pay for it
+    if name == "ShardDataset":
+        try:
+            cls = _make_shard_dataset_class()
+        except ImportError:  # pragma: no cover
+            cls = None
+        globals()["ShardDataset"] = cls
+        return cls
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

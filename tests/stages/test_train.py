@@ -99,3 +99,72 @@ def test_bad_params(dataset, tmp_path):
         train.Params(precision="fp8")
     with pytest.raises(InputError, match="manifest"):
         train.run(train.Params(), tmp_path)
+
+
+def test_stage_modules_do_not_import_torch(repo_root):
+    # pipeline/config imports every stage module: other stages must not pay for torch
+    import subprocess
+    import sys
+
+    code = "import sys, stages.train, stages.shards; print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], cwd=repo_root, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_passive_openmp_only_before_torch_loads(repo_root):
+    import os
+    import subprocess
+    import sys
+
+    code = ("import os, sys, stages.train as t; a = t.prefer_passive_openmp(); import torch; "
+            "b = t.prefer_passive_openmp(); print(a, b, os.environ['OMP_WAIT_POLICY'])")
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    out = subprocess.run([sys.executable, "-c", code], cwd=repo_root, env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["True", "False", "PASSIVE"]
+    env["OMP_WAIT_POLICY"] = "ACTIVE"  # the user's choice wins
+    out = subprocess.run([sys.executable, "-c", code], cwd=repo_root, env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "False", "ACTIVE"]
+
+
+SHORT = dict(max_steps=4, batch_size=64, shuffle_buffer=1000, progress=False, threads=1, log_every=2,
+             val_every=0, checkpoint_every=100)
+
+
+def test_channels_last_and_fused_adam_match_plain():
+    # the speed settings change rounding only, not what is learned (dropout 0: the masks
+    # of NHWC tensors are drawn in memory order, so they differ from NCHW ones)
+    g = torch.Generator().manual_seed(3)
+    x = (torch.rand(48, 1, 16, 16, generator=g) * (torch.rand(48, 1, 16, 16, generator=g) < 0.1)).float()
+    y = torch.nn.functional.normalize(torch.randn(48, 3, generator=g), dim=1)
+    cpu = torch.device("cpu")
+    out = {}
+    for fast in (False, True):
+        p = train.Params(dropout=0.0, channels_last=fast, fused_adam=fast, lr=1e-3)
+        model, opt = train.make_model(16, p, cpu)
+        before = {k: v.clone() for k, v in model.state_dict().items()}
+        losses = [float(train.train_step(model, opt, x, y, cpu, "fp32", fast)) for _ in range(3)]
+        out[fast] = before, losses, {k: v.clone() for k, v in model.state_dict().items()}
+    (b0, l0, s0), (b1, l1, s1) = out[False], out[True]
+    for k in b0:
+        torch.testing.assert_close(b0[k], b1[k], rtol=0, atol=0)  # the same initial weights
+        torch.testing.assert_close(s0[k], s1[k], rtol=1e-3, atol=1e-4)  # Adam moves ~1e-3 a step
+    assert l1 == pytest.approx(l0, rel=1e-5)
+    assert l0[2] < l0[0]  # and the steps did train
+    assert not torch.equal(s0["fc2.weight"], b0["fc2.weight"])
+
+
+def test_compile_failure_falls_back_to_eager(dataset, tmp_path, monkeypatch, capsys):
+    ref = train.run(train.Params(**SHORT), fresh_copy(dataset, tmp_path / "ref"))
+
+    class Broken(torch.nn.Module):
+        def forward(self, x):
+            raise RuntimeError("inductor exploded")
+
+    monkeypatch.setattr(train, "compile_model", lambda model, params: Broken())
+    got = train.run(train.Params(compile=True, **SHORT), fresh_copy(dataset, tmp_path / "got"))
+    assert "torch.compile failed" in capsys.readouterr().err
+    # the failed attempt consumed nothing: the same weights as a plain eager run
+    sr, sg = _weights(tmp_path / "ref"), _weights(tmp_path / "got")
+    for k in sr["model"]:
+        torch.testing.assert_close(sr["model"][k], sg["model"][k], rtol=0, atol=0)
+    assert got["steps"] == ref["steps"] == 4
