@@ -53,9 +53,11 @@ def state_digest(state: dict[str, torch.Tensor]) -> str:
     """SHA-256 over the sorted names, dtypes, shapes and raw bytes of a state dict."""
     digest = hashlib.sha256()
     for name in sorted(state):
-        tensor = state[name].detach().to("cpu").contiguous()
+        # reshape(-1) gives a dense 1-D tensor whatever the memory format (a channels_last
+        # 1x1 conv weight stays non-standard-strided after .contiguous())
+        tensor = state[name].detach().to("cpu").contiguous(memory_format=torch.contiguous_format)
         digest.update(f"{name}|{tensor.dtype}|{tuple(tensor.shape)}|".encode())
-        digest.update(tensor.view(torch.uint8).numpy().tobytes() if tensor.numel() else b"")
+        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes() if tensor.numel() else b"")
     return digest.hexdigest()
 
 

@@ -156,3 +156,11 @@ def test_file_sha256(tmp_path):
     assert file_sha256(path) == hashlib.sha256(data).hexdigest()
     with pytest.raises(InputError):
         file_sha256(tmp_path / "missing.bin")
+
+
+def test_state_digest_ignores_memory_format():
+    # a channels_last model (what training uses) has the same weights, hence the same digest
+    model = CNNPS()
+    plain = state_digest(model.state_dict())
+    model = model.to(memory_format=torch.channels_last)
+    assert state_digest(model.state_dict()) == plain
