@@ -32,12 +32,9 @@ OUTPUT_FILES = ("normal.npy", "normal.png", "prediction.json", "error.png", "met
 
 def default_model_path() -> Path:
     """Where the shipped model lives: ``models/weights/cnnps_default.pt``."""
-    import importlib.util
+    from models.shipped import weights_path
 
-    spec = importlib.util.find_spec("models")
-    if spec is None or not spec.submodule_search_locations:
-        return Path("models") / "weights" / "cnnps_default.pt"
-    return Path(list(spec.submodule_search_locations)[0]) / "weights" / "cnnps_default.pt"
+    return weights_path()
 
 
 def _check_options(method, rotations, device, precision, batch_size, shadow_threshold):
@@ -91,7 +88,9 @@ def _resolve_model(model) -> Path:
             "`cnnps run-stage train` (or `dvc repro`) and pass --model data/train/model.pt, "
             "pass --model PATH to a checkpoint, or use --method lambertian"
         )
-    return path
+    from models.shipped import verify_shipped
+
+    return verify_shipped(path)  # checks the SHA-256 recorded next to it
 
 
 def _check_torch(device: str):

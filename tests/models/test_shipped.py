@@ -1,0 +1,44 @@
+"""The shipped-model record: the file is checked against its SHA-256 before use."""
+
+import json
+
+import pytest
+
+from cnnps.errors import CnnpsError
+from models import shipped
+from models.checkpoint import load_checkpoint, save_checkpoint
+from models.network import CNNPS
+
+
+@pytest.fixture
+def weights_dir(tmp_path, monkeypatch):
+    monkeypatch.setattr(shipped, "WEIGHTS_DIR", tmp_path)
+    return tmp_path
+
+
+def test_ship_then_verify(weights_dir, tmp_path):
+    ckpt = save_checkpoint(tmp_path / "trained.pt", CNNPS(), meta={"val_mean_deg": 5.0})
+    out = shipped.ship(ckpt, {"preset": "cpu-train"}, name="m")
+    record = json.loads((weights_dir / "m.json").read_text())
+    assert record["preset"] == "cpu-train" and record["train_meta"]["val_mean_deg"] == 5.0
+    assert shipped.shipped_model_path("m") == out
+    model, _, _ = load_checkpoint(out)
+    assert out.stat().st_size < 6_000_000  # float16 weights: about 5.3 MB
+    assert isinstance(model, CNNPS)
+
+
+def test_damaged_or_missing_weights_are_clear_errors(weights_dir, tmp_path):
+    ckpt = save_checkpoint(tmp_path / "trained.pt", CNNPS())
+    out = shipped.ship(ckpt, {}, name="m")
+    data = bytearray(out.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    out.write_bytes(bytes(data))
+    with pytest.raises(CnnpsError, match="damaged"):
+        shipped.shipped_model_path("m")
+    out.unlink()
+    with pytest.raises(CnnpsError, match="no shipped model"):
+        shipped.shipped_model_path("m")
+    save_checkpoint(out, CNNPS())
+    (weights_dir / "m.json").unlink()
+    with pytest.raises(CnnpsError, match="provenance file .* missing"):
+        shipped.shipped_model_path("m")
