@@ -25,13 +25,31 @@ PRESET_HELP = "Use presets/NAME.yaml instead of params.yaml (demo, full, cpu-tra
 DATA_HELP = "Folder for stage outputs (default: data_dir from the params file, else data)."
 
 
-def _config(params: Optional[Path], preset: Optional[str], data_dir: Optional[Path]):
+EXECUTOR_HELP = "Run per-scene jobs with 'local' (process pool) or 'ray' (overrides params `executor.kind`)."
+ADDRESS_HELP = "Ray cluster address: auto, host:port or ray://host:port (overrides params `executor.address`)."
+
+
+def _config(
+    params: Optional[Path],
+    preset: Optional[str],
+    data_dir: Optional[Path],
+    executor: Optional[str] = None,
+    address: Optional[str] = None,
+):
+    import dataclasses
+
     from pipeline import config as cfg
 
     if params is not None and preset is not None:
         raise ConfigError("give either --params or --preset, not both")
     path = cfg.preset_path(preset) if preset is not None else params
-    return cfg.load_config(path, data_dir=data_dir)
+    conf = cfg.load_config(path, data_dir=data_dir)
+    changes = {k: v for k, v in (("kind", executor), ("address", address)) if v is not None}
+    if changes:
+        if address is not None and changes.get("kind", conf.executor.kind) != "ray":
+            raise ConfigError("--address applies to --executor ray")
+        conf = dataclasses.replace(conf, executor=dataclasses.replace(conf.executor, **changes))
+    return conf
 
 
 def _fmt_time(seconds: float) -> str:
@@ -67,12 +85,14 @@ def run_stage_cmd(
     params: Optional[Path] = typer.Option(None, "--params", help=PARAMS_HELP),
     preset: Optional[str] = typer.Option(None, "--preset", help=PRESET_HELP),
     data_dir: Optional[Path] = typer.Option(None, "--data-dir", help=DATA_HELP),
+    executor: Optional[str] = typer.Option(None, "--executor", help=EXECUTOR_HELP),
+    address: Optional[str] = typer.Option(None, "--address", help=ADDRESS_HELP),
 ) -> None:
     """Run one pipeline stage (what each `dvc.yaml` stage calls)."""
     from pipeline import config as cfg
 
     cfg.check_stage_name(name)
-    conf = _config(params, preset, data_dir)
+    conf = _config(params, preset, data_dir, executor, address)
     all_params = cfg.load_all(conf)  # every stage, before any work
     t0 = time.perf_counter()
     cfg.run_stage(name, conf, all_params)

@@ -358,4 +358,8 @@ def run_stage(name: str, config: Config, all_params: dict[str, Any] | None = Non
         from pipeline.executor import get_executor
 
         kwargs["executor"] = get_executor(config.executor)
-    module.run(params, config.data_dir, **kwargs)
+    try:
+        module.run(params, config.data_dir, **kwargs)
+    finally:
+        if "executor" in kwargs:
+            kwargs["executor"].close()  # stops a Ray runtime this process started

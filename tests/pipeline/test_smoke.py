@@ -46,11 +46,14 @@ def test_every_stage_on_one_tiny_mesh(tiny_setup, monkeypatch, capsys):
 
     manifest = json.loads((data / "extract" / "manifest.json").read_text())
     assert list((data / "extract").glob("*.parquet"))
-    assert json.dumps(manifest)  # parseable; row counts are checked by the extract tests
+    assert manifest["total_rows"] == manifest["train_rows"] + manifest["val_rows"] > 0
+    for shard in manifest["shards"]:
+        assert (data / "extract" / shard["file"]).is_file() and shard["rows"] > 0
 
     assert (data / "train" / "model.pt").is_file()
     train_metrics = json.loads((data / "train" / "metrics.json").read_text())
-    assert train_metrics
+    assert train_metrics["steps"] == params["train"]["max_steps"] and train_metrics["samples"] > 0
+    assert 0.0 <= train_metrics["val_mean_deg"] <= 180.0
 
     metrics = json.loads((data / "eval" / "metrics.json").read_text())
     assert metrics["methods"] == ["cnn_k1", "cnn_k2", "lambertian"]
@@ -65,4 +68,4 @@ def test_every_stage_on_one_tiny_mesh(tiny_setup, monkeypatch, capsys):
     assert "sphere-specular-8" in report and (data / "eval" / "pictures" / "sphere-specular-8_input.png").is_file()
     assert "CNN-PS K=2" in out and "report: data/eval/report.md" in out
     print(f"smoke pipeline: {elapsed:.1f} s")
-    assert elapsed < 600
+    assert elapsed < 900  # generous: CI machines can be loaded (quiet: about 10 s)
