@@ -1,13 +1,42 @@
-"""Write-then-rename helpers: nothing half-written is ever visible under its final name."""
+"""Write-then-rename helpers: nothing half-written is ever visible under its final name.
+
+Temporary files and folders are made with ``mkstemp`` / ``mkdtemp``, which create them
+private (0600 / 0700) whatever the umask; before the final rename they get the mode a
+plain ``open()`` / ``mkdir`` would have given (0666 / 0777 less the umask), so outputs
+stay readable by the other users and cluster accounts the umask allows.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shutil
 import tempfile
 from pathlib import Path
 from typing import Iterator
+
+
+def current_umask() -> int:
+    """This process's umask, read without changing it where the system allows."""
+    try:
+        with open("/proc/self/status", encoding="ascii", errors="replace") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    # No /proc (or a kernel without the Umask line): the standard set-and-restore, which
+    # is racy only against another thread creating files at the same instant.
+    old = os.umask(0o022)
+    os.umask(old)
+    return old
+
+
+def _publish_mode(tmp: Path, is_dir: bool) -> None:
+    """Give ``tmp`` the mode ``open()`` / ``mkdir`` would have given it under the umask."""
+    base = 0o777 if is_dir else 0o666
+    os.chmod(tmp, base & ~current_umask())
 
 
 def _tmp_sibling(path: Path, is_dir: bool) -> Path:
@@ -24,7 +53,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary file path next to ``path``; rename it onto ``path`` on success.
 
     The suffix of ``path`` is kept (``.x.npy.tmp`` would confuse writers that append
-    extensions), so writers that look at the extension still work.
+    extensions), so writers that look at the extension still work. The file ends up with
+    the umask's mode (e.g. 0644), not mkstemp's private 0600.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -33,6 +63,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp = Path(name)
     try:
         yield tmp
+        _publish_mode(tmp, is_dir=False)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -44,15 +75,17 @@ def atomic_dir(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
     """Yield a temporary directory next to ``path``; on success it replaces ``path``.
 
     On any exception the temporary directory is removed and ``path`` is untouched
-    (if it did not exist, it still does not).
+    (if it did not exist, it still does not). The folder ends up with the umask's mode
+    (e.g. 0755), not mkdtemp's private 0700.
     """
     path = Path(path)
     tmp = _tmp_sibling(path, is_dir=True)
     try:
         yield tmp
+        _publish_mode(tmp, is_dir=True)
         if path.exists():
             if not overwrite:
-                raise FileExistsError(path)
+                raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(path))
             old = _tmp_sibling(path, is_dir=True)
             old.rmdir()
             os.replace(path, old)

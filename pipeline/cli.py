@@ -2,15 +2,17 @@
 
 Each command lives in its own ``pipeline/cli_*.py`` module and imports heavy
 libraries (torch, bpy) only inside the command, so ``cnnps --help`` is fast.
-User-facing errors (:class:`cnnps.errors.CnnpsError`) become one line on stderr
-and exit status 2.
+User-facing errors (:class:`cnnps.errors.CnnpsError`), operating-system errors
+(permission denied, disk full, ...) and a dead worker process become one line on stderr
+and exit status 2; Ctrl-C exits with status 130.
 """
 
 from __future__ import annotations
 
 import sys
+from concurrent.futures.process import BrokenProcessPool
 
-from cnnps.errors import CnnpsError
+from cnnps.errors import CnnpsError, one_line
 from pipeline.app import app
 
 # Command modules register their commands on ``app`` when imported.
@@ -19,12 +21,33 @@ from pipeline import cli_render  # noqa: E402,F401
 from pipeline import cli_stages  # noqa: E402,F401
 
 
+def describe_os_error(exc: OSError) -> str:
+    """``<filename>: <strerror>`` (``<a> -> <b>: ...`` for renames), else the message."""
+    what = exc.strerror or str(exc) or type(exc).__name__
+    if exc.filename is not None:
+        where = str(exc.filename)
+        if exc.filename2 is not None:
+            where += f" -> {exc.filename2}"
+        what = f"{where}: {what}"
+    return one_line(what)
+
+
+def _fail(message: str, exc: BaseException | None = None) -> None:
+    # notes added on the way up (the executor's "(in render job 3: ...)") stay on the line
+    notes = [n for n in getattr(exc, "__notes__", ()) if isinstance(n, str)]
+    print(f"cnnps: error: {one_line(' '.join([message, *notes]))}", file=sys.stderr)
+    sys.exit(2)
+
+
 def main(argv: list[str] | None = None) -> None:
     try:
         app(args=argv, prog_name="cnnps")
     except CnnpsError as exc:
-        print(f"cnnps: error: {exc}", file=sys.stderr)
-        sys.exit(2)
+        _fail(str(exc), exc)
+    except BrokenProcessPool as exc:
+        _fail(f"a worker process died (out of memory or killed?): {exc}", exc)
+    except OSError as exc:
+        _fail(describe_os_error(exc), exc)
     except KeyboardInterrupt:
         print("cnnps: interrupted", file=sys.stderr)
         sys.exit(130)

@@ -6,7 +6,9 @@ Jobs must be idempotent: each writes its own content-addressed output atomically
 retried or duplicated job rewrites the same result.
 
 ``local`` (default) runs jobs in this process when ``workers == 1`` and in a process
-pool otherwise (spawned processes, so torch / bpy state is never forked).
+pool otherwise (spawned processes, so torch / bpy state is never forked). If a worker
+process dies (segfault, OOM kill), the pool's unfinished jobs are re-run once in a fresh
+pool; a second death raises :class:`WorkerLostError` naming the unfinished jobs.
 
 ``ray`` (optional extra: ``pip install 'cnnps[ray]'``) runs each job as a Ray task on
 an existing cluster (``address: auto`` or ``ray://host:port``) or on a Ray runtime it
@@ -28,7 +30,9 @@ from __future__ import annotations
 import importlib.util
 import logging
 import os
+import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from multiprocessing import get_context
 from typing import Any, Callable, Protocol, Sequence
@@ -115,6 +119,14 @@ def _note_job(exc: BaseException, desc: str, index: int, job: Any) -> BaseExcept
     return exc
 
 
+def _broken_cause(exc: BaseException | None) -> str:
+    """' (cause: ...)' when a broken pool says why (e.g. a result that failed to unpickle)."""
+    cause = getattr(exc, "__cause__", None)
+    lines = [line.strip() for line in str(cause or "").splitlines()]
+    lines = [line for line in lines if line.strip("'\"")]  # not the quote lines around the traceback
+    return f" (cause: {lines[-1]})" if lines else ""
+
+
 class LocalExecutor:
     def __init__(self, workers: int = 0):
         self.workers = workers if workers > 0 else cores()
@@ -139,22 +151,62 @@ class LocalExecutor:
                     raise _note_job(exc, desc, i, job)
             return results
         results: list[Any] = [None] * len(jobs)
-        pool = ProcessPoolExecutor(max_workers=min(self.workers, len(jobs)), mp_context=get_context("spawn"))
+        todo = list(range(len(jobs)))
+        with tqdm(total=len(jobs), desc=desc, unit="job") as bar:
+            for attempt in range(2):
+                todo, broken = self._run_pool(fn, jobs, todo, results, desc, bar)
+                if not todo:
+                    return results
+                if attempt == 0:
+                    tqdm.write(
+                        f"cnnps: warning: a {desc} worker process died (out of memory or killed?)"
+                        f"{_broken_cause(broken)}; re-running its {len(todo)} unfinished job(s) in a fresh pool",
+                        file=sys.stderr,
+                    )
+        named = ", ".join(f"{i} ({_describe(jobs[i], 80)})" for i in todo[:3])
+        more = f" and {len(todo) - 3} more" if len(todo) > 3 else ""
+        raise WorkerLostError(
+            f"{desc}: a worker process died twice (out of memory or killed?){_broken_cause(broken)} "
+            f"with job(s) {named}{more} unfinished; try fewer workers (executor.workers)"
+        ) from broken
+
+    def _run_pool(self, fn, jobs, todo, results, desc, bar) -> tuple[list[int], BrokenProcessPool | None]:
+        """Run jobs ``todo`` in a fresh spawned pool, filling ``results``.
+
+        Returns the indices left unfinished because a worker process died (the pool is
+        then broken: its other workers are stopped too) and the pool's error; a job's own
+        exception is raised.
+        """
+        finished: set[int] = set()
+        broken: BrokenProcessPool | None = None
+        pool = ProcessPoolExecutor(max_workers=min(self.workers, len(todo)), mp_context=get_context("spawn"))
         try:
-            futures = {pool.submit(fn, job): i for i, job in enumerate(jobs)}
-            with tqdm(total=len(jobs), desc=desc, unit="job") as bar:
+            futures: dict[Any, int] = {}
+            try:
+                for i in todo:
+                    futures[pool.submit(fn, jobs[i])] = i
                 for fut in as_completed(futures):
                     i = futures[fut]
                     try:
                         results[i] = fut.result()
+                    except BrokenProcessPool as exc:
+                        broken = exc
+                        break
                     except Exception as exc:
                         raise _note_job(exc, desc, i, jobs[i])
+                    finished.add(i)
                     bar.update(1)
-        except BaseException:
+            except BrokenProcessPool as exc:  # from submit: the pool broke while jobs were queued
+                broken = exc
+            # keep what other jobs finished before the pool broke
+            for fut, i in futures.items():
+                if i not in finished and fut.done() and not fut.cancelled() and fut.exception() is None:
+                    results[i] = fut.result()
+                    finished.add(i)
+                    bar.update(1)
+        finally:
             pool.shutdown(wait=True, cancel_futures=True)  # do not start queued jobs after a failure
-            raise
-        pool.shutdown(wait=True)
-        return results
+        return [i for i in todo if i not in finished], broken
 
     def close(self) -> None:
         pass
