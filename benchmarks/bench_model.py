@@ -1,0 +1,106 @@
+"""The shipped (or a given) model against the published CNN-PS numbers, and its speed.
+
+    .venv/bin/python benchmarks/bench_model.py [--model PATH] [--shared ../shared]
+                                               [--out benchmarks/results/model.json]
+
+Measures, with `cnnps predict` (images read included):
+  * DiLiGenT BALL (../shared/data/diligent/ballPNG): mean / median angular error at K=1 and
+    K=10, fp32 and bf16, next to least squares on the same pixels;
+  * the whole-object time for BALL;
+  * the fossil capture (../shared/data/captures/fossil, no ground truth; K=1: 307,000 pixels): writes the predicted
+    normal picture to docs/images/fossil_normals.png (shown in the README);
+  * time for a 45,000-pixel object (96 lights) at K=1 and K=10, fp32 and bf16.
+Skips the parts whose data is absent. Published on BALL: least squares 4.10°, PS-FCN 2.82°,
+CNN-PS 2.7° (K=1) / 2.2° (K=10).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from cnnps.atomic import write_text  # noqa: E402
+from cnnps.predict import predict_capture  # noqa: E402
+
+
+def _predict(capture: Path, tmp: Path, **kw) -> tuple[dict, float, Path]:
+    out = tmp / f"out-{len(list(tmp.iterdir()))}"
+    t = time.perf_counter()
+    result = predict_capture(capture, out, progress=False, **kw)
+    return result, time.perf_counter() - t, out
+
+
+def _metric(result: dict) -> dict:
+    return {"mean_deg": result.get("mean_deg"), "median_deg": result.get("median_deg")}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
+    ap.add_argument("--shared", type=Path, default=REPO.parent / "shared")
+    ap.add_argument("--pixels", type=int, default=45000)
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "model.json")
+    ap.add_argument("--picture", type=Path, default=REPO / "docs" / "images" / "fossil_normals.png")
+    args = ap.parse_args()
+
+    result: dict = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                    "model": str(args.model or "shipped"), "load_average_before": list(os.getloadavg())}
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        ball = args.shared / "data" / "diligent" / "ballPNG"
+        if ball.is_dir():
+            rows = {}
+            r, t, _ = _predict(ball, tmp, method="lambertian")
+            rows["lambertian"] = {**_metric(r), "seconds": round(t, 2)}
+            for precision in ("fp32", "bf16"):
+                for k in (1, 10):
+                    r, t, _ = _predict(ball, tmp, method="cnn", model=args.model, rotations=k, precision=precision)
+                    rows[f"cnn_k{k}_{precision}"] = {**_metric(r), "seconds": round(t, 2)}
+                    print(f"BALL cnn K={k} {precision}: {rows[f'cnn_k{k}_{precision}']}", flush=True)
+            rows["bf16_minus_fp32_k10_deg"] = rows["cnn_k10_bf16"]["mean_deg"] - rows["cnn_k10_fp32"]["mean_deg"]
+            rows["bf16_minus_fp32_k1_deg"] = rows["cnn_k1_bf16"]["mean_deg"] - rows["cnn_k1_fp32"]["mean_deg"]
+            result["ball"] = rows
+        fossil = args.shared / "data" / "captures" / "fossil"
+        if fossil.is_dir():
+            r, t, out = _predict(fossil, tmp, method="cnn", model=args.model, rotations=1)
+            args.picture.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(out / "normal.png", args.picture)
+            result["fossil"] = {"rotations": 1, "pixels": r.get("pixels"), "seconds": round(t, 2), "picture": str(args.picture.relative_to(REPO))}
+
+        # a 45,000-pixel object: speed only (synthetic Lambertian pixels, 96 lights)
+        import torch  # noqa: F401
+
+        from benchmarks.bench_inference import _scene
+        from models.checkpoint import load_checkpoint
+        from models.inference import predict_normals
+        from models.shipped import shipped_model_path
+
+        net, _, _ = load_checkpoint(args.model or shipped_model_path(), "cpu")
+        I, L = _scene(args.pixels)
+        speed = {}
+        for precision in ("fp32", "bf16"):
+            for k in (1, 10):
+                t = time.perf_counter()
+                predict_normals(net, I, L, rotations=k, device="cpu", precision=precision, progress=False)
+                speed[f"k{k}_{precision}_s"] = round(time.perf_counter() - t, 2)
+                print(f"{args.pixels} px K={k} {precision}: {speed[f'k{k}_{precision}_s']} s", flush=True)
+        result["object_45k"] = {"pixels": args.pixels, "lights": 96, **speed}
+    result["load_average_after"] = list(os.getloadavg())
+    write_text(args.out, json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
