@@ -13,7 +13,7 @@ from pipeline.app import app
 @app.command("render")
 def render(
     mesh: str = typer.Argument(..., metavar="MESH", help="Mesh file (OBJ, PLY, OFF, STL, glTF; centred and scaled into the unit sphere) or procedural:<kind>[:seed] (blob, bowl, assembly, bumpy, holed)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Capture folder to write (DiLiGenT layout + float32 EXR images, normal_gt.npy, scene.json). Rerunning resumes a partial folder."),
+    out: Path = typer.Option(..., "--out", "-o", help="Capture folder to write (DiLiGenT layout + float32 EXR images, normal_gt.npy, scene.json). Rerunning resumes a partial folder. An existing folder must be empty or a cnnps render folder."),
     lights: int = typer.Option(40, "--lights", metavar="N", help="Number of sun lights over the upper hemisphere (Fibonacci spiral)."),
     size: int = typer.Option(128, "--size", metavar="PIXELS", help="Image width = height; the camera covers x, y in [-1, 1]."),
     samples: int = typer.Option(32, "--samples", metavar="SPP", help="Cycles path samples per pixel."),

@@ -22,7 +22,10 @@ Scene set-up (measured facts in ``shared/notes/blender5-facts.md``):
   interreflections and cast shadows);
 - Standard view transform, float32 linear OpenEXR (multilayer, with the Normal pass and
   alpha, so ground-truth normals and the mask come from the very same ray hits);
-- persistent data: the scene is synced once, each light only moves the sun.
+- persistent data: the scene is synced once, each light only moves the sun;
+- the seed is folded into Cycles' range 0 .. 2^31 - 1 (:func:`cycles_seed`);
+- Blender writes each picture into a private temp folder, locked (flock) while the
+  renderer lives, so a later renderer removes the folders of SIGKILLed ones.
 
 Materials: ``{"bsdf": "lambertian", "Color": albedo}`` is a Diffuse BSDF (roughness 0 =
 pure Lambertian). Anything else is a Principled BSDF: every other key is the name of a
@@ -39,7 +42,9 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import shutil
 import tempfile
+import time
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -49,6 +54,65 @@ from cnnps.errors import CnnpsError, ConfigError
 
 LAMBERTIAN = "lambertian"
 _GPU_BACKENDS = ("OPTIX", "CUDA", "HIP", "ONEAPI", "METAL")
+
+
+CYCLES_SEED_RANGE = 2**31  # Cycles' seed property takes 0 .. 2^31 - 1
+_TMP_PREFIX = "cnnps-blender-"
+
+
+def cycles_seed(seed: int) -> int:
+    """``seed`` folded into the range Cycles accepts (seeds already in range are unchanged)."""
+    return int(seed) % CYCLES_SEED_RANGE
+
+
+def _make_tmpdir() -> tuple[Path, int | None]:
+    """A private temp folder for Blender's output file, and a lock held on it while it lives.
+
+    A renderer killed with SIGKILL never runs :meth:`BlenderRenderer.close`; its folder is
+    removed by a later renderer, which sees that nobody holds the lock any more (the
+    kernel drops a dead process's locks).
+    """
+    _remove_stale_tmpdirs()
+    d = Path(tempfile.mkdtemp(prefix=_TMP_PREFIX))
+    try:
+        import fcntl
+    except ImportError:  # no flock (Windows): no clean-up of killed renderers' folders
+        return d, None
+    fd = os.open(d / ".lock", os.O_CREAT | os.O_RDWR, 0o600)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    return d, fd
+
+
+def _remove_stale_tmpdirs(root: str | Path | None = None, min_age_s: float = 60.0) -> list[Path]:
+    """Remove temp folders of renderers whose process is gone (their ``.lock`` is free).
+
+    Folders younger than ``min_age_s`` are left alone (a new renderer takes its lock just
+    after creating its folder), and so are folders without a ``.lock``. Returns the
+    folders removed.
+    """
+    try:
+        import fcntl
+    except ImportError:
+        return []
+    removed = []
+    now = time.time()
+    for d in Path(root or tempfile.gettempdir()).glob(_TMP_PREFIX + "*"):
+        try:
+            if not d.is_dir() or now - d.stat().st_mtime < min_age_s:
+                continue
+            fd = os.open(d / ".lock", os.O_RDWR)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            continue  # a live renderer holds it
+        else:
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d)
+        finally:
+            os.close(fd)
+    return removed
 
 
 def blender_version() -> str:
@@ -112,13 +176,18 @@ class BlenderRenderer:
         self.samples = int(samples)
         self.device = device
         self.threads = int(threads)
-        self.seed = int(seed)
+        self.seed = cycles_seed(seed)
         self.max_bounces = int(max_bounces)
         self.persistent = bool(persistent)
         self.renders = 0  # number of light renders done (for tests / benchmarks)
-        self._tmpdir = Path(tempfile.mkdtemp(prefix="cnnps-blender-"))
+        self._tmpdir, self._lock_fd = _make_tmpdir()
         self._images: list[Any] = []
-        self._setup()
+        self.obj = None
+        try:
+            self._setup()
+        except BaseException:  # e.g. no GPU: leave no temp folder behind
+            self.close()
+            raise
 
     # ------------------------------------------------------------------ set-up
     def _setup(self) -> None:
@@ -450,9 +519,10 @@ class BlenderRenderer:
         return mask, normal.astype(np.float32)
 
     def close(self) -> None:
-        import shutil
-
         shutil.rmtree(self._tmpdir, ignore_errors=True)
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
         if self.obj is not None:
             with _quiet():
                 self._bpy.ops.wm.read_factory_settings(use_empty=True)

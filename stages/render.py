@@ -10,10 +10,14 @@ Caching and resuming. A scene's ``key`` hashes the mesh file, the material files
 parameters that change the pictures (not the device, workers or threads). A folder whose
 ``scene.json`` holds the current key and all its images is skipped. Otherwise the folder
 appears (built under a temporary name, then renamed) already holding ``.pending.json``
-(the key) and the three text files, so the light directions are fixed FIRST; each image
-is written atomically (temp name, rename); ``scene.json`` is written LAST as the
-completion marker. A rerun after a kill finds ``.pending.json`` with the same key and
-renders only the missing images with the same lights; a different key clears the folder.
+(the key) and the three text files, so the light directions are fixed FIRST (and every
+run renders with the directions read back from the file); each image is written
+atomically (temp name, rename); ``scene.json`` is written LAST as the completion marker.
+A rerun after a kill finds ``.pending.json`` with the same key, deletes the temporary
+files the kill left, and renders only the missing images with the same lights; a
+different key empties the folder. Only folders of ours (``.pending.json`` or
+``scene.json``) are ever emptied: an existing non-empty folder without them is refused
+(InputError), an existing empty one is filled in place.
 
 Scaling out. Scenes are independent jobs run by an executor (:mod:`pipeline.executor`:
 ``local`` process pool, or ``ray`` on a cluster; params.yaml's ``executor`` section).
@@ -37,7 +41,9 @@ Only :mod:`stages.blender_renderer` imports bpy; it is imported lazily here.
 
 from __future__ import annotations
 
+import glob
 import json
+import re
 import shutil
 import time
 from dataclasses import asdict, dataclass
@@ -205,6 +211,7 @@ def render_into(
     out = Path(out)
     if is_complete(out, key):
         return {"rendered": 0, "skipped": True}
+    _check_not_foreign(out)  # before Blender starts
     from cnnps.imageio import write_exr, write_png
 
     _forget_inherited_blender_paths()
@@ -227,6 +234,7 @@ def render_into(
         if resume:
             lights = L  # the directions of the interrupted run
             (out / "scene.json").unlink(missing_ok=True)  # not complete any more
+            remove_temp_files(out)  # half-written files of the killed run
         else:
             lights = _start_folder(out, key, lights, intensity, names)
 
@@ -294,30 +302,84 @@ def _forget_inherited_blender_paths() -> None:
     sys.path[:] = [p for p in sys.path if not (marker in p and f"{os.sep}scripts" in p)]
 
 
+# the temporary names of cnnps.atomic: ``.{stem}.XXXXXXXX.tmp{suffix}`` (atomic_path) and
+# ``.{name}.XXXXXXXX.tmp`` (atomic_dir, and _start_folder's build folder)
+_TEMP_NAME = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
+
+
+def remove_temp_files(folder: Path) -> list[Path]:
+    """Delete the hidden temporary files (and folders) that atomic writes left in ``folder``
+    when their process was killed. Call it only while no other job writes there."""
+    removed = []
+    for p in Path(folder).iterdir():
+        if _TEMP_NAME.match(p.name):
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
+            removed.append(p)
+    return removed
+
+
+def is_render_folder(path: Path) -> bool:
+    """Whether ``path`` is a folder this stage wrote (finished or not)."""
+    return path.is_dir() and ((path / ".pending.json").is_file() or (path / "scene.json").is_file())
+
+
+def _check_not_foreign(out: Path) -> None:
+    """Refuse an existing ``out`` that holds something not of ours (never delete it)."""
+    if out.exists() and not is_render_folder(out) and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(out.absolute(), "exists and is not a cnnps render folder; choose a new or empty folder")
+
+
 def _start_folder(out: Path, key: str, lights: np.ndarray, intensity: float, names: list[str]) -> np.ndarray:
-    """Create ``out`` holding ``.pending.json`` and the light files, atomically: it is built
-    under a temporary name and renamed into place, so a folder with this key always has
-    its lights. If a duplicate of this job created it meanwhile (same key), its lights
-    are used. Returns the light directions to render."""
+    """Make ``out`` hold ``.pending.json`` (the key) and the light files, so a folder with
+    this key always has its lights. Returns the light directions to render, as read back
+    from ``light_directions.txt`` (a resumed run reads the same numbers).
+
+    Only a folder of ours (``.pending.json`` or ``scene.json``) is emptied; any other
+    non-empty ``out`` is refused (InputError). A new folder is built under a temporary
+    name and renamed into place; if a duplicate of this job created it meanwhile (same
+    key), its lights are used. An existing empty folder (or one of ours, emptied) is
+    filled in place: marker without a key first, so a kill leaves it recognisably ours.
+    """
     import tempfile
 
-    if out.exists():
-        shutil.rmtree(out)  # another key, or not a scene folder of ours
+    if is_render_folder(out):  # another key, or killed while being set up
+        write_text(out / ".pending.json", json.dumps({"key": None}) + "\n")
+        for p in out.iterdir():
+            if p.name == ".pending.json":
+                continue
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
+    else:
+        _check_not_foreign(out)
+
+    if out.is_dir():  # empty (but for our key-less marker)
+        write_text(out / ".pending.json", json.dumps({"key": None}) + "\n")
+        _write_lights(out, lights, intensity, names)
+        write_text(out / ".pending.json", json.dumps({"key": key}) + "\n")
+        return np.loadtxt(out / "light_directions.txt", ndmin=2)
+
     out.parent.mkdir(parents=True, exist_ok=True)
+    build = re.compile(rf"^\.{re.escape(out.name)}\.[A-Za-z0-9_]{{8}}\.tmp$")
+    for p in out.parent.glob(f".{glob.escape(out.name)}.*.tmp"):  # build folders of killed runs
+        if p.is_dir() and build.match(p.name):
+            shutil.rmtree(p, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
     try:
         write_text(tmp / ".pending.json", json.dumps({"key": key}) + "\n")
         _write_lights(tmp, lights, intensity, names)
-        try:
-            tmp.rename(out)
-        except OSError:  # out appeared meanwhile (a duplicate job): resume what it started
-            pending = _read_json(out / ".pending.json") or _read_json(out / "scene.json") or {}
-            if pending.get("key") != key or not (out / "light_directions.txt").is_file():
-                raise
-            return np.loadtxt(out / "light_directions.txt", ndmin=2)
+        tmp.rename(out)
+    except OSError:  # out appeared meanwhile (a duplicate job): resume what it started
+        pending = _read_json(out / ".pending.json") or _read_json(out / "scene.json") or {}
+        if pending.get("key") != key or not (out / "light_directions.txt").is_file():
+            raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    return lights
+    return np.loadtxt(out / "light_directions.txt", ndmin=2)
 
 
 def _load_mesh_arg(mesh) -> tuple[Any, dict]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -234,9 +235,15 @@ def test_resume_renders_only_missing_images(sphere_capture, tmp_path):
     (out / ".pending.json").write_text(json.dumps({"key": meta["key"]}))
     for n in ("003.exr", "007.exr", "039.exr"):
         (out / n).unlink()
+    from cnnps.atomic import atomic_path
+
+    write = atomic_path(out / "003.exr")  # killed in the middle of this atomic write (kept alive:
+    leftover = write.__enter__()  # a collected one would clean up after itself)
+    assert leftover.is_file() and leftover.name.startswith(".003.")
     render_capture(_sphere(), out, lights=40, size=S, samples=4, seed=0, threads=THREADS, progress=False)
     meta2 = json.loads((out / "scene.json").read_text())
     assert meta2["images_rendered_last_run"] == 3 and meta2["key"] == meta["key"]
+    assert not leftover.exists() and not [p.name for p in out.iterdir() if p.name.startswith(".")]
     assert (out / "light_directions.txt").read_bytes() == before["light_directions.txt"]
     from cnnps.imageio import read_image
 
@@ -254,11 +261,12 @@ def test_resume_renders_only_missing_images(sphere_capture, tmp_path):
 def test_cli_killed_then_resumed(tmp_path):
     """SIGKILL in the middle of `cnnps render`, rerun: only the missing lights are rendered."""
     out = tmp_path / "cap"
+    out.mkdir()  # an existing empty folder is filled in place
     cmd = [sys.executable, "-m", "pipeline", "render", "procedural:blob:2", "--out", str(out), "--lights", "60",
            "--size", "24", "--samples", "2", "--threads", "1", "--no-progress"]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    t0 = time.time()
-    while len(list(out.glob("[0-9]*.exr"))) < 5 and time.time() - t0 < 60 and proc.poll() is None:
+    t0 = time.time()  # generous: Blender starts slowly on a loaded machine
+    while len(list(out.glob("[0-9]*.exr"))) < 5 and time.time() - t0 < 300 and proc.poll() is None:
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
@@ -318,6 +326,80 @@ def test_cli_errors_are_one_line(tmp_path):
     r = run("procedural:bowl", "--out", str(tmp_path / "o"), "--material", "glass")
     assert r.returncode == 2 and "--material" in r.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_cli_refuses_a_folder_that_is_not_a_render_folder(tmp_path):
+    """--out naming a user's folder (e.g. ~/Documents or .) is refused, never emptied."""
+    user = tmp_path / "Documents"
+    user.mkdir()
+    (user / "thesis.txt").write_text("precious")
+    (user / "sub").mkdir()
+    for out, cwd in ((str(user), REPO), (".", user)):
+        r = subprocess.run([sys.executable, "-m", "pipeline", "render", "procedural:bowl", "--out", out,
+                            "--lights", "3", "--size", "8", "--samples", "1"], cwd=cwd, capture_output=True, text=True,
+                           env={**os.environ, "PYTHONPATH": str(REPO)})
+        assert r.returncode == 2, r.stderr
+        assert r.stderr.strip().count("\n") == 0 and "is not a cnnps render folder" in r.stderr
+        assert str(user) in r.stderr
+        assert sorted(p.name for p in user.iterdir()) == ["sub", "thesis.txt"]
+        assert (user / "thesis.txt").read_text() == "precious"
+
+
+def test_remove_temp_files_only_removes_atomic_temporaries(tmp_path):
+    from cnnps.atomic import atomic_path
+    from stages.render import remove_temp_files
+
+    keep = ["000.exr", ".pending.json", ".hidden_user_file", "light_directions.txt", ".x.tmp"]
+    for n in keep:
+        (tmp_path / n).write_text("x")
+    # temporaries of writes that never finished (a SIGKILLed process)
+    writes = [atomic_path(tmp_path / n) for n in ("001.exr", "normal_gt.npy", "scene.json")]  # kept alive:
+    left = [w.__enter__() for w in writes]  # a collected write would clean up after itself
+    assert all(p.is_file() and p.name.startswith(".") for p in left)
+    removed = remove_temp_files(tmp_path)
+    assert sorted(removed) == sorted(left)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(keep)
+
+
+def test_cycles_seed_is_folded_into_range():
+    from stages.blender_renderer import cycles_seed
+
+    assert cycles_seed(0) == 0 and cycles_seed(12345) == 12345 and cycles_seed(2**31 - 1) == 2**31 - 1
+    assert cycles_seed(2**31) == 0 and cycles_seed(2**31 + 7) == 7
+    for seed in (2**40 + 3, 2**64, -1):
+        assert 0 <= cycles_seed(seed) < 2**31
+    assert cycles_seed(2**40 + 3) != cycles_seed(2**40 + 4)
+
+
+@pytest.mark.blender
+def test_renderer_accepts_a_large_seed():
+    pytest.importorskip("bpy")
+    from stages.blender_renderer import BlenderRenderer, cycles_seed
+
+    with BlenderRenderer(8, samples=1, threads=THREADS, seed=2**40 + 3) as r:
+        assert r.scene.cycles.seed == cycles_seed(2**40 + 3) == 3
+
+
+def test_killed_renderers_temp_folders_are_removed(tmp_path):
+    """Blender's temp folder carries a lock: once its process is SIGKILLed, a later
+    renderer removes it; a live one's folder is left alone."""
+    code = ("import sys, time; from stages.blender_renderer import _make_tmpdir; "
+            "d, fd = _make_tmpdir(); print(d, flush=True); time.sleep(120)")
+    env = {**os.environ, "TMPDIR": str(tmp_path), "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, stdout=subprocess.PIPE, text=True)
+    try:
+        d = Path(proc.stdout.readline().strip())
+        assert d.parent == tmp_path and d.name.startswith("cnnps-blender-") and d.is_dir()
+        from stages.blender_renderer import _remove_stale_tmpdirs
+
+        old = time.time() - 3600
+        os.utime(d, (old, old))
+        assert _remove_stale_tmpdirs(tmp_path) == [] and d.is_dir()  # alive: its lock is held
+    finally:
+        proc.kill()
+        proc.wait()
+    assert _remove_stale_tmpdirs(tmp_path, min_age_s=7200) == [] and d.is_dir()  # too young
+    assert _remove_stale_tmpdirs(tmp_path) == [d] and not d.exists()
 
 
 @pytest.mark.blender
