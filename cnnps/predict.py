@@ -26,7 +26,7 @@ from cnnps.errors import CnnpsError, ConfigError, InputError
 METHODS = ("cnn", "lambertian")
 DEVICES = ("auto", "cpu", "cuda")
 PRECISIONS = ("fp32", "bf16")
-DEFAULT_BATCH_SIZE = 4096
+DEFAULT_BATCH_SIZE = None  # the inference default: 256 maps on a CPU, 4096 on CUDA
 OUTPUT_FILES = ("normal.npy", "normal.png", "prediction.json", "error.png", "metrics.json")
 
 
@@ -46,7 +46,7 @@ def _check_options(method, rotations, device, precision, batch_size, shadow_thre
         raise ConfigError(f"--device must be one of {', '.join(DEVICES)}, got {device!r}")
     if precision not in PRECISIONS:
         raise ConfigError(f"--precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
-    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+    if batch_size is not None and (isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1):
         raise ConfigError(f"--batch-size must be an integer >= 1, got {batch_size!r}")
     if shadow_threshold is not None:
         if method != "lambertian":
@@ -138,7 +138,7 @@ def predict_capture(
     rotations: int = 10,
     device: str = "auto",
     precision: str = "fp32",
-    batch_size: int = DEFAULT_BATCH_SIZE,
+    batch_size: int | None = DEFAULT_BATCH_SIZE,
     drop=None,
     shadow_threshold: float | None = None,
     grey: str = "mean",
@@ -181,7 +181,7 @@ def predict_capture(
                 "they use all lights"
             )
     else:
-        N = _cnn_normals(model_path, I, capture.lights, int(rotations), device, precision, int(batch_size), progress)
+        N = _cnn_normals(model_path, I, capture.lights, int(rotations), device, precision, None if batch_size is None else int(batch_size), progress)
         if N.shape != (I.shape[0], 3) or not np.all(np.isfinite(N)):
             raise CnnpsError(f"the model returned invalid normals (shape {N.shape} or NaN values)")
     N = normalize(N).astype(np.float32)

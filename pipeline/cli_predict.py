@@ -52,7 +52,7 @@ def predict(
     rotations: str = typer.Option("10", "--rotations", metavar="K", help="Test-time rotations averaged (cnn; 10 = the paper)."),
     device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
     precision: str = typer.Option("fp32", "--precision", help="fp32 | bf16."),
-    batch_size: Optional[str] = typer.Option(None, "--batch-size", metavar="N", help="Observation maps per network batch (default 4096)."),
+    batch_size: Optional[str] = typer.Option(None, "--batch-size", metavar="N", help="Observation maps per network batch (default 256 on a CPU, 4096 on CUDA)."),
     drop: Optional[str] = typer.Option(None, "--drop", metavar="INDICES", help="Image indices to leave out, 0-based, e.g. '0,1,2' or '0-19'; 'none' drops nothing (bearPNG drops its first 20 by default)."),
     shadow_threshold: Optional[str] = typer.Option(None, "--shadow-threshold", metavar="T", help="lambertian: per pixel, use only lights brighter than this fraction of its brightest, in [0, 1)."),
     grey: str = typer.Option("mean", "--grey", help="mean | luminance: how RGB becomes grey."),
