@@ -109,12 +109,7 @@ def _cnn_normals(model_path, I, L, rotations, device, precision, batch_size, pro
     from models.inference import predict_normals
 
     torch_device = device if device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        net, _config, _meta = load_checkpoint(model_path, torch_device)
-    except CnnpsError:
-        raise
-    except Exception as exc:
-        raise InputError(model_path, f"could not load model ({type(exc).__name__}: {exc})") from exc
+    net, _config, _meta = load_checkpoint(model_path, torch_device)  # InputError naming the file
     return np.asarray(
         predict_normals(
             net,

@@ -29,7 +29,7 @@ from typing import Any
 import torch
 
 from cnnps.atomic import atomic_path
-from cnnps.errors import InputError
+from cnnps.errors import CnnpsError, InputError
 from cnnps.hashing import file_sha256  # noqa: F401 (part of this module's API)
 from models.network import ARCH_VERSION, CNNPS
 
@@ -149,6 +149,15 @@ def read_checkpoint(path: str | Path) -> dict:
 def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> tuple[CNNPS, dict, dict]:
     """Rebuild the model from ``path``: returns (model in eval mode, float32, on ``device``;
     config; meta). Every problem with the file raises ``InputError(path, ...)``."""
+    try:
+        return _load_checkpoint(path, device)
+    except CnnpsError:
+        raise
+    except Exception as exc:  # anything unforeseen still names the file, in one line
+        raise InputError(path, f"could not load model ({type(exc).__name__}: {exc})") from exc
+
+
+def _load_checkpoint(path: str | Path, device: str | torch.device) -> tuple[CNNPS, dict, dict]:
     from models.inference import resolve_device  # lazy: inference imports this module's siblings
 
     path = Path(path)

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.errors import CnnpsError, ConfigError, InputError
+from cnnps.errors import ConfigError, InputError
 
 TEST_SEED_OFFSET = 1_000_003  # test shapes' seeds never coincide with the training shapes'
 SPHERE = "sphere"
@@ -435,12 +435,7 @@ def run(params: Params, data_dir: Path) -> None:
     from models.checkpoint import load_checkpoint
 
     device = _device(params.device)
-    try:
-        net, _config, _meta = load_checkpoint(model_path, device)
-    except CnnpsError:
-        raise
-    except Exception as exc:
-        raise InputError(model_path, f"could not load model ({type(exc).__name__}: {exc})") from exc
+    net, _config, _meta = load_checkpoint(model_path, device)  # InputError naming the file
     net.eval()
     from models.inference import predict_normals
 

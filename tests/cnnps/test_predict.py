@@ -153,12 +153,12 @@ def test_refuses_to_replace_foreign_folders(sphere, tmp_path):
     assert json.loads((out / "metrics.json").read_text())["dropped"] == [0]
 
 
-def test_unloadable_model_names_the_file(sphere, tmp_path, monkeypatch):
+def test_unloadable_model_names_the_file(sphere, tmp_path):
+    # the real checkpoint loader on a file that is not a checkpoint
     cap, truth = sphere
-    _fake_models(monkeypatch, truth, {}, load_fail=True)
     model = tmp_path / "bad.pt"
     model.write_bytes(b"x")
-    with pytest.raises(InputError, match="could not load model") as info:
+    with pytest.raises(InputError) as info:
         predict_capture(cap, tmp_path / "out", model=model, device="cpu", progress=False)
     assert info.value.path == model
     assert not (tmp_path / "out").exists()

@@ -164,3 +164,15 @@ def test_state_digest_ignores_memory_format():
     plain = state_digest(model.state_dict())
     model = model.to(memory_format=torch.channels_last)
     assert state_digest(model.state_dict()) == plain
+
+
+def test_unforeseen_load_failure_names_the_file(tmp_path, monkeypatch):
+    import models.checkpoint as ck
+
+    def boom(path, device):
+        raise ValueError("something unforeseen")
+
+    monkeypatch.setattr(ck, "_load_checkpoint", boom)
+    with pytest.raises(InputError, match="could not load model .ValueError: something unforeseen") as info:
+        ck.load_checkpoint(tmp_path / "m.pt")
+    assert info.value.path == tmp_path / "m.pt"
