@@ -371,15 +371,19 @@ class BlenderRenderer:
         self._images.append(img)
         return img
 
+    def _empty_material(self, name: str):
+        """A new material and its node tree, emptied."""
+        mat = self._bpy.data.materials.new(name)
+        if mat.node_tree is None:  # Blender 5 makes the tree already (use_nodes is deprecated)
+            mat.use_nodes = True
+        mat.node_tree.nodes.clear()
+        return mat, mat.node_tree
+
     def _material(self, spec: Mapping[str, Any]):
         bpy = self._bpy
         spec = dict(spec)
         kind = spec.pop("bsdf", "principled")
-        mat = bpy.data.materials.new("material")
-        if mat.node_tree is None:  # Blender 5 makes the tree already (use_nodes is deprecated)
-            mat.use_nodes = True
-        nt = mat.node_tree
-        nt.nodes.clear()
+        mat, nt = self._empty_material("material")
         out = nt.nodes.new("ShaderNodeOutputMaterial")
         if kind == LAMBERTIAN:
             bsdf = nt.nodes.new("ShaderNodeBsdfDiffuse")
@@ -475,11 +479,7 @@ class BlenderRenderer:
     def _normal_material(self):
         """Emission of (N + 1) / 2 with N Blender's smooth shading normal (world = camera frame)."""
         bpy = self._bpy
-        mat = bpy.data.materials.new("normals")
-        if mat.node_tree is None:  # Blender 5 makes the tree already (use_nodes is deprecated)
-            mat.use_nodes = True
-        nt = mat.node_tree
-        nt.nodes.clear()
+        mat, nt = self._empty_material("normals")
         geo = nt.nodes.new("ShaderNodeNewGeometry")
         scale = nt.nodes.new("ShaderNodeVectorMath")
         scale.operation = "MULTIPLY_ADD"
