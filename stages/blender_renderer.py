@@ -478,7 +478,6 @@ class BlenderRenderer:
 
     def _normal_material(self):
         """Emission of (N + 1) / 2 with N Blender's smooth shading normal (world = camera frame)."""
-        bpy = self._bpy
         mat, nt = self._empty_material("normals")
         geo = nt.nodes.new("ShaderNodeNewGeometry")
         scale = nt.nodes.new("ShaderNodeVectorMath")
