@@ -33,7 +33,7 @@ def current_umask() -> int:
     return old
 
 
-def _publish_mode(tmp: Path, is_dir: bool) -> None:
+def publish_mode(tmp: Path, is_dir: bool) -> None:
     """Give ``tmp`` the mode ``open()`` / ``mkdir`` would have given it under the umask."""
     base = 0o777 if is_dir else 0o666
     os.chmod(tmp, base & ~current_umask())
@@ -63,7 +63,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp = Path(name)
     try:
         yield tmp
-        _publish_mode(tmp, is_dir=False)
+        publish_mode(tmp, is_dir=False)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -82,7 +82,7 @@ def atomic_dir(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
     tmp = _tmp_sibling(path, is_dir=True)
     try:
         yield tmp
-        _publish_mode(tmp, is_dir=True)
+        publish_mode(tmp, is_dir=True)
         if path.exists():
             if not overwrite:
                 raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(path))

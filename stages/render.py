@@ -53,7 +53,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from cnnps.atomic import atomic_path, write_text
+from cnnps.atomic import atomic_path, publish_mode, write_text
 from cnnps.errors import ConfigError, InputError
 from cnnps.hashing import file_sha256, files_sha256, stable_hash
 from pipeline.executor import ExecutorParams
@@ -372,6 +372,7 @@ def _start_folder(out: Path, key: str, lights: np.ndarray, intensity: float, nam
     try:
         write_text(tmp / ".pending.json", json.dumps({"key": key}) + "\n")
         _write_lights(tmp, lights, intensity, names)
+        publish_mode(tmp, is_dir=True)  # mkdtemp made it private (0700)
         tmp.rename(out)
     except OSError:  # out appeared meanwhile (a duplicate job): resume what it started
         pending = _read_json(out / ".pending.json") or _read_json(out / "scene.json") or {}

@@ -46,6 +46,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from cnnps.atomic import publish_mode
 from cnnps.errors import InputError
 from pipeline import storage
 
@@ -218,6 +219,7 @@ class SceneShardWriter:
             shutil.rmtree(self.directory, ignore_errors=True)
         else:
             for tmp, final in zip(self._tmp, finals):
+                publish_mode(tmp, is_dir=False)  # mkstemp made it private (0600)
                 os.replace(tmp, final)
         self._tmp = []
         self.infos = infos

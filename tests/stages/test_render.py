@@ -415,3 +415,19 @@ def test_gpu_request_without_gpu_is_a_clear_error(tmp_path):
         r.load_scene(_sphere().vertices, _sphere().faces)
         assert r.render([0, 0, 1]).max() > 0.9
         r.close()
+
+
+def test_new_scene_folder_gets_the_umask_mode(tmp_path):
+    """A scene folder is built under mkdtemp (private 0700); renamed into place it must be
+    readable as the umask allows, like every other output."""
+    import stat
+
+    from stages.render import _start_folder
+
+    old = os.umask(0o022)
+    try:
+        _start_folder(tmp_path / "scene", "k", np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]), 1.0, ["0.exr", "1.exr"])
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(os.stat(tmp_path / "scene").st_mode) == 0o755
+    assert (tmp_path / "scene" / "light_directions.txt").is_file()

@@ -111,3 +111,15 @@ def test_torch_dataset_batches(shards):
     ref = list(ds.stream.iter_epoch(0))
     assert len(batches) == len(ref) - 3
     assert np.array_equal(ids_of(x[:, 0].numpy()), ids_of(ref[3][0]))
+
+
+def test_shards_get_the_umask_mode_not_mkstemps(tmp_path):
+    import os
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        infos = write_scene(tmp_path, "m", 0, 40)
+    finally:
+        os.umask(old)
+    assert infos and all(stat.S_IMODE(os.stat(tmp_path / i.file).st_mode) == 0o644 for i in infos)
