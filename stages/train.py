@@ -17,6 +17,12 @@ uninterrupted run (tests/stages/test_train.py checks it). ``epochs``, ``max_step
 the logging/checkpoint intervals are not part of the key: raising ``max_steps`` or
 ``epochs`` continues a finished run.
 
+Learning rate: ``lr``, multiplied by ``lr_gamma`` at each step in ``lr_milestones``
+(:func:`lr_at`; a step schedule, independent of ``max_steps``). Fine-tuning: ``init``
+names a cnnps checkpoint (e.g. a shipped model) whose weights replace the random
+initialisation; the SHA-256 of those weights, not the path, is part of the run key and
+is recorded in the model's meta (``init_weights_sha256``).
+
 Shards: read from ``shards`` (a path or an fsspec URL, the extract stage's ``output``),
 by default ``data_dir/extract``.
 
@@ -86,6 +92,9 @@ class Params:
     max_steps: int = 0  # 0 = no limit; otherwise stop after this many optimiser steps
     batch_size: int = 128
     lr: float = 1e-3
+    lr_milestones: tuple[int, ...] = ()  # steps at which the learning rate is multiplied by lr_gamma
+    lr_gamma: float = 0.1
+    init: str | None = None  # start from these weights (a cnnps checkpoint) instead of a random init
     weight_decay: float = 0.0
     dropout: float = 0.2
     seed: int = 0
@@ -114,6 +123,15 @@ class Params:
                 raise ConfigError(f"train.{name} must be >= 0, got {getattr(self, name)}")
         if not self.lr > 0:
             raise ConfigError(f"train.lr must be > 0, got {self.lr}")
+        object.__setattr__(self, "lr_milestones", tuple(self.lr_milestones or ()))
+        if any(not isinstance(m, int) or m < 1 for m in self.lr_milestones) or list(self.lr_milestones) != sorted(
+            set(self.lr_milestones)
+        ):
+            raise ConfigError(f"train.lr_milestones must be increasing steps >= 1, got {list(self.lr_milestones)}")
+        if not 0 < self.lr_gamma <= 1:
+            raise ConfigError(f"train.lr_gamma must be in (0, 1], got {self.lr_gamma}")
+        if self.init is not None and (not isinstance(self.init, str) or not self.init.strip()):
+            raise ConfigError(f"train.init must be a checkpoint path, got {self.init!r}")
         if not 0 <= self.dropout < 1:
             raise ConfigError(f"train.dropout must be in [0, 1), got {self.dropout}")
         if self.device not in ("auto", "cpu", "cuda"):
@@ -124,12 +142,33 @@ class Params:
             raise ConfigError(f"train.shards must be a folder path or URL, got {self.shards!r}")
 
     def result_key(self) -> dict:
-        """Params that change the trained weights (a resume needs them equal)."""
+        """Params that change the trained weights (a resume needs them equal). ``init``
+        enters as the SHA-256 of its weights (see :func:`init_digest`), not as a path."""
         d = asdict(self)
         for k in ("epochs", "max_steps", "val_every", "val_max_rows", "checkpoint_every", "keep_checkpoints",
-                  "log_every", "threads", "num_workers", "progress", "shards"):
+                  "log_every", "threads", "num_workers", "progress", "shards", "init"):
             d.pop(k)
+        d["lr_milestones"] = list(self.lr_milestones)
         return d
+
+
+def lr_at(params: Params, step: int) -> float:
+    """The learning rate of optimiser step ``step + 1`` (``step`` steps done): ``lr``
+    times ``lr_gamma`` for every milestone already reached. A step schedule does not
+    depend on ``max_steps``, so raising ``max_steps`` still continues a finished run."""
+    return params.lr * params.lr_gamma ** sum(step >= m for m in params.lr_milestones)
+
+
+def load_init(params: Params, w: int):
+    """(state_dict, weights SHA-256) of ``params.init``, or (None, None)."""
+    if params.init is None:
+        return None, None
+    from models.checkpoint import load_checkpoint, read_checkpoint
+
+    model, config, _ = load_checkpoint(params.init)
+    if int(config["w"]) != w:
+        raise InputError(params.init, f"train.init is a w={config['w']} model, the shards hold w={w} maps")
+    return model.state_dict(), read_checkpoint(params.init)["weights_sha256"]
 
 
 # -- pieces shared with benchmarks/bench_train.py ---------------------------------------
@@ -435,10 +474,15 @@ def _train(params: Params, data_dir: Path, info: DistInfo, device: torch.device,
     for f in train_files + val_files:
         if not storage.exists(f):
             raise InputError(str(f), "shard listed in the manifest is missing (rerun extract)")
-    run_key = hashlib.sha256(json.dumps([params.result_key(), manifest_hash], sort_keys=True).encode()).hexdigest()
+    init_state, init_sha = load_init(params, w)
+    run_key = hashlib.sha256(
+        json.dumps([params.result_key(), manifest_hash] + ([init_sha] if init_sha else []), sort_keys=True).encode()
+    ).hexdigest()
 
     main = info.is_main
     raw, opt = make_model(w, params, device)
+    if init_state is not None:  # every rank loads the same file: replicas start equal
+        raw.load_state_dict(init_state)
     model = raw
     if info.enabled:
         from torch.nn.parallel import DistributedDataParallel as DDP
@@ -556,6 +600,8 @@ def _train(params: Params, data_dir: Path, info: DistInfo, device: torch.device,
     t0, step0 = time.perf_counter(), step
     loss_acc, loss_n = torch.zeros(()), 0
     while step < total_steps:
+        for group in opt.param_groups:
+            group["lr"] = lr_at(params, step)
         epoch, skip = divmod(step, steps_per_epoch)
         ds.set_epoch(epoch)
         ds.set_skip(skip)
@@ -576,6 +622,9 @@ def _train(params: Params, data_dir: Path, info: DistInfo, device: torch.device,
             else:
                 loss = train_step(model, opt, maps, normals, device, params.precision, params.channels_last)
             step += 1
+            if step in params.lr_milestones:
+                for group in opt.param_groups:
+                    group["lr"] = lr_at(params, step)
             loss_acc += loss.float().cpu()
             loss_n += 1
             bar.update(params.batch_size)
@@ -625,7 +674,8 @@ def _train(params: Params, data_dir: Path, info: DistInfo, device: torch.device,
             raw.cpu().to(memory_format=torch.contiguous_format),  # the file holds plain NCHW weights
             config={"w": w, "dropout": params.dropout},
             meta={"steps": step, "val_mean_deg": v.get("val_mean_deg"), "val_median_deg": v.get("val_median_deg"),
-                  "data_manifest_sha256": manifest_hash, "params": asdict(params)},
+                  "data_manifest_sha256": manifest_hash, "params": asdict(params),
+                  **({"init_weights_sha256": init_sha} if init_sha else {})},
         )
         write_text(out_dir / "metrics.json", json.dumps(metrics, indent=1))
     if info.enabled:

@@ -101,6 +101,55 @@ def test_bad_params(dataset, tmp_path):
         train.run(train.Params(), tmp_path)
 
 
+def test_lr_schedule_is_a_step_function_of_the_step():
+    p = train.Params(lr=1e-3, lr_milestones=[10, 20], lr_gamma=0.5)
+    assert [train.lr_at(p, s) for s in (0, 9, 10, 19, 20, 1000)] == pytest.approx(
+        [1e-3, 1e-3, 5e-4, 5e-4, 2.5e-4, 2.5e-4]
+    )
+    assert train.lr_at(train.Params(lr=2e-3), 10**6) == 2e-3
+    from cnnps.errors import ConfigError
+
+    for bad in (dict(lr_milestones=[20, 10]), dict(lr_milestones=[0]), dict(lr_milestones=[5, 5]),
+                dict(lr_gamma=0), dict(lr_gamma=1.5), dict(init="")):
+        with pytest.raises(ConfigError):
+            train.Params(**bad)
+    # the schedule changes the weights, so it is part of the resume key; max_steps is not
+    assert p.result_key() != train.Params(lr=1e-3).result_key()
+
+
+def test_lr_milestones_reach_the_optimiser(dataset, tmp_path):
+    d = fresh_copy(dataset, tmp_path)
+    train.run(train.Params(max_steps=6, lr=1e-3, lr_milestones=[4], lr_gamma=0.25, val_every=0, **BASE), d)
+    state = _weights(d)
+    assert state["optim"]["param_groups"][0]["lr"] == pytest.approx(2.5e-4)
+    d2 = fresh_copy(dataset, tmp_path / "const")
+    train.run(train.Params(max_steps=6, lr=1e-3, val_every=0, **BASE), d2)
+    assert _weights(d2)["optim"]["param_groups"][0]["lr"] == pytest.approx(1e-3)
+
+
+def test_init_starts_from_given_weights(dataset, tmp_path):
+    from cnnps.errors import InputError
+    from models.checkpoint import load_checkpoint, read_checkpoint
+
+    a = fresh_copy(dataset, tmp_path / "a")
+    ma = train.run(train.Params(max_steps=120, lr=1e-3, val_every=0, **BASE), a)
+    # one step at a negligible learning rate from a's weights: a's validation error, not
+    # the ~40 deg of a fresh network (test_training_lowers_loss_and_val_error)
+    b = fresh_copy(dataset, tmp_path / "b")
+    mb = train.run(train.Params(max_steps=1, lr=1e-9, val_every=0, init=str(a / "train/model.pt"), **BASE), b)
+    assert ma["val_mean_deg"] < 25
+    assert mb["val_mean_deg"] == pytest.approx(ma["val_mean_deg"], abs=0.05)
+    _, _, meta = load_checkpoint(b / "train/model.pt")
+    assert meta["init_weights_sha256"] == read_checkpoint(a / "train/model.pt")["weights_sha256"]
+    # a checkpoint of a run from scratch is not resumed into a run with init (other run key)
+    c = fresh_copy(dataset, tmp_path / "c")
+    train.run(train.Params(max_steps=1, lr=1e-9, val_every=0, **BASE), c)
+    mc = train.run(train.Params(max_steps=1, lr=1e-9, val_every=0, init=str(a / "train/model.pt"), **BASE), c)
+    assert mc["val_mean_deg"] == pytest.approx(ma["val_mean_deg"], abs=0.05)
+    with pytest.raises(InputError, match="missing.pt"):
+        train.run(train.Params(max_steps=1, init=str(tmp_path / "missing.pt"), **BASE), c)
+
+
 def test_stage_modules_do_not_import_torch(repo_root):
     # pipeline/config imports every stage module: other stages must not pay for torch
     import subprocess
