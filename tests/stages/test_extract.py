@@ -270,6 +270,49 @@ def test_pixels_per_scene_and_explicit_val(tmp_path):
         extract.run(Params(val_scenes=("nope",), **SMALL), tmp_path)
 
 
+def test_add_ambient_offsets_each_pixel_by_a_share_of_its_brightest_chosen_light():
+    rng = np.random.default_rng(0)
+    I = rng.random((400, 30)).astype(np.float32)
+    I[:, :5] = 0.0  # attached shadows
+    I[:, 29] = 5.0  # a bright light that is never chosen: must not set the scale
+    mask = np.ones_like(I, dtype=bool)
+    mask[:, 29] = False
+    out = extract.add_ambient(np.random.default_rng(1), I, mask, 0.1)
+    off = out - I
+    top = np.where(mask, I, 0).max(axis=1)
+    assert np.allclose(off, off[:, :1], atol=1e-6)  # one offset per pixel, every light
+    share = off[:, 0] / top
+    assert share.min() >= 0 and share.max() <= 0.1 + 1e-6
+    assert 0.04 < share.mean() < 0.06 and share.max() > 0.09  # ~U(0, 0.1)
+
+
+def test_ambient_max_changes_rows_only_when_set(tmp_path):
+    make_render_dir(tmp_path, n_scenes=1)
+    plain = Params(pixels_per_scene=40, **SMALL)
+    # an unset ambient_max leaves the cache key and manifest of earlier versions unchanged
+    assert "ambient_max" not in plain.row_key() and "ambient_max" not in plain.manifest_params()
+    extract.run(plain, tmp_path)
+    maps0 = decode_maps(read_all(tmp_path)[1].column("map"), plain.w).astype(np.float32)
+    amb = Params(pixels_per_scene=40, ambient_max=0.2, **SMALL)
+    assert amb.row_key()["ambient_max"] == 0.2
+    extract.run(amb, tmp_path)
+    man, table = read_all(tmp_path)
+    assert man["params"]["ambient_max"] == 0.2
+    maps1 = decode_maps(table.column("map"), amb.w).astype(np.float32)
+    assert maps0.shape == maps1.shape
+    # same pixels and light subsets: lit cells stay lit, cells of shadowed chosen lights
+    # (0 before) light up, and every occupied cell rises towards 1: (v + a) / (1 + a) >= v
+    assert np.all(maps1[maps0 > 0] > 0)
+    assert (maps1 > 0).sum() > (maps0 > 0).sum()
+    occupied = maps0 > 0
+    assert np.all(maps1[occupied] >= maps0[occupied] - 1e-3)
+    assert (maps1[occupied] - maps0[occupied]).mean() > 0.01
+    from cnnps.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="ambient_max"):
+        Params(ambient_max=1.5)
+
+
 def test_split_groups_views():
     scenes = [(f"v{v}_m{k}", Path("."), {"key": "x", "view_id": f"v{v}"}) for v in range(5) for k in range(3)]
     split = extract.split_scenes(scenes, Params(val_fraction=0.4))
