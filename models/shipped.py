@@ -92,7 +92,7 @@ def ship(checkpoint: str | Path, provenance: dict, name: str = DEFAULT_NAME) -> 
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m models.shipped CHECKPOINT --preset NAME [--manifest PATH] [--note TEXT]``"""
+    """``python -m models.shipped CHECKPOINT --preset NAME [--manifest PATH] [--note TEXT] [--init-provenance JSON]``"""
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m models.shipped", description=main.__doc__)
@@ -100,8 +100,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--preset", required=True)
     ap.add_argument("--manifest", type=Path, help="extract manifest.json of the training data (hashed)")
     ap.add_argument("--note", default="")
+    ap.add_argument("--init-provenance", type=Path,
+                    help="provenance JSON of the model the training started from (train.init), kept as 'init'")
     args = ap.parse_args(argv)
     record = {"preset": args.preset, "note": args.note}
+    if args.init_provenance:
+        record["init"] = json.loads(args.init_provenance.read_text())
     if args.manifest:
         manifest = json.loads(args.manifest.read_text())
         record["data"] = {

@@ -21,7 +21,7 @@ from cnnps.errors import CnnpsError, ConfigError
 from pipeline.app import app
 
 PARAMS_HELP = "Params file (default: params.yaml in the current folder)."
-PRESET_HELP = "Use presets/NAME.yaml instead of params.yaml (demo, full, cpu-train)."
+PRESET_HELP = "Use presets/NAME.yaml instead of params.yaml (demo, full, cpu-train, ...; `cnnps stages` lists them)."
 DATA_HELP = "Folder for stage outputs (default: data_dir from the params file, else data)."
 
 

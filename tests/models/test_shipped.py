@@ -57,3 +57,18 @@ def test_the_shipped_model_is_intact_and_predict_uses_it(tmp_path):
     result = predict_capture(tmp_path / "cap", tmp_path / "out", method="cnn", rotations=1, progress=False)
     assert result["model"].endswith("cnnps_default.pt")
     assert result["mean_deg"] < 15.0
+
+
+def test_cli_records_data_and_the_starting_models_provenance(weights_dir, tmp_path):
+    ckpt = save_checkpoint(tmp_path / "trained.pt", CNNPS(), meta={"init_weights_sha256": "ab" * 32})
+    manifest = tmp_path / "manifest.json"
+    manifest.write_text(json.dumps({"total_rows": 30, "train_rows": 20, "val_rows": 10,
+                                    "train_scenes": ["a", "b"], "val_scenes": ["c"]}))
+    stage1 = tmp_path / "stage1.json"
+    stage1.write_text(json.dumps({"preset": "cpu-train-v1", "sha256": "cd" * 32}))
+    shipped.main([str(ckpt), "--preset", "cpu-train", "--manifest", str(manifest), "--init-provenance", str(stage1)])
+    record = json.loads((weights_dir / f"{shipped.DEFAULT_NAME}.json").read_text())
+    assert record["preset"] == "cpu-train" and record["init"]["preset"] == "cpu-train-v1"
+    assert record["data"]["train_scenes"] == 2 and record["data"]["val_rows"] == 10
+    assert record["train_meta"]["init_weights_sha256"] == "ab" * 32
+    assert shipped.shipped_model_path() == weights_dir / f"{shipped.DEFAULT_NAME}.pt"

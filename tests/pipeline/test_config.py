@@ -231,9 +231,14 @@ def _real_stages_available():
 
 
 REAL = pytest.mark.skipif(not _real_stages_available(), reason="not every stage module exists yet")
+_ROOT = Path(__file__).resolve().parents[2]
+# every params file the repository ships: params.yaml, the presets, the benchmark variants
+PARAMS_FILES = ["params.yaml"] + sorted(
+    str(p.relative_to(_ROOT)) for p in [*(_ROOT / "presets").glob("*.yaml"), *(_ROOT / "benchmarks/variants").glob("*.yaml")]
+)
 
 
-@pytest.mark.parametrize("name", ["params.yaml"] + [f"presets/{p}.yaml" for p in ("demo", "full", "cpu-train")])
+@pytest.mark.parametrize("name", PARAMS_FILES)
 def test_shipped_params_files_parse(repo_root, name):
     raw = yaml.safe_load((repo_root / name).read_text())
     c = cfg.config_from_dict(raw, name)
@@ -242,7 +247,7 @@ def test_shipped_params_files_parse(repo_root, name):
 
 
 @REAL
-@pytest.mark.parametrize("name", ["params.yaml"] + [f"presets/{p}.yaml" for p in ("demo", "full", "cpu-train")])
+@pytest.mark.parametrize("name", PARAMS_FILES)
 def test_shipped_params_files_validate(repo_root, name, monkeypatch):
     monkeypatch.chdir(repo_root)
     conf = cfg.load_config(repo_root / name)
