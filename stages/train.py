@@ -143,7 +143,7 @@ class Params:
 
     def result_key(self) -> dict:
         """Params that change the trained weights (a resume needs them equal). ``init``
-        enters as the SHA-256 of its weights (see :func:`init_digest`), not as a path."""
+        enters as the SHA-256 of its weights (see :func:`load_init`), not as a path."""
         d = asdict(self)
         for k in ("epochs", "max_steps", "val_every", "val_max_rows", "checkpoint_every", "keep_checkpoints",
                   "log_every", "threads", "num_workers", "progress", "shards", "init"):
