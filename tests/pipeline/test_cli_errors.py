@@ -13,37 +13,7 @@ import pytest
 
 from cnnps.errors import CnnpsError, InputError
 from pipeline.executor import LocalExecutor, WorkerLostError
-
-
-# -- job functions (top level: spawned workers import them by reference) -----------------
-
-
-def _attempt(marker_dir: str, x: int) -> int:
-    log = Path(marker_dir) / f"attempts-{x}"
-    with open(log, "a") as f:
-        f.write("x\n")
-    return len(log.read_text().splitlines())
-
-
-def square_crash_once(job: tuple[str, int, int]) -> int:
-    """Kill the worker (as a Blender segfault or the OOM killer would) on job ``crash``'s first run."""
-    marker_dir, x, crash = job
-    if _attempt(marker_dir, x) == 1 and x == crash:
-        os._exit(1)
-    return x * x
-
-
-def crash_always(job: tuple[str, int]) -> int:
-    _attempt(*job)
-    os._exit(1)
-
-
-def bad_input(job: tuple[str, int]) -> int:
-    marker_dir, x = job
-    _attempt(marker_dir, x)
-    if x == 1:
-        raise InputError(Path(marker_dir) / "img_001.exr", "cannot read:\n  truncated\tfile")
-    return x
+from tests.pipeline.jobs import always_crash, bad_input, crash_first_time
 
 
 # -- command line ----------------------------------------------------------------------
@@ -151,7 +121,7 @@ def attempts(folder: Path) -> dict[int, int]:
 
 def test_local_pool_reruns_jobs_of_a_dead_worker(tmp_path, capsys):
     jobs = [(str(tmp_path), x, 2) for x in range(5)]
-    assert LocalExecutor(workers=2).map(square_crash_once, jobs, desc="crashy") == [0, 1, 4, 9, 16]
+    assert LocalExecutor(workers=2).map(crash_first_time, jobs, desc="crashy") == [0, 1, 4, 9, 16]
     runs = attempts(tmp_path)
     assert sorted(runs) == [0, 1, 2, 3, 4] and runs[2] == 2
     assert all(n in (1, 2) for n in runs.values())  # others at most re-run once (were in the broken pool)
@@ -160,7 +130,7 @@ def test_local_pool_reruns_jobs_of_a_dead_worker(tmp_path, capsys):
 
 def test_local_pool_gives_up_after_second_death(tmp_path):
     with pytest.raises(WorkerLostError, match=r"doomed: a worker process died twice .*job\(s\) 0 \(") as info:
-        LocalExecutor(workers=2).map(crash_always, [(str(tmp_path), 7), (str(tmp_path), 8)], desc="doomed")
+        LocalExecutor(workers=2).map(always_crash, [(str(tmp_path), 7), (str(tmp_path), 8)], desc="doomed")
     assert "\n" not in str(info.value)
     runs = attempts(tmp_path)
     assert set(runs) <= {7, 8} and 1 <= runs.get(7, 0) <= 2

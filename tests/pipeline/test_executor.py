@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -15,6 +14,7 @@ import pytest
 from cnnps.errors import ConfigError
 from pipeline import executor as ex_mod
 from pipeline.executor import ExecutorParams, LocalExecutor, WorkerLostError, get_executor
+from tests.pipeline.jobs import always_crash, crash_first_time, fail_on_three
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -38,35 +38,6 @@ def write_content_addressed(job: tuple[str, int]) -> str:
     with atomic_path(path) as tmp:
         np.save(tmp, arr)
     return path.name
-
-
-def _count_attempt(marker_dir: str, x: int) -> int:
-    log = Path(marker_dir) / f"attempts-{x}"
-    with open(log, "a") as f:
-        f.write("x\n")
-    return len(log.read_text().splitlines())
-
-
-def crash_first_time(job: tuple[str, int, int]) -> int:
-    """Kill the worker process (as a segfault in Blender would) on the first attempt of job ``crash``."""
-    marker_dir, x, crash = job
-    attempt = _count_attempt(marker_dir, x)
-    if x == crash and attempt == 1:
-        os._exit(1)
-    return x * x
-
-
-def always_crash(job: tuple[str, int]) -> int:
-    _count_attempt(*job)
-    os._exit(1)
-
-
-def fail_on_three(job: tuple[str, int]) -> int:
-    marker_dir, x = job
-    _count_attempt(marker_dir, x)
-    if x == 3:
-        raise ValueError(f"bad value {x}")
-    return x
 
 
 def assigned_cpus(_job) -> float:
