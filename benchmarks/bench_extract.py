@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.obsmap import observation_maps
-from cnnps.rotation import rotation_angles
-from stages.extract import Params, build_rows, sample_light_masks
-from stages.shards import SceneShardWriter, make_batch, shard_schema
+from cnnps.core.obsmap import observation_maps
+from cnnps.core.rotation import rotation_angles
+from cnnps.stages.extract import Params, build_rows, sample_light_masks
+from cnnps.core.shards import SceneShardWriter, make_batch, shard_schema
 
 
 def lambertian(rng, P, m):

@@ -36,10 +36,10 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from cnnps.atomic import write_text  # noqa: E402
-from cnnps.obsmap import observation_maps  # noqa: E402
-from models.inference import MapPredictor, predict_normals  # noqa: E402
-from models.network import CNNPS  # noqa: E402
+from cnnps.core.atomic import write_text  # noqa: E402
+from cnnps.core.obsmap import observation_maps  # noqa: E402
+from cnnps.models.inference import MapPredictor, predict_normals  # noqa: E402
+from cnnps.models.network import CNNPS  # noqa: E402
 
 
 def _cpu_info() -> dict:

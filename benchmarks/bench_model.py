@@ -26,13 +26,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from cnnps.atomic import write_text  # noqa: E402
-from cnnps.predict import predict_capture  # noqa: E402
+from cnnps.core.atomic import write_text  # noqa: E402
+from cnnps.pipeline.predict import predict_capture  # noqa: E402
 
 
 def _predict(capture: Path, tmp: Path, **kw) -> tuple[dict, float, Path]:
@@ -83,9 +82,9 @@ def main() -> None:
         import torch  # noqa: F401
 
         from benchmarks.bench_inference import _scene
-        from models.checkpoint import load_checkpoint
-        from models.inference import predict_normals
-        from models.shipped import shipped_model_path
+        from cnnps.models.checkpoint import load_checkpoint
+        from cnnps.models.inference import predict_normals
+        from cnnps.models.shipped import shipped_model_path
 
         net, _, _ = load_checkpoint(args.model or shipped_model_path(), "cpu")
         I, L = _scene(args.pixels)

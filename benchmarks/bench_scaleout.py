@@ -5,7 +5,7 @@
 
 The job: ``--scenes`` scenes (procedural meshes, materials stage at ``--size``), each
 rendered under ``--lights`` suns with ``--samples`` Cycles samples. Every timing is one
-``stages.render.run`` into a fresh copy of the materials (nothing cached), i.e. the
+``cnnps.stages.render.run`` into a fresh copy of the materials (nothing cached), i.e. the
 stage as the pipeline runs it: planning, Blender set-up per scene, rendering, writing.
 
 - ``local (workers=1)``: in this process, one scene after the other, Cycles threads =
@@ -38,7 +38,7 @@ RESULTS = Path(__file__).resolve().parent / "results" / "scaleout.json"
 
 def _prepare(root: Path, scenes: int, size: int) -> Path:
     """meshes + materials for ``scenes`` scenes (one material category each)."""
-    from stages import materials, meshes
+    from cnnps.stages import materials, meshes
 
     kinds = ("bowl", "holed", "blob", "bumpy")
     n_shapes = min(scenes, len(kinds))
@@ -53,7 +53,7 @@ def _prepare(root: Path, scenes: int, size: int) -> Path:
 
 
 def _time_render(base: Path, work: Path, params, executor) -> tuple[float, dict]:
-    from stages import render
+    from cnnps.stages import render
 
     data = work / f"run-{time.perf_counter_ns()}"
     shutil.copytree(base, data)
@@ -77,8 +77,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")  # tqdm >= 4.66: no bars in the timings
 
-    from pipeline.executor import LocalExecutor, RayExecutor, cores, ray_available
-    from stages import render
+    from cnnps.core.executor import LocalExecutor, RayExecutor, cores, ray_available
+    from cnnps.stages import render
 
     params = render.Params(size=args.size, samples=args.samples, lights=args.lights, jitter_deg=2.0)
     images = args.scenes * args.lights
@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> dict:
         date=time.strftime("%Y-%m-%d %H:%M:%S"),
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    from cnnps.atomic import write_text
+    from cnnps.core.atomic import write_text
 
     write_text(args.out, json.dumps(result, indent=2) + "\n")
     print(f"wrote {args.out}")

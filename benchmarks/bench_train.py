@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stages.train import Params, compile_model, make_model, prefer_passive_openmp, train_step
+from cnnps.stages.train import Params, compile_model, make_model, prefer_passive_openmp, train_step
 
 prefer_passive_openmp()  # as the stage does (before torch loads); OMP_WAIT_POLICY=ACTIVE to compare
 import torch  # noqa: E402
@@ -92,8 +92,8 @@ class Runner:
 
 def accuracy(steps: int) -> list[dict]:
     """fp32 vs bf16: val error of the real stage after ``steps`` steps on a tiny dataset."""
-    from stages import extract, train
-    from tests.stages.test_extract import make_render_dir
+    from cnnps.stages import extract, train
+    from tests.support.renders import make_render_dir
 
     torch.set_num_threads(2)
     out = []

@@ -14,20 +14,20 @@ own shards with the train stage (batch 128, seed 0), and is then scored on
 * BALL with the observation maps rounded to float16 (how the shards store them), to see
   whether the storage precision matters at all.
 
-Variants (the data each is trained on; ``python -m pipeline run-stage ... --params FILE``
+Variants (the data each is trained on; ``python -m cnnps run-stage ... --params FILE``
 makes them):
 
 * ``init``: no training; the starting model itself.
-* ``shipped``: no training; the model now in ``models/weights/`` (scored the same way).
-* ``same-data``: the first model's data again (presets/cpu-train.yaml with
+* ``shipped``: no training; the model now in ``cnnps/models/weights/`` (scored the same way).
+* ``same-data``: the first model's data again (cnnps/presets/cpu-train.yaml with
   views_per_mesh 1: 93 scenes, 200 lights, 8 spp), kept as ``data/var-views1/extract``.
   The control: what more steps at a lower rate give without new data.
-* ``more-views``: presets/cpu-train.yaml (views_per_mesh 2: 186 scenes, 200 lights,
+* ``more-views``: cnnps/presets/cpu-train.yaml (views_per_mesh 2: 186 scenes, 200 lights,
   8 spp): twice the scenes, twice the render time.
 * ``ambient-0.10``, ``ambient-0.05``: the more-views renders extracted with
   ``ambient_max`` 0.1 or 0.05 (every light of a pixel gets an offset of U(0, ambient_max)
-  x its brightest light: real shadows are not black, see stages/extract.py); no new
-  renders. presets/cpu-train.yaml holds the value the shipped model was trained with.
+  x its brightest light: real shadows are not black, see cnnps/stages/extract.py); no new
+  renders. cnnps/presets/cpu-train.yaml holds the value the shipped model was trained with.
 * ``l400-s4``: benchmarks/variants/l400-s4.yaml (93 scenes, 400 lights, 4 spp, per-pixel
   subsets up to 400 lights): the same scenes with twice the lights at half the samples
   per pixel, about the same render time as the first data.
@@ -50,7 +50,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from cnnps.atomic import write_text  # noqa: E402
+from cnnps.core.atomic import write_text  # noqa: E402
 
 VARIANTS = {
     "init": None,
@@ -65,7 +65,7 @@ COMMON_VAL = "data/var-views1/extract"  # its val split: the view-0 validation s
 
 
 def common_val(max_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    from stages.shards import ShardStream, load_manifest, manifest_files
+    from cnnps.core.shards import ShardStream, load_manifest, manifest_files
 
     d = REPO / COMMON_VAL
     man = load_manifest(d)
@@ -81,11 +81,11 @@ def common_val(max_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def score(model_path: Path, val: tuple[np.ndarray, np.ndarray], shared: Path) -> dict:
-    from cnnps.capture import load_capture
-    from cnnps.metrics import angular_error_deg
-    from cnnps.obsmap import observation_maps
-    from models.checkpoint import load_checkpoint
-    from models.inference import MapPredictor, predict_normals
+    from cnnps.core.capture import load_capture
+    from cnnps.core.metrics import angular_error_deg
+    from cnnps.core.obsmap import observation_maps
+    from cnnps.models.checkpoint import load_checkpoint
+    from cnnps.models.inference import MapPredictor, predict_normals
 
     net, _, _ = load_checkpoint(model_path, "cpu")
     out: dict = {}
@@ -127,11 +127,11 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "variants.json")
     args = ap.parse_args()
 
-    from stages import train
+    from cnnps.stages import train
 
     if not args.init.is_file() and any(VARIANTS[n] is not None or n == "init" for n in args.variants if n != "shipped"):
         sys.exit(f"{args.init}: not found. The results in benchmarks/results/variants.json started from the "
-                 f"stage-1 model shipped at commit 886219e: git show 886219e:models/weights/cnnps_default.pt > {args.init}")
+                 f"stage-1 model shipped at commit 886219e: git show 886219e:cnnps/models/weights/cnnps_default.pt > {args.init}")
     results = json.loads(args.out.read_text()) if args.out.is_file() else {"variants": {}}
     val = common_val()
     for name in args.variants:
@@ -139,7 +139,7 @@ def main() -> None:
                      "load_average_before": [round(x, 2) for x in os.getloadavg()]}
         model = args.init
         if name == "shipped":
-            from models.shipped import shipped_model_path
+            from cnnps.models.shipped import shipped_model_path
 
             model = shipped_model_path()
         elif VARIANTS[name] is not None and args.score_only:

@@ -7,9 +7,9 @@ import zipfile
 import pytest
 import torch
 
-from cnnps.errors import InputError
-from models.checkpoint import file_sha256, load_checkpoint, read_checkpoint, save_checkpoint, state_digest
-from models.network import ARCH_VERSION, CNNPS
+from cnnps.core.errors import InputError
+from cnnps.models.checkpoint import file_sha256, load_checkpoint, read_checkpoint, save_checkpoint, state_digest
+from cnnps.models.network import ARCH_VERSION, CNNPS
 
 
 class Evil:
@@ -167,7 +167,7 @@ def test_state_digest_ignores_memory_format():
 
 
 def test_unforeseen_load_failure_names_the_file(tmp_path, monkeypatch):
-    import models.checkpoint as ck
+    import cnnps.models.checkpoint as ck
 
     def boom(path, device):
         raise ValueError("something unforeseen")

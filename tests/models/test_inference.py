@@ -5,10 +5,10 @@ import pytest
 import torch
 from torch import nn
 
-from cnnps.errors import CnnpsError
-from cnnps.metrics import angular_error_deg
-from models.inference import MapPredictor, predict_normals, resolve_device
-from models.network import CNNPS
+from cnnps.core.errors import CnnpsError
+from cnnps.core.metrics import angular_error_deg
+from cnnps.models.inference import MapPredictor, predict_normals, resolve_device
+from cnnps.models.network import CNNPS
 
 
 class CellLambertian(nn.Module):
@@ -106,7 +106,7 @@ def test_streaming_and_batching_do_not_change_results(lambertian_scene):
     np.testing.assert_allclose(out, ref, atol=1e-4)  # oneDNN picks kernels by batch size
     np.testing.assert_allclose(np.linalg.norm(ref, axis=1), 1.0, atol=1e-5)
     # the fast path (folded network) equals the plain eager network
-    from cnnps.obsmap import observation_maps
+    from cnnps.core.obsmap import observation_maps
 
     with torch.no_grad():
         eager = model(torch.from_numpy(observation_maps(intensities[:96], lights)).unsqueeze(1)).numpy()

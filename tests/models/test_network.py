@@ -3,7 +3,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from models.network import ARCH_VERSION, CNNPS, FoldedCNNPS, count_parameters, fold_for_inference
+from cnnps.models.network import ARCH_VERSION, CNNPS, FoldedCNNPS, count_parameters, fold_for_inference
 
 
 def _expected_params(w: int) -> int:
@@ -104,7 +104,7 @@ def test_fold_rejects_other_modules():
 @pytest.mark.parametrize("use_mkldnn", [True, False])
 @pytest.mark.parametrize("w", [16, 32])
 def test_fast_cpu_model_matches_original(monkeypatch, use_mkldnn, w):
-    import models.network as network
+    import cnnps.models.network as network
 
     if not use_mkldnn:
         monkeypatch.setattr(network, "_mkldnn_pointwise_available", lambda: False)

@@ -4,10 +4,10 @@ import json
 
 import pytest
 
-from cnnps.errors import CnnpsError
-from models import shipped
-from models.checkpoint import load_checkpoint, save_checkpoint
-from models.network import CNNPS
+from cnnps.core.errors import CnnpsError
+from cnnps.models import shipped
+from cnnps.models.checkpoint import load_checkpoint, save_checkpoint
+from cnnps.models.network import CNNPS
 
 
 @pytest.fixture
@@ -48,8 +48,8 @@ def test_the_shipped_model_is_intact_and_predict_uses_it(tmp_path):
     # the committed weights match their provenance record, and `predict` without --model
     # uses them: on an analytic Lambertian sphere under 48 lights the trained network is far
     # better than chance (an untrained net is 40-90 degrees off here)
-    from cnnps.predict import predict_capture
-    from tests.cnnps.synthetic import write_capture
+    from cnnps.pipeline.predict import predict_capture
+    from tests.support.synthetic import write_capture
 
     path = shipped.shipped_model_path()
     assert json.loads(path.with_suffix(".json").read_text())["preset"]

@@ -11,16 +11,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnnps.errors import CnnpsError, InputError
-from pipeline.executor import LocalExecutor, WorkerLostError
-from tests.pipeline.jobs import always_crash, bad_input, crash_first_time
+from cnnps.core.errors import CnnpsError, InputError
+from cnnps.core.executor import LocalExecutor, WorkerLostError
+from tests.support.jobs import always_crash, bad_input, crash_first_time
 
 
 # -- command line ----------------------------------------------------------------------
 
 
 def run_cli(argv, capsys):
-    from pipeline.cli import main
+    from cnnps.pipeline.cli import main
 
     with pytest.raises(SystemExit) as info:
         main(argv)
@@ -30,7 +30,7 @@ def run_cli(argv, capsys):
 
 @pytest.fixture
 def capture(tmp_path):
-    from tests.cnnps.synthetic import write_capture
+    from tests.support.synthetic import write_capture
 
     write_capture(tmp_path / "cap", fmt="png8", size=12, m=8, gt=None)
     return tmp_path / "cap"
@@ -66,7 +66,7 @@ def test_real_os_error_as_root(capture, tmp_path, capsys):
 
 
 def test_os_error_without_filename_and_rename():
-    from pipeline.cli import describe_os_error
+    from cnnps.pipeline.cli import describe_os_error
 
     assert describe_os_error(PermissionError(errno.EACCES, "Permission denied", "/a/b")) == "/a/b: Permission denied"
     assert describe_os_error(OSError(errno.EXDEV, "Invalid cross-device link", "/a", None, "/b")) == (
@@ -82,9 +82,9 @@ def _raising(exc):
 
 
 def test_broken_pool_is_one_line(capture, tmp_path, capsys, monkeypatch):
-    import cnnps.predict
+    import cnnps.pipeline.predict
 
-    monkeypatch.setattr(cnnps.predict, "predict_capture", _raising(BrokenProcessPool(
+    monkeypatch.setattr(cnnps.pipeline.predict, "predict_capture", _raising(BrokenProcessPool(
         "A process in the process pool was terminated abruptly while the future was running or pending.")))
     code, out, err = run_cli(predict_argv(capture, tmp_path / "o"), capsys)
     assert code == 2
@@ -94,20 +94,20 @@ def test_broken_pool_is_one_line(capture, tmp_path, capsys, monkeypatch):
 
 
 def test_cnnps_error_with_notes_is_one_line(capture, tmp_path, capsys, monkeypatch):
-    import cnnps.predict
+    import cnnps.pipeline.predict
 
     exc = InputError("/d/img.tif", "tifffile says:\nnot a TIFF\n")
     exc.add_note("(in render job 3: Job(seed=3))")
-    monkeypatch.setattr(cnnps.predict, "predict_capture", _raising(exc))
+    monkeypatch.setattr(cnnps.pipeline.predict, "predict_capture", _raising(exc))
     code, out, err = run_cli(predict_argv(capture, tmp_path / "o"), capsys)
     assert code == 2
     assert err.strip().splitlines() == ["cnnps: error: /d/img.tif: tifffile says: not a TIFF (in render job 3: Job(seed=3))"]
 
 
 def test_interrupt_exits_130(capture, tmp_path, capsys, monkeypatch):
-    import cnnps.predict
+    import cnnps.pipeline.predict
 
-    monkeypatch.setattr(cnnps.predict, "predict_capture", _raising(KeyboardInterrupt()))
+    monkeypatch.setattr(cnnps.pipeline.predict, "predict_capture", _raising(KeyboardInterrupt()))
     code, out, err = run_cli(predict_argv(capture, tmp_path / "o"), capsys)
     assert code == 130 and "Traceback" not in err
 
@@ -151,7 +151,7 @@ def test_input_error_from_a_worker_arrives_intact(tmp_path):
 def test_broken_pool_cause_is_summarised():
     from concurrent.futures.process import _RemoteTraceback
 
-    from pipeline.executor import _broken_cause
+    from cnnps.core.executor import _broken_cause
 
     exc = BrokenProcessPool("A process in the process pool was terminated abruptly")
     assert _broken_cause(exc) == ""  # a killed worker: no cause

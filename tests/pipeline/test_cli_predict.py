@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from pipeline.cli import main
-from tests.cnnps.synthetic import write_capture
-from tests.cnnps.test_capture import BAD_INPUTS, make_bad_capture
+from cnnps.pipeline.cli import main
+from tests.support.synthetic import write_capture
+from tests.support.bad_captures import BAD_INPUTS, make_bad_capture
 
 
 def run_cli(argv, capsys):

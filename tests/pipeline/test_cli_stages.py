@@ -4,8 +4,8 @@ import importlib.util
 
 import pytest
 
-from pipeline import cli_stages
-from pipeline.cli import main
+from cnnps.pipeline import cli_stages
+from cnnps.pipeline.cli import main
 
 
 def test_executor_flags_override_params(repo_root, monkeypatch):

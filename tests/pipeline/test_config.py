@@ -15,10 +15,10 @@ from typing import Literal, Optional
 import pytest
 import yaml
 
-from cnnps.errors import ConfigError
-from pipeline import config as cfg
-from pipeline.cli import main
-from pipeline.executor import ExecutorParams
+from cnnps.core.errors import ConfigError
+from cnnps.pipeline import config as cfg
+from cnnps.pipeline.cli import main
+from cnnps.core.executor import ExecutorParams
 
 
 @dataclass(frozen=True)
@@ -227,14 +227,14 @@ def test_demo_without_dvc_runs_stages_in_order(fake_stages, tmp_path, monkeypatc
 def _real_stages_available():
     import importlib.util
 
-    return all(importlib.util.find_spec(f"stages.{n}") is not None for n in cfg.STAGES)
+    return all(importlib.util.find_spec(cfg.STAGE_MODULES[n]) is not None for n in cfg.STAGES)
 
 
 REAL = pytest.mark.skipif(not _real_stages_available(), reason="not every stage module exists yet")
 _ROOT = Path(__file__).resolve().parents[2]
 # every params file the repository ships: params.yaml, the presets, the benchmark variants
 PARAMS_FILES = ["params.yaml"] + sorted(
-    str(p.relative_to(_ROOT)) for p in [*(_ROOT / "presets").glob("*.yaml"), *(_ROOT / "benchmarks/variants").glob("*.yaml")]
+    str(p.relative_to(_ROOT)) for p in [*(_ROOT / "cnnps/presets").glob("*.yaml"), *(_ROOT / "benchmarks/variants").glob("*.yaml")]
 )
 
 
@@ -251,7 +251,7 @@ def test_shipped_params_files_parse(repo_root, name):
 def test_shipped_params_files_validate(repo_root, name, monkeypatch):
     monkeypatch.chdir(repo_root)
     conf = cfg.load_config(repo_root / name)
-    # presets/full.yaml names a mesh folder the user provides, and presets/cpu-train.yaml the
+    # cnnps/presets/full.yaml names a mesh folder the user provides, and cnnps/presets/cpu-train.yaml the
     # developers' test-data meshes (../shared): check their files only where they exist
     mesh_dir = conf.sections.get("meshes", {}).get("mesh_dir")
     check_files = name != "presets/full.yaml" and (mesh_dir is None or (repo_root / mesh_dir).is_dir())
@@ -260,7 +260,7 @@ def test_shipped_params_files_validate(repo_root, name, monkeypatch):
 
 def test_demo_preset_is_params_yaml(repo_root):
     a = yaml.safe_load((repo_root / "params.yaml").read_text())
-    b = yaml.safe_load((repo_root / "presets" / "demo.yaml").read_text())
+    b = yaml.safe_load((repo_root / "cnnps/presets/demo.yaml").read_text())
     assert a == b
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.pipeline.conftest import write_tiny_mesh
+from tests.support.meshes import write_tiny_mesh
 
 pytestmark = [pytest.mark.slow, pytest.mark.blender]
 
@@ -62,8 +62,7 @@ def dvc_repo(tiny_setup, repo_root):
     repo = root / "repo"
     repo.mkdir()
     shutil.copy(repo_root / "dvc.yaml", repo / "dvc.yaml")
-    for d in ("stages", "cnnps", "models", "pipeline"):
-        shutil.copytree(repo_root / d, repo / d, ignore=shutil.ignore_patterns("__pycache__", "weights", "*.pt"))
+    shutil.copytree(repo_root / "cnnps", repo / "cnnps", ignore=shutil.ignore_patterns("__pycache__", "weights", "*.pt"))
     (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     _sh(["git", "init", "-q"], repo)
     dvc(repo, "init", "-q")

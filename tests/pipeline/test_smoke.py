@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipeline.cli import main
+from cnnps.pipeline.cli import main
 
 pytestmark = [pytest.mark.slow, pytest.mark.blender]
 
@@ -33,7 +33,7 @@ def test_every_stage_on_one_tiny_mesh(tiny_setup, monkeypatch, capsys):
     scenes = sorted(p.name for p in (data / "materials").iterdir() if p.is_dir())
     assert scenes == [f"{views[0].name}-diffuse", f"{views[0].name}-specular"]
 
-    from cnnps.capture import load_capture
+    from cnnps.core.capture import load_capture
 
     renders = sorted(p for p in (data / "render").iterdir() if p.is_dir())
     assert [p.name for p in renders] == scenes

@@ -19,7 +19,7 @@ def sphere_mesh():
 def views_data_dir(tmp_path_factory) -> Path:
     """A data dir whose ``meshes/`` holds 2 procedural views (a bowl and a holed shape, seed 0),
     written by the meshes stage. Read-only for tests: copy it before running other stages in it."""
-    from stages import meshes
+    from cnnps.stages import meshes
 
     data = tmp_path_factory.mktemp("views") / "data"
     meshes.run(meshes.Params(procedural=2, procedural_kinds=("bowl", "holed"), views_per_mesh=1, seed=0), data)

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnnps.errors import ConfigError
-from cnnps.imageio import read_image, write_exr, write_png
-from stages import eval as ev
+from cnnps.core.errors import ConfigError
+from cnnps.core.images import read_image, write_exr, write_png
+from cnnps.stages import evaluate as ev
 
 S = 32
 
@@ -29,7 +29,7 @@ def _sphere(S: int, max_deg: float):
 def make_capture(root: Path, gt: bool = True, m: int = 12) -> Path:
     """A Lambertian sphere cap (normals within 45 deg of the view) under lights within
     40 deg of the view: every pixel sees every light, so least squares is exact."""
-    from stages.lights import uniform_lights
+    from cnnps.synth.lights import uniform_lights
 
     root.mkdir(parents=True)
     n, mask = _sphere(S, 45)
@@ -135,7 +135,7 @@ def test_params_validation(kwargs, message):
 
 
 def test_missing_model_is_one_clear_error(tmp_path):
-    from cnnps.errors import InputError
+    from cnnps.core.errors import InputError
 
     with pytest.raises(InputError, match="model not found"):
         ev.run(ev.Params(), tmp_path)

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from cnnps.errors import ConfigError
-from stages import bsdf, materials
-from stages.bsdf import MaterialRanges, specular_to_ior, to_blender_inputs
-from stages.meshes import read_view_mesh
-from stages.materials import Params, pixel_centres, rasterize, rasterize_full, sample_material_maps
+from cnnps.core.errors import ConfigError
+from cnnps.stages import materials
+from cnnps.synth import bsdf
+from cnnps.synth.bsdf import MaterialRanges, specular_to_ior, to_blender_inputs
+from cnnps.stages.meshes import read_view_mesh
+from cnnps.stages.materials import Params, pixel_centres, rasterize, rasterize_full, sample_material_maps
 
 
 def _angles_deg(a, b):

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from cnnps.errors import ConfigError, InputError
-from stages import meshes
-from stages.meshes import RADIUS, Params, load_mesh, plan_views, pose_mesh, random_rotation
+from cnnps.core.errors import ConfigError, InputError
+from cnnps.stages import meshes
+from cnnps.stages.meshes import RADIUS, Params, load_mesh, plan_views, pose_mesh, random_rotation
 
 
 @pytest.mark.slow

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnnps.errors import CnnpsError, ConfigError
+from cnnps.core.errors import CnnpsError, ConfigError
 
 trimesh = pytest.importorskip("trimesh")
 
@@ -40,7 +40,7 @@ def _pixel_grid(size):
 
 
 def _load(out):
-    from cnnps.capture import load_capture
+    from cnnps.core.capture import load_capture
 
     return load_capture(out)
 
@@ -48,7 +48,7 @@ def _load(out):
 @pytest.fixture(scope="module")
 def sphere_capture(tmp_path_factory):
     pytest.importorskip("bpy")
-    from stages.render import render_capture
+    from cnnps.stages.render import render_capture
 
     out = tmp_path_factory.mktemp("render") / "sphere"
     return render_capture(_sphere(), out, lights=40, size=S, samples=4, seed=0, threads=THREADS, progress=False)
@@ -58,7 +58,7 @@ def sphere_capture(tmp_path_factory):
 
 
 def test_params_validation():
-    from stages.render import Params
+    from cnnps.stages.render import Params
 
     Params()
     for bad in (dict(size=0), dict(lights=2), dict(samples=0), dict(device="tpu"), dict(jitter_deg=-1),
@@ -68,12 +68,12 @@ def test_params_validation():
 
 
 def test_render_module_does_not_import_bpy():
-    code = "import sys, stages.render, pipeline.cli_render; assert 'bpy' not in sys.modules"
+    code = "import sys, cnnps.stages.render, cnnps.pipeline.cli_render; assert 'bpy' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True, cwd=REPO)
 
 
 def test_extend_maps_fills_outside_with_nearest():
-    from stages.render import extend_maps
+    from cnnps.stages.render import extend_maps
 
     mask = np.zeros((5, 5), bool)
     mask[1:3, 1:3] = True
@@ -115,7 +115,7 @@ def test_capture_layout_and_geometry(sphere_capture):
 @pytest.mark.blender
 def test_lambertian_sphere_least_squares_recovers_normal_gt(sphere_capture):
     """Lambertian photometric stereo on the rendered images gives back normal_gt."""
-    from cnnps.lambertian import least_squares
+    from cnnps.core.lambertian import least_squares
 
     cap = _load(sphere_capture)
     I = cap.pixel_intensities()
@@ -135,7 +135,7 @@ def test_lambertian_sphere_least_squares_recovers_normal_gt(sphere_capture):
 
 @pytest.mark.blender
 def test_cast_shadows_and_interreflections(tmp_path):
-    from stages.blender_renderer import BlenderRenderer
+    from cnnps.synth.blender_renderer import BlenderRenderer
 
     mesh = _two_spheres()
     l = np.array([1.0, 0.0, 0.35])
@@ -165,7 +165,7 @@ def test_cast_shadows_and_interreflections(tmp_path):
 @pytest.mark.blender
 def test_same_seed_same_images_other_seed_other_noise():
     """Cycles on the CPU is bitwise deterministic for a seed (measured); the seed moves the noise."""
-    from stages.blender_renderer import BlenderRenderer
+    from cnnps.synth.blender_renderer import BlenderRenderer
 
     mesh = _two_spheres()
     out = []
@@ -180,7 +180,7 @@ def test_same_seed_same_images_other_seed_other_noise():
 @pytest.mark.blender
 def test_image_space_material_maps_line_up_with_pixels():
     """A per-pixel albedo map reaches exactly its pixel (Window coords, Closest, row 0 on top)."""
-    from stages.blender_renderer import BlenderRenderer
+    from cnnps.synth.blender_renderer import BlenderRenderer
 
     rng = np.random.default_rng(0)
     albedo = rng.uniform(0.2, 1.0, (S, S)).astype(np.float32)
@@ -205,8 +205,8 @@ def test_image_space_material_maps_line_up_with_pixels():
 @pytest.mark.blender
 def test_specular_and_metallic_highlights_brighter_than_diffuse(tmp_path):
     """The BSDF mapping checked by rendering: glossy categories peak higher than diffuse."""
-    pytest.importorskip("stages.bsdf")
-    from stages.render import render_capture
+    pytest.importorskip("cnnps.synth.bsdf")
+    from cnnps.stages.render import render_capture
 
     peaks = {}
     for kind in ("diffuse", "specular", "metallic"):
@@ -224,7 +224,7 @@ def test_specular_and_metallic_highlights_brighter_than_diffuse(tmp_path):
 def test_resume_renders_only_missing_images(sphere_capture, tmp_path):
     import shutil
 
-    from stages.render import render_capture
+    from cnnps.stages.render import render_capture
 
     out = tmp_path / "cap"
     shutil.copytree(sphere_capture, out)
@@ -235,7 +235,7 @@ def test_resume_renders_only_missing_images(sphere_capture, tmp_path):
     (out / ".pending.json").write_text(json.dumps({"key": meta["key"]}))
     for n in ("003.exr", "007.exr", "039.exr"):
         (out / n).unlink()
-    from cnnps.atomic import atomic_path
+    from cnnps.core.atomic import atomic_path
 
     write = atomic_path(out / "003.exr")  # killed in the middle of this atomic write (kept alive:
     leftover = write.__enter__()  # a collected one would clean up after itself)
@@ -245,7 +245,7 @@ def test_resume_renders_only_missing_images(sphere_capture, tmp_path):
     assert meta2["images_rendered_last_run"] == 3 and meta2["key"] == meta["key"]
     assert not leftover.exists() and not [p.name for p in out.iterdir() if p.name.startswith(".")]
     assert (out / "light_directions.txt").read_bytes() == before["light_directions.txt"]
-    from cnnps.imageio import read_image
+    from cnnps.core.images import read_image
 
     assert (out / "007.exr").read_bytes() != b""
     np.testing.assert_array_equal(read_image(out / "007.exr"), read_image(Path(sphere_capture) / "007.exr"))
@@ -262,7 +262,7 @@ def test_cli_killed_then_resumed(tmp_path):
     """SIGKILL in the middle of `cnnps render`, rerun: only the missing lights are rendered."""
     out = tmp_path / "cap"
     out.mkdir()  # an existing empty folder is filled in place
-    cmd = [sys.executable, "-m", "pipeline", "render", "procedural:blob:2", "--out", str(out), "--lights", "60",
+    cmd = [sys.executable, "-m", "cnnps", "render", "procedural:blob:2", "--out", str(out), "--lights", "60",
            "--size", "24", "--samples", "2", "--threads", "1", "--no-progress"]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     t0 = time.time()  # generous: Blender starts slowly on a loaded machine
@@ -286,7 +286,7 @@ def test_cli_killed_then_resumed(tmp_path):
 @pytest.mark.blender
 def test_stage_run_renders_scenes_skips_current_and_redoes_changed(tmp_path):
     """meshes -> materials -> render on one tiny scene; rerun skips; a new material re-renders."""
-    from stages import materials, meshes, render
+    from cnnps.stages import materials, meshes, render
 
     mesh_dir = tmp_path / "src"
     mesh_dir.mkdir()
@@ -304,10 +304,10 @@ def test_stage_run_renders_scenes_skips_current_and_redoes_changed(tmp_path):
     meta = json.loads((out / "scene.json").read_text())
     assert meta["view_id"] and meta["category"] == "specular" and meta["pose"] is not None
     # Blender's mask and the materials stage's rasterised mask agree (same pixel centres)
-    from cnnps.imageio import read_mask
+    from cnnps.core.images import read_mask
 
     assert (read_mask(scene / "mask.png") != cap.mask).sum() <= 2
-    from stages.lights import hemisphere_lights
+    from cnnps.synth.lights import hemisphere_lights
 
     np.testing.assert_allclose(cap.lights, hemisphere_lights(4, 2, seed=render.derive_seed(0, scene.name)), atol=1e-8)
     assert render.run(p, data) == {"scenes": 1, "skipped": 1, "rendered_images": 0}
@@ -317,7 +317,7 @@ def test_stage_run_renders_scenes_skips_current_and_redoes_changed(tmp_path):
 
 def test_cli_errors_are_one_line(tmp_path):
     def run(*args):
-        return subprocess.run([sys.executable, "-m", "pipeline", "render", *args], cwd=REPO,
+        return subprocess.run([sys.executable, "-m", "cnnps", "render", *args], cwd=REPO,
                               capture_output=True, text=True)
 
     r = run(str(tmp_path / "missing.obj"), "--out", str(tmp_path / "o"))
@@ -335,7 +335,7 @@ def test_cli_refuses_a_folder_that_is_not_a_render_folder(tmp_path):
     (user / "thesis.txt").write_text("precious")
     (user / "sub").mkdir()
     for out, cwd in ((str(user), REPO), (".", user)):
-        r = subprocess.run([sys.executable, "-m", "pipeline", "render", "procedural:bowl", "--out", out,
+        r = subprocess.run([sys.executable, "-m", "cnnps", "render", "procedural:bowl", "--out", out,
                             "--lights", "3", "--size", "8", "--samples", "1"], cwd=cwd, capture_output=True, text=True,
                            env={**os.environ, "PYTHONPATH": str(REPO)})
         assert r.returncode == 2, r.stderr
@@ -346,8 +346,8 @@ def test_cli_refuses_a_folder_that_is_not_a_render_folder(tmp_path):
 
 
 def test_remove_temp_files_only_removes_atomic_temporaries(tmp_path):
-    from cnnps.atomic import atomic_path
-    from stages.render import remove_temp_files
+    from cnnps.core.atomic import atomic_path
+    from cnnps.stages.render import remove_temp_files
 
     keep = ["000.exr", ".pending.json", ".hidden_user_file", "light_directions.txt", ".x.tmp"]
     for n in keep:
@@ -362,7 +362,7 @@ def test_remove_temp_files_only_removes_atomic_temporaries(tmp_path):
 
 
 def test_cycles_seed_is_folded_into_range():
-    from stages.blender_renderer import cycles_seed
+    from cnnps.synth.blender_renderer import cycles_seed
 
     assert cycles_seed(0) == 0 and cycles_seed(12345) == 12345 and cycles_seed(2**31 - 1) == 2**31 - 1
     assert cycles_seed(2**31) == 0 and cycles_seed(2**31 + 7) == 7
@@ -374,7 +374,7 @@ def test_cycles_seed_is_folded_into_range():
 @pytest.mark.blender
 def test_renderer_accepts_a_large_seed():
     pytest.importorskip("bpy")
-    from stages.blender_renderer import BlenderRenderer, cycles_seed
+    from cnnps.synth.blender_renderer import BlenderRenderer, cycles_seed
 
     with BlenderRenderer(8, samples=1, threads=THREADS, seed=2**40 + 3) as r:
         assert r.scene.cycles.seed == cycles_seed(2**40 + 3) == 3
@@ -383,14 +383,14 @@ def test_renderer_accepts_a_large_seed():
 def test_killed_renderers_temp_folders_are_removed(tmp_path):
     """Blender's temp folder carries a lock: once its process is SIGKILLed, a later
     renderer removes it; a live one's folder is left alone."""
-    code = ("import sys, time; from stages.blender_renderer import _make_tmpdir; "
+    code = ("import sys, time; from cnnps.synth.blender_renderer import _make_tmpdir; "
             "d, fd = _make_tmpdir(); print(d, flush=True); time.sleep(120)")
     env = {**os.environ, "TMPDIR": str(tmp_path), "PYTHONPATH": str(REPO)}
     proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, stdout=subprocess.PIPE, text=True)
     try:
         d = Path(proc.stdout.readline().strip())
         assert d.parent == tmp_path and d.name.startswith("cnnps-blender-") and d.is_dir()
-        from stages.blender_renderer import _remove_stale_tmpdirs
+        from cnnps.synth.blender_renderer import _remove_stale_tmpdirs
 
         old = time.time() - 3600
         os.utime(d, (old, old))
@@ -405,7 +405,7 @@ def test_killed_renderers_temp_folders_are_removed(tmp_path):
 @pytest.mark.blender
 def test_gpu_request_without_gpu_is_a_clear_error(tmp_path):
     pytest.importorskip("bpy")
-    from stages.blender_renderer import BlenderRenderer
+    from cnnps.synth.blender_renderer import BlenderRenderer
 
     try:
         r = BlenderRenderer(8, samples=1, device="gpu")
@@ -422,7 +422,7 @@ def test_new_scene_folder_gets_the_umask_mode(tmp_path):
     readable as the umask allows, like every other output."""
     import stat
 
-    from stages.render import _start_folder
+    from cnnps.stages.render import _start_folder
 
     old = os.umask(0o022)
     try:

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnnps.errors import ConfigError
-from pipeline.executor import ExecutorParams, LocalExecutor
+from cnnps.core.errors import ConfigError
+from cnnps.core.executor import ExecutorParams, LocalExecutor
 
 pytest.importorskip("bpy")
 
@@ -41,7 +41,7 @@ def _scene_meta(render_dir: Path) -> dict[str, dict]:
 @pytest.fixture(scope="module")
 def materials_dir(views_data_dir, tmp_path_factory) -> Path:
     """meshes (2 procedural views) + materials (16 x 16, one category): 2 scenes to render."""
-    from stages import materials
+    from cnnps.stages import materials
 
     data = tmp_path_factory.mktemp("scaleout") / "data"
     shutil.copytree(views_data_dir, data)
@@ -58,7 +58,7 @@ def _fresh(materials_dir: Path, dst: Path) -> Path:
 @pytest.fixture(scope="module")
 def local_render(materials_dir, tmp_path_factory) -> Path:
     """The reference: both scenes rendered one after the other in this process."""
-    from stages import render
+    from cnnps.stages import render
 
     data = _fresh(materials_dir, tmp_path_factory.mktemp("local") / "data")
     res = render.run(render.Params(**RENDER, executor=ExecutorParams(workers=1)), data)
@@ -70,7 +70,7 @@ def local_render(materials_dir, tmp_path_factory) -> Path:
 def ray_ex():
     """A Ray runtime started for these tests: loopback only, 2 CPUs."""
     pytest.importorskip("ray")
-    from pipeline.executor import RayExecutor
+    from cnnps.core.executor import RayExecutor
 
     ex = RayExecutor(address="local", num_cpus=2, max_retries=2, node_ip_address="127.0.0.1")
     assert ex.cluster_cpus() == (2, 2)  # starts the runtime
@@ -79,7 +79,7 @@ def ray_ex():
 
 
 def test_ray_render_matches_local(local_render, materials_dir, ray_ex, tmp_path):
-    from stages import render
+    from cnnps.stages import render
 
     data = _fresh(materials_dir, tmp_path / "data")
     res = render.run(render.Params(**RENDER), data, executor=ray_ex)
@@ -107,7 +107,7 @@ def test_local_pool_render_matches_in_process(local_render, materials_dir, tmp_p
     script folders on sys.path must not leak into the workers) render the same bytes."""
     import sys
 
-    from stages import render
+    from cnnps.stages import render
 
     assert "bpy" in sys.modules  # the in-process reference render imported it
     data = _fresh(materials_dir, tmp_path / "data")
@@ -135,7 +135,7 @@ def test_killed_render_worker_is_retried(local_render, materials_dir, ray_ex, tm
     """SIGKILL the Ray workers while they render (after a first image is on disk): the
     stage still completes, resuming the partial folders, with the same pixels."""
     pytest.importorskip("psutil")  # finds the workers (installed with Ray)
-    from stages import render
+    from cnnps.stages import render
 
     data = _fresh(materials_dir, tmp_path / "data")
     out = data / "render"
@@ -181,8 +181,8 @@ def test_killed_render_worker_is_retried(local_render, materials_dir, ray_ex, tm
 def test_ray_materials_and_extract_match_local(materials_dir, ray_ex, tmp_path, local_render):
     """materials and extract through Ray (extract writing to a file:// URL) give the same
     bytes as in this process."""
-    from stages import extract, materials
-    from stages.shards import load_manifest
+    from cnnps.stages import extract, materials
+    from cnnps.core.shards import load_manifest
 
     # materials: rewrite into a fresh copy with Ray, compare the maps
     data = tmp_path / "m"
@@ -206,8 +206,8 @@ def test_extract_and_train_at_an_fsspec_url(local_render, tmp_path):
     fsspec = pytest.importorskip("fsspec")
     import pyarrow.parquet as pq
 
-    from stages import extract, train
-    from stages.shards import ShardStream, load_manifest, manifest_files
+    from cnnps.stages import extract, train
+    from cnnps.core.shards import ShardStream, load_manifest, manifest_files
 
     p = dict(w=8, min_lights=3, max_lights=8, rotations=2, rows_per_group=64, val_fraction=0.5)
     local = tmp_path / "local"
@@ -250,8 +250,8 @@ def test_extract_and_train_at_an_fsspec_url(local_render, tmp_path):
 
 def test_extract_workers_write_a_file_url(local_render, tmp_path):
     """Two local worker processes writing to a file:// URL: same shards as in-process."""
-    from stages import extract
-    from stages.shards import load_manifest
+    from cnnps.stages import extract
+    from cnnps.core.shards import load_manifest
 
     p = dict(w=8, min_lights=3, max_lights=8, rotations=2, rows_per_group=64, val_fraction=0.5)
     local = tmp_path / "local"

@@ -8,10 +8,10 @@ import shutil
 import pytest
 import torch
 
-from stages import extract, train
-from tests.stages.test_extract import make_render_dir
+from cnnps.stages import extract, train
+from tests.support.renders import make_render_dir
 
-pytest.importorskip("models.checkpoint", reason="models.checkpoint not written yet")
+pytest.importorskip("cnnps.models.checkpoint", reason="cnnps.models.checkpoint not written yet")
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +48,7 @@ def test_training_lowers_loss_and_val_error(dataset, tmp_path):
     assert [int(r.split(",")[0]) for r in val_rows] == [50, 100, 150]
     metrics = json.loads((d / "train/metrics.json").read_text())
     assert metrics["val_mean_deg"] == pytest.approx(m["val_mean_deg"])
-    from models.checkpoint import load_checkpoint
+    from cnnps.models.checkpoint import load_checkpoint
 
     model, config, meta = load_checkpoint(d / "train" / "model.pt")
     assert config["w"] == 16 and meta["steps"] == 150
@@ -85,7 +85,7 @@ def test_resume_equals_uninterrupted(dataset, tmp_path):
 
 
 def test_epoch_boundary_crossed(dataset):
-    from stages.shards import ShardStream, load_manifest, manifest_files
+    from cnnps.core.shards import ShardStream, load_manifest, manifest_files
 
     man = load_manifest(dataset / "extract")
     s = ShardStream(manifest_files(dataset / "extract", man, "train"), 16, 256)
@@ -93,7 +93,7 @@ def test_epoch_boundary_crossed(dataset):
 
 
 def test_bad_params(dataset, tmp_path):
-    from cnnps.errors import ConfigError, InputError
+    from cnnps.core.errors import ConfigError, InputError
 
     with pytest.raises(ConfigError):
         train.Params(precision="fp8")
@@ -107,7 +107,7 @@ def test_lr_schedule_is_a_step_function_of_the_step():
         [1e-3, 1e-3, 5e-4, 5e-4, 2.5e-4, 2.5e-4]
     )
     assert train.lr_at(train.Params(lr=2e-3), 10**6) == 2e-3
-    from cnnps.errors import ConfigError
+    from cnnps.core.errors import ConfigError
 
     for bad in (dict(lr_milestones=[20, 10]), dict(lr_milestones=[0]), dict(lr_milestones=[5, 5]),
                 dict(lr_gamma=0), dict(lr_gamma=1.5), dict(init="")):
@@ -128,8 +128,8 @@ def test_lr_milestones_reach_the_optimiser(dataset, tmp_path):
 
 
 def test_init_starts_from_given_weights(dataset, tmp_path):
-    from cnnps.errors import InputError
-    from models.checkpoint import load_checkpoint, read_checkpoint
+    from cnnps.core.errors import InputError
+    from cnnps.models.checkpoint import load_checkpoint, read_checkpoint
 
     a = fresh_copy(dataset, tmp_path / "a")
     ma = train.run(train.Params(max_steps=120, lr=1e-3, val_every=0, **BASE), a)
@@ -155,7 +155,7 @@ def test_stage_modules_do_not_import_torch(repo_root):
     import subprocess
     import sys
 
-    code = "import sys, stages.train, stages.shards; print('torch' in sys.modules)"
+    code = "import sys, cnnps.stages.train, cnnps.core.shards; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], cwd=repo_root, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
@@ -165,7 +165,7 @@ def test_passive_openmp_only_before_torch_loads(repo_root):
     import subprocess
     import sys
 
-    code = ("import os, sys, stages.train as t; a = t.prefer_passive_openmp(); import torch; "
+    code = ("import os, sys, cnnps.stages.train as t; a = t.prefer_passive_openmp(); import torch; "
             "b = t.prefer_passive_openmp(); print(a, b, os.environ['OMP_WAIT_POLICY'])")
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
     out = subprocess.run([sys.executable, "-c", code], cwd=repo_root, env=env, capture_output=True, text=True, check=True)

@@ -8,7 +8,7 @@
 - a run stopped after step 8 (checkpoint at step 5; ``KeyboardInterrupt`` as in
   tests/stages/test_train.py) and resumed from its checkpoint, in the same processes,
   ends with the same weights as the uninterrupted one;
-- the documented entry point ``torchrun ... -m pipeline run-stage train`` is the one used.
+- the documented entry point ``torchrun ... -m cnnps run-stage train`` is the one used.
 
 Run as a module (``torchrun ... -m tests.stages.test_train_ddp DATA PARAMS_JSON STOP``)
 this file is the driver of the stopped-and-resumed run (one launch: torchrun starts
@@ -28,8 +28,8 @@ import numpy as np
 import pytest
 import torch
 
-from cnnps.errors import ConfigError
-from stages import extract, train
+from cnnps.core.errors import ConfigError
+from cnnps.stages import extract, train
 
 REPO = Path(__file__).resolve().parents[2]
 W = 16
@@ -66,7 +66,7 @@ def shards_url(tmp_path_factory) -> str:
     """Synthetic renders -> extract at a file:// URL (what every process reads)."""
     if not torch.distributed.is_available() or not torch.distributed.is_gloo_available():
         pytest.skip("torch.distributed with gloo is not available")
-    from tests.stages.test_extract import make_render_dir
+    from tests.support.renders import make_render_dir
 
     d = tmp_path_factory.mktemp("ddp")
     make_render_dir(d, n_scenes=4, size=16, m=60)
@@ -83,7 +83,7 @@ def _final(d: Path) -> dict:
 
 def _reference(url: str) -> tuple[list[float], dict]:
     """One process, each step on rank 0's and rank 1's batches concatenated."""
-    from stages.shards import ShardStream, load_manifest, manifest_files
+    from cnnps.core.shards import ShardStream, load_manifest, manifest_files
 
     files = manifest_files(url, load_manifest(url), "train")
     streams = [ShardStream(files, W, BATCH // 2, seed=0, buffer_rows=1000, rank=r, world_size=2) for r in (0, 1)]
@@ -126,7 +126,7 @@ def ddp_run(shards_url, tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("ddp_a")
     # run-stage validates every stage first: the meshes stage needs something to do
     (d / "params.yaml").write_text(yaml.safe_dump({"meshes": {"procedural": 1}, "train": {**TRAIN, "shards": shards_url}}))
-    res = _torchrun(["-m", "pipeline", "run-stage", "train", "--params", str(d / "params.yaml"),
+    res = _torchrun(["-m", "cnnps", "run-stage", "train", "--params", str(d / "params.yaml"),
                      "--data-dir", str(d / "data")])
     return d / "data"
 

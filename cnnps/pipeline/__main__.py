@@ -1,0 +1,3 @@
+from cnnps.pipeline.cli import main
+
+main()

@@ -1,0 +1,447 @@
+"""The ``eval`` stage: score the trained model on a held-out synthetic test set.
+
+The test set follows the spirit of CyclesPSTest: a sphere and two strongly non-convex
+procedural shapes that training never sees (their own seeds), covered with
+``superpixels`` superpixels of the Specular and the Metallic material categories, lit by
+17 and by 305 uniform (not jittered) lights. It is built with the stages' own library
+code (meshes -> materials -> render) under ``data_dir/eval/testset/`` and cached there
+like any stage output (unchanged scenes are not re-rendered).
+
+Every capture (synthetic ones and the optional ``real_captures``, DiLiGenT layout) is
+scored on the same pixels (mask pixels with a ground-truth normal) by:
+
+- CNN-PS with each ``rotations`` K (default K=1 and K=10),
+- the least-squares Lambertian baseline (:func:`cnnps.core.lambertian.least_squares`).
+
+Outputs (the report and pictures are replaced together at the end):
+
+- ``data_dir/eval/metrics.json``: per capture and method the error statistics
+  (``mean_deg``, ``median_deg``, ...), plus a ``summary`` (mean over captures);
+- ``data_dir/eval/report.md``: a Markdown table and, per capture, input image,
+  predicted normals, ground truth and error maps (PNGs in ``data_dir/eval/pictures/``).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cnnps.core.errors import ConfigError, InputError
+
+TEST_SEED_OFFSET = 1_000_003  # test shapes' seeds never coincide with the training shapes'
+SPHERE = "sphere"
+LAMBERTIAN = "lambertian"
+PICTURE_MIN_SIZE = 192  # report pictures of smaller captures are enlarged (nearest neighbour)
+
+
+def method_name(k: int) -> str:
+    return f"cnn_k{k}"
+
+
+@dataclass(frozen=True)
+class Params:
+    """Parameters of the eval stage (``eval:`` in params.yaml).
+
+    ``test_shapes``: ``sphere`` and/or procedural kinds (:data:`cnnps.synth.procedural.PROCEDURAL_KINDS`);
+    ``synthetic: false`` skips the synthetic test set (real captures only).
+    ``real_captures``: capture folders (DiLiGenT layout) also scored; without ground
+    truth only their pictures are made. ``model``: checkpoint; default
+    ``<data_dir>/train/model.pt``.
+    """
+
+    synthetic: bool = True
+    test_shapes: tuple[str, ...] = (SPHERE, "bowl", "holed")
+    superpixels: int = 100
+    categories: tuple[str, ...] = ("specular", "metallic")
+    light_sets: tuple[int, ...] = (17, 305)
+    size: int = 64
+    samples: int = 16
+    rotations: tuple[int, ...] = (1, 10)
+    real_captures: tuple[str, ...] = ()
+    model: str | None = None
+    device: str = "auto"
+    batch_size: int = 0  # maps per network call (0 = the inference default: 256 on a CPU, 4096 on CUDA)
+    lambertian_shadow_threshold: float | None = None
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("test_shapes", "categories", "light_sets", "rotations", "real_captures"):
+            object.__setattr__(self, name, tuple(getattr(self, name)))
+        if self.synthetic:
+            if not self.test_shapes:
+                raise ConfigError("eval.test_shapes is empty (set eval.synthetic: false to score real captures only)")
+            from cnnps.synth.procedural import PROCEDURAL_KINDS
+
+            for s in self.test_shapes:
+                if s != SPHERE and s not in PROCEDURAL_KINDS:
+                    raise ConfigError(f"eval.test_shapes: unknown shape {s!r} (choose from {SPHERE}, {', '.join(PROCEDURAL_KINDS)})")
+            if len(set(self.test_shapes)) != len(self.test_shapes):
+                raise ConfigError(f"eval.test_shapes: duplicates in {list(self.test_shapes)}")
+            if not self.categories:
+                raise ConfigError("eval.categories is empty")
+            if not self.light_sets:
+                raise ConfigError("eval.light_sets is empty")
+            for n in self.light_sets:
+                if n < 3:
+                    raise ConfigError(f"eval.light_sets: each light count must be >= 3, got {n}")
+        if not self.synthetic and not self.real_captures:
+            raise ConfigError("eval: nothing to evaluate (eval.synthetic is false and eval.real_captures is empty)")
+        if self.superpixels < 1:
+            raise ConfigError(f"eval.superpixels must be >= 1, got {self.superpixels}")
+        if self.size < 8:
+            raise ConfigError(f"eval.size must be >= 8 pixels, got {self.size}")
+        if self.samples < 1:
+            raise ConfigError(f"eval.samples must be >= 1, got {self.samples}")
+        if not self.rotations or any(k < 1 for k in self.rotations):
+            raise ConfigError(f"eval.rotations must be a non-empty list of integers >= 1, got {list(self.rotations)}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ConfigError(f"eval.device must be auto, cpu or cuda, got {self.device!r}")
+        if self.batch_size < 0:
+            raise ConfigError(f"eval.batch_size must be >= 0 (0 = default), got {self.batch_size}")
+        t = self.lambertian_shadow_threshold
+        if t is not None and not 0.0 <= t < 1.0:
+            raise ConfigError(f"eval.lambertian_shadow_threshold must be in [0, 1), got {t}")
+        if self.seed < 0:
+            raise ConfigError(f"eval.seed must be >= 0, got {self.seed}")
+
+
+def check_inputs(params: Params, data_dir: Path) -> None:
+    """Checks on named files, before any stage runs (called by cnnps.pipeline.config)."""
+    for c in params.real_captures:
+        p = Path(c)
+        if not (p / "filenames.txt").is_file():
+            raise ConfigError(f"eval.real_captures: {p} is not a capture folder (no filenames.txt)")
+
+
+# --------------------------------------------------------------------------- scoring
+
+
+def _model_path(params: Params, data_dir: Path) -> Path:
+    path = Path(params.model) if params.model is not None else Path(data_dir) / "train" / "model.pt"
+    if not path.is_file():
+        raise InputError(path, "model not found (run the train stage first, or set eval.model)")
+    return path
+
+
+def _device(name: str) -> str:
+    if name != "auto":
+        return name
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def evaluate_capture(capture_dir: Path, predict, params: Params) -> dict:
+    """Normals by every method for one capture; errors where there is ground truth.
+
+    ``predict(I (P, m), L (m, 3), k) -> (P, 3)``: the CNN with k rotations.
+
+    Returns ``{"capture", "n_images", "pixels", "scored_pixels", "normals": {method: (H,W,3)},
+    "errors": {method: (H,W)}, "methods": {method: stats}, "mask", "gt", "input"}``.
+    """
+    from cnnps.core.capture import load_capture
+    from cnnps.core.lambertian import least_squares
+    from cnnps.core.metrics import angular_error_deg, error_stats
+    from cnnps.core.rotation import normalize
+
+    cap = load_capture(capture_dir)
+    I = cap.pixel_intensities()
+    L = cap.lights
+    normals: dict[str, np.ndarray] = {}
+    for k in params.rotations:
+        N = predict(I, L, int(k))
+        normals[method_name(k)] = cap.to_image(normalize(np.asarray(N, dtype=np.float64)).astype(np.float32))
+    N, _albedo = least_squares(I, L, shadow_threshold=params.lambertian_shadow_threshold)
+    normals[LAMBERTIAN] = cap.to_image(normalize(N).astype(np.float32))
+
+    out = {
+        "capture": str(capture_dir),
+        "n_images": cap.n_images,
+        "pixels": cap.n_pixels,
+        "normals": normals,
+        "errors": {},
+        "methods": {},
+        "mask": cap.mask,
+        "gt": cap.normal_gt,
+        "input": _input_picture(cap),
+    }
+    if cap.normal_gt is not None:
+        scored = cap.mask & (np.linalg.norm(cap.normal_gt, axis=-1) > 0.5)
+        if not scored.any():
+            raise InputError(capture_dir, "ground truth is zero at every mask pixel")
+        out["scored"] = scored
+        out["scored_pixels"] = int(scored.sum())
+        for m, n in normals.items():
+            err = angular_error_deg(n, cap.normal_gt)
+            err[~scored] = 0.0
+            out["errors"][m] = err
+            out["methods"][m] = error_stats(err, scored)
+    return out
+
+
+def _input_picture(cap) -> np.ndarray:
+    """The image lit most frontally, exposed to its 99th percentile, sRGB-ish gamma, uint8."""
+    j = int(np.argmax(cap.lights[:, 2]))
+    img = cap.images[j]
+    vals = img[cap.mask]
+    scale = float(np.percentile(vals, 99)) if vals.size else 1.0
+    scale = scale if scale > 0 else 1.0
+    g = np.clip(img / scale, 0.0, 1.0) ** (1 / 2.2)
+    return np.round(g * 255).astype(np.uint8)
+
+
+def _summary(results: dict[str, dict]) -> dict:
+    """Mean of per-capture mean / median errors per method (captures with ground truth)."""
+    per_method: dict[str, list[dict]] = {}
+    for r in results.values():
+        for m, s in r["methods"].items():
+            per_method.setdefault(m, []).append(s)
+    return {
+        m: {
+            "mean_deg": float(np.mean([s["mean_deg"] for s in stats])),
+            "median_deg": float(np.mean([s["median_deg"] for s in stats])),
+            "captures": len(stats),
+        }
+        for m, stats in per_method.items()
+    }
+
+
+def format_table(metrics: dict) -> str:
+    """The evaluation table (plain text): mean / median angular error in degrees."""
+    captures = metrics.get("captures", {})
+    methods = metrics.get("methods") or sorted({m for c in captures.values() for m in c.get("methods", {})})
+    if not captures:
+        return "(no captures evaluated)"
+    head = ["capture", "lights"] + [_label(m) for m in methods]
+    rows = []
+    for name, c in captures.items():
+        row = [name, str(c.get("n_images", ""))]
+        for m in methods:
+            s = c.get("methods", {}).get(m)
+            row.append(f"{s['mean_deg']:6.2f} / {s['median_deg']:6.2f}" if s else "no GT")
+        rows.append(row)
+    summary = metrics.get("summary", {})
+    if summary:
+        row = ["mean over captures", ""]
+        for m in methods:
+            s = summary.get(m)
+            row.append(f"{s['mean_deg']:6.2f} / {s['median_deg']:6.2f}" if s else "")
+        rows.append(row)
+    widths = [max(len(r[i]) for r in [head] + rows) for i in range(len(head))]
+    fmt = lambda r: "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths)))  # noqa: E731
+    lines = ["angular error in degrees: mean / median", fmt(head), "  ".join("-" * w for w in widths)]
+    lines += [fmt(r) for r in rows]
+    return "\n".join(lines)
+
+
+def _label(method: str) -> str:
+    if method.startswith("cnn_k"):
+        return f"CNN-PS K={method[5:]}"
+    if method == LAMBERTIAN:
+        return "Lambertian LS"
+    return method
+
+
+def write_report(out_dir: Path, results: dict[str, dict], metrics: dict) -> Path:
+    """Pictures (``pictures/``), ``metrics.json`` and ``report.md`` under ``out_dir``."""
+    from cnnps.core.atomic import atomic_dir, write_text
+    from cnnps.core.images import write_png
+    from cnnps.core.visualize import error_picture, normal_to_rgb
+
+    out_dir = Path(out_dir)
+    methods = metrics["methods"]
+    best_cnn = method_name(max(int(m[5:]) for m in methods if m.startswith("cnn_k")))
+    lines = [
+        "# CNN-PS evaluation",
+        "",
+        f"Model: `{metrics['model']}`. Angular error in degrees (mean / median) on mask pixels "
+        "with ground truth; every method is scored on the same pixels.",
+        "",
+        "```",
+        format_table(metrics),
+        "```",
+        "",
+    ]
+    with atomic_dir(out_dir / "pictures") as tmp:
+        for name, r in results.items():
+            f = max(1, PICTURE_MIN_SIZE // max(r["mask"].shape))  # small renders: enlarge (nearest)
+            up = (lambda a: a) if f == 1 else (lambda a: np.repeat(np.repeat(a, f, axis=0), f, axis=1))
+            mask = up(r["mask"])
+            files = {"input": f"{name}_input.png"}
+            write_png(tmp / files["input"], up(r["input"]))
+            for m in (best_cnn, LAMBERTIAN):
+                files[f"normal_{m}"] = f"{name}_normal_{m}.png"
+                write_png(tmp / files[f"normal_{m}"], normal_to_rgb(up(r["normals"][m]), mask))
+            if r["gt"] is not None:
+                files["gt"] = f"{name}_normal_gt.png"
+                write_png(tmp / files["gt"], normal_to_rgb(up(r["gt"]), mask))
+                vmax = None
+                errs = [r["errors"][m] for m in (best_cnn, LAMBERTIAN)]
+                vmax_src = np.concatenate([e[r["scored"]] for e in errs])
+                if vmax_src.size:
+                    from cnnps.core.visualize import _nice_ceiling
+
+                    vmax = _nice_ceiling(float(np.percentile(vmax_src, 99)))
+                for m in (best_cnn, LAMBERTIAN):
+                    files[f"error_{m}"] = f"{name}_error_{m}.png"
+                    write_png(tmp / files[f"error_{m}"], error_picture(up(r["errors"][m]), up(r["scored"]), vmax=vmax))
+            c = metrics["captures"][name]
+            lines += [f"## {name}", "", f"`{c['capture']}`: {c['n_images']} images, {c['pixels']} mask pixels.", ""]
+            if r["gt"] is not None:
+                lines += ["| method | mean | median | < 10° |", "| --- | ---: | ---: | ---: |"]
+                for m in methods:
+                    s = c["methods"][m]
+                    lines.append(f"| {_label(m)} | {s['mean_deg']:.2f}° | {s['median_deg']:.2f}° | {100 * s['under_10_deg']:.0f} % |")
+                lines.append("")
+            cols = [("input", "input"), (f"normal_{best_cnn}", f"{_label(best_cnn)}"), (f"normal_{LAMBERTIAN}", "Lambertian LS")]
+            if r["gt"] is not None:
+                cols += [("gt", "ground truth"), (f"error_{best_cnn}", f"error {_label(best_cnn)}"), (f"error_{LAMBERTIAN}", "error Lambertian")]
+            lines.append("| " + " | ".join(t for _, t in cols) + " |")
+            lines.append("|" + " --- |" * len(cols))
+            lines.append("| " + " | ".join(f"![{t}](pictures/{files[k]})" for k, t in cols) + " |")
+            lines.append("")
+    write_text(out_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    report = out_dir / "report.md"
+    write_text(report, "\n".join(lines))
+    return report
+
+
+# --------------------------------------------------------------------------- the test set
+
+
+def testset_plan(params: Params) -> list[dict]:
+    """The synthetic test captures: shape x category x light set (names and seeds)."""
+    base = params.seed + TEST_SEED_OFFSET
+    plan = []
+    for i, shape in enumerate(params.test_shapes):
+        for cat in params.categories:
+            for n in params.light_sets:
+                plan.append({
+                    "name": f"{shape}-{cat}-{n}",
+                    "shape": shape,
+                    "shape_seed": base + i,
+                    "category": cat,
+                    "lights": int(n),
+                    # the same material maps under every light set of a shape/category
+                    "seed": int(np.random.SeedSequence([base, i, sum(map(ord, cat))]).generate_state(1)[0]) % (2**31 - 1),
+                })
+    return plan
+
+
+def test_mesh(shape: str, shape_seed: int):
+    """A test shape in the camera frame: a sphere, or a procedural kind in a seeded pose."""
+    import trimesh
+
+    from cnnps.stages.meshes import RADIUS, pose_mesh, random_rotation
+
+    if shape == SPHERE:
+        return trimesh.creation.icosphere(subdivisions=5, radius=RADIUS)
+    from cnnps.synth.procedural import make_shape
+
+    mesh = make_shape(shape, shape_seed)
+    return pose_mesh(mesh, random_rotation(np.random.default_rng([shape_seed, 17])))
+
+
+def build_testset(params: Params, data_dir: Path) -> list[Path]:
+    """Render (or reuse: each capture carries a content key) the synthetic test captures
+    under ``data_dir/eval/testset/<shape>-<category>-<lights>/``; return their folders."""
+    import shutil
+
+    from cnnps.stages.render import render_capture
+
+    root = Path(data_dir) / "eval" / "testset"
+    plan = testset_plan(params)
+    wanted = {c["name"] for c in plan}
+    if root.is_dir():  # captures of an older plan
+        for d in root.iterdir():
+            if d.is_dir() and d.name not in wanted and ((d / "scene.json").exists() or (d / ".pending.json").exists()):
+                shutil.rmtree(d)
+    meshes: dict[str, object] = {}
+    out = []
+    for c in plan:
+        if c["shape"] not in meshes:
+            meshes.clear()  # captures of one shape are consecutive
+            meshes[c["shape"]] = test_mesh(c["shape"], c["shape_seed"])
+        out.append(
+            render_capture(
+                meshes[c["shape"]], root / c["name"], lights=c["lights"], size=params.size, samples=params.samples,
+                material=c["category"], superpixels=params.superpixels, seed=c["seed"], jitter_deg=0.0,
+            )
+        )
+    return out
+
+
+def evaluate_all(captures, predict, params: Params, out_dir: Path, model_label: str, t0: float | None = None) -> dict:
+    """Score ``captures`` ([(name, folder, "synthetic" | "real")]); write the report; return the metrics."""
+    from tqdm import tqdm
+
+    t0 = time.perf_counter() if t0 is None else t0
+    results: dict[str, dict] = {}
+    for name, path, kind in tqdm(captures, desc="eval", unit="capture"):
+        r = evaluate_capture(path, predict, params)
+        r["kind"] = kind
+        results[name] = r
+
+    methods = [method_name(k) for k in params.rotations] + [LAMBERTIAN]
+    metrics = {
+        "model": model_label,
+        "methods": methods,
+        "summary": _summary({n: r for n, r in results.items() if r["kind"] == "synthetic"}),
+        "summary_real": _summary({n: r for n, r in results.items() if r["kind"] == "real"}),
+        "captures": {
+            n: {
+                "capture": r["capture"],
+                "kind": r["kind"],
+                "n_images": r["n_images"],
+                "pixels": r["pixels"],
+                "scored_pixels": r.get("scored_pixels", 0),
+                "methods": r["methods"],
+            }
+            for n, r in results.items()
+        },
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
+    write_report(out_dir, results, metrics)
+    return metrics
+
+
+# --------------------------------------------------------------------------- stage
+
+
+def run(params: Params, data_dir: Path) -> None:
+    t0 = time.perf_counter()
+    data_dir = Path(data_dir)
+    out_dir = data_dir / "eval"
+    model_path = _model_path(params, data_dir)
+    for c in params.real_captures:  # fail before rendering anything
+        if not Path(c).is_dir():
+            raise InputError(c, "capture folder not found")
+
+    captures: list[tuple[str, Path, str]] = []
+    if params.synthetic:
+        captures += [(p.name, p, "synthetic") for p in build_testset(params, data_dir)]
+    for c in params.real_captures:
+        p = Path(c)
+        captures.append((p.name, p, "real"))
+    names = [n for n, _, _ in captures]
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise ConfigError(f"eval: two captures are named {dup!r}; rename one folder")
+
+    from cnnps.models.checkpoint import load_checkpoint
+
+    device = _device(params.device)
+    net, _config, _meta = load_checkpoint(model_path, device)  # InputError naming the file
+    net.eval()
+    from cnnps.models.inference import predict_normals
+
+    def predict(I, L, k):
+        return predict_normals(net, I, L, rotations=k, device=device, batch_size=params.batch_size or None, progress=False)
+
+    metrics = evaluate_all(captures, predict, params, out_dir, str(model_path), t0)
+    print(format_table(metrics))
+    print(f"eval: report {out_dir / 'report.md'}")

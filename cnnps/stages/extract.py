@@ -1,0 +1,480 @@
+"""Stage ``extract``: rendered captures -> Parquet shards of training observation maps.
+
+For every foreground pixel (with a valid ground-truth normal) of every scene in
+``data_dir/render/<scene_id>/``:
+
+1. A cone about the view axis (+z) with half-angle drawn uniformly from
+   [``cone_min_deg``, ``cone_max_deg``]; the pixel may only use lights inside it.
+   **Too few lights in the cone:** if the cone holds fewer than ``min(min_lights, m)``
+   lights, it is *widened* just enough to hold that many (the nearest lights to the view
+   axis); the row's ``cone_deg`` column stores the half-angle actually used.
+2. A subset size k drawn uniformly from [min(min_lights, m), min(max_lights, m)],
+   capped at the number of lights in the cone; k lights are drawn from the cone without
+   replacement (all of them when the cone holds no more than k).
+3. ``rotations`` copies: lights and ground-truth normal rotated together about z by the
+   angles ``cnnps.core.rotation.rotation_angles(rotations)`` (the paper's 10 x 36 degrees);
+   each map is built by ``cnnps.core.obsmap.observation_maps`` with the pixel's light mask,
+   the same code prediction uses. A pixel yields ``rotations`` rows.
+
+4. ``ambient_max`` > 0 (augmentation): before the maps are built, every light of a pixel
+   gets the same offset ``a * max`` (``a ~ U(0, ambient_max)`` per pixel, ``max`` its
+   brightest chosen light; :func:`add_ambient`), so the network learns that shadowed
+   cells of real captures hold small non-zero values (ambient light, black level).
+
+Pixels whose chosen lights are all dark (an all-zero map: nothing to learn from) are
+dropped and counted in the manifest.
+
+Randomness: scene ``s`` uses ``numpy.random.default_rng([seed, h(s.key)])`` and chunk
+``c`` of it the child stream ``[seed, h(key), c]`` (pixel order, cones, subsets), so a
+scene's rows depend only on its own key and the params, never on the other scenes.
+
+Output in ``data_dir/extract/`` (or at ``output``: a path or an fsspec URL such as
+``s3://bucket/run/extract``, ``file:///shared/run/extract`` or, for one process only,
+``memory://run/extract``): ``shard-<scene_id>-NNN.parquet`` (see :mod:`cnnps.core.shards`
+for the schema), one ``scene-<scene_id>.json`` marker per finished scene (its cache key
+and shard list, written after its shards are moved into place), and ``manifest.json``
+written last. A rerun skips scenes whose marker has the same cache key and whose shards
+still exist with their recorded sizes.
+
+Scenes are independent jobs run by the executor (:mod:`cnnps.core.executor`: ``local``
+process pool or ``ray``); each job writes only its own shards and marker, atomically and
+deterministically, so a retried or duplicated job rewrites the same bytes.
+
+Validation split is by scene (grouped by ``scene.json``'s ``view_id`` when present, so
+the same posed mesh never lands in both splits): ``val_scenes`` lists them explicitly,
+otherwise the ``round(val_fraction * groups)`` groups (at least one when
+``val_fraction > 0`` and there are two or more groups) with the smallest
+``sha256(seed, group)`` are validation. The split is only recorded in the manifest, so
+changing it does not re-extract anything.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass, replace
+from fnmatch import fnmatch
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from cnnps.core.errors import ConfigError, InputError
+from cnnps.core.obsmap import observation_maps_multi
+from cnnps.core.rotation import rotate_z, rotation_angles
+from cnnps.core import storage
+from cnnps.core.executor import ExecutorParams
+from cnnps.core.shards import MANIFEST, SceneShardWriter, file_size, make_batch, shard_path, shard_schema
+
+FORMAT_VERSION = 1  # bump when the rows written for the same inputs change
+
+
+@dataclass(frozen=True)
+class Params:
+    w: int = 32
+    min_lights: int = 50
+    max_lights: int = 1300
+    cone_min_deg: float = 20.0
+    cone_max_deg: float = 90.0
+    rotations: int = 10
+    ambient_max: float = 0.0  # per-pixel ambient offset a ~ U(0, ambient_max), times the pixel's brightest light
+    pixels_per_scene: int = 0  # 0 = every foreground pixel
+    val_fraction: float = 0.1
+    val_scenes: tuple[str, ...] = ()  # explicit validation scenes (or view ids); overrides val_fraction
+    seed: int = 0
+    rows_per_group: int = 8192
+    rows_per_shard: int = 262144
+    chunk_pixels: int = 2048
+    # how scenes are run: params.yaml's shared ``executor`` section (None = in this process);
+    # ``workers`` overrides executor.workers when set (1 = in this process, 0 = one per core)
+    executor: ExecutorParams | None = None
+    workers: int | None = None
+    # where shards + manifest go: a path or an fsspec URL (s3://, gs://, file://, memory://);
+    # None = data_dir/extract. The train stage reads the same place (train.shards).
+    output: str | None = None
+
+    def __post_init__(self):
+        if not 4 <= self.w <= 256:
+            raise ConfigError(f"extract.w must be in [4, 256], got {self.w}")
+        if self.min_lights < 1 or self.max_lights < self.min_lights:
+            raise ConfigError(
+                f"extract: need 1 <= min_lights <= max_lights, got {self.min_lights} and {self.max_lights}"
+            )
+        if not 0.0 < self.cone_min_deg <= self.cone_max_deg <= 180.0:
+            raise ConfigError(
+                f"extract: need 0 < cone_min_deg <= cone_max_deg <= 180, got {self.cone_min_deg}, {self.cone_max_deg}"
+            )
+        if not 1 <= self.rotations <= 127:
+            raise ConfigError(f"extract.rotations must be in [1, 127], got {self.rotations}")
+        if not 0.0 <= self.ambient_max <= 1.0:
+            raise ConfigError(f"extract.ambient_max must be in [0, 1], got {self.ambient_max}")
+        if self.pixels_per_scene < 0:
+            raise ConfigError(f"extract.pixels_per_scene must be >= 0, got {self.pixels_per_scene}")
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise ConfigError(f"extract.val_fraction must be in [0, 1), got {self.val_fraction}")
+        for name in ("rows_per_group", "rows_per_shard", "chunk_pixels"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"extract.{name} must be >= 1, got {getattr(self, name)}")
+        if self.workers is not None and self.workers < 0:
+            raise ConfigError(f"extract.workers must be >= 0, got {self.workers}")
+        if self.output is not None and (not isinstance(self.output, str) or not self.output.strip()):
+            raise ConfigError(f"extract.output must be a folder path or URL, got {self.output!r}")
+        object.__setattr__(self, "val_scenes", tuple(self.val_scenes))
+
+    def row_key(self) -> dict:
+        """The params that change the rows of a scene (not the split, not parallelism)."""
+        d = self.manifest_params()
+        for k in ("val_fraction", "val_scenes"):
+            d.pop(k)
+        d["format"] = FORMAT_VERSION
+        return d
+
+    def manifest_params(self) -> dict:
+        """The params recorded in the manifest: not where or how the stage ran."""
+        d = asdict(self)
+        for k in ("executor", "workers", "output"):
+            d.pop(k)
+        if not self.ambient_max:  # added later: absent = 0, so earlier keys, caches and manifests stay valid
+            d.pop("ambient_max")
+        return d
+
+
+def _hash_int(*parts) -> int:
+    h = hashlib.sha256(json.dumps([str(p) for p in parts]).encode()).digest()
+    return int.from_bytes(h[:8], "little")
+
+
+def scene_cache_key(scene_key: str, params: Params) -> str:
+    blob = json.dumps({"scene": scene_key, "params": params.row_key()}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:32]
+
+
+# -- sampling (vectorised over pixels) ------------------------------------------------
+
+
+def sample_light_masks(
+    rng: np.random.Generator,
+    lights: np.ndarray,
+    n_pixels: int,
+    min_lights: int,
+    max_lights: int,
+    cone_min_deg: float,
+    cone_max_deg: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Draw per-pixel light subsets restricted to cones about +z.
+
+    Returns (mask (P, m) bool, cone_deg (P,) float64 half-angle actually used, k (P,)
+    lights used). See the module docstring for the rules.
+    """
+    lights = np.asarray(lights, dtype=np.float64)
+    m = lights.shape[0]
+    P = n_pixels
+    z = np.clip(lights[:, 2], -1.0, 1.0)
+    lo = min(min_lights, m)
+    hi = min(max_lights, m)
+    half = rng.uniform(cone_min_deg, cone_max_deg, size=P)
+    cos_half = np.cos(np.radians(half))
+    # widen cones holding fewer than `lo` lights to the lo-th nearest light to the axis
+    z_lo = np.sort(z)[::-1][lo - 1]
+    cos_used = np.minimum(cos_half, z_lo)
+    in_cone = z[None, :] >= cos_used[:, None]  # (P, m)
+    n_in = in_cone.sum(axis=1)
+    k = np.minimum(rng.integers(lo, hi + 1, size=P), n_in)
+    keys = rng.random((P, m))
+    keys[~in_cone] = 2.0  # never chosen
+    kth = np.take_along_axis(np.sort(keys, axis=1), (k - 1)[:, None], axis=1)
+    mask = keys <= kth
+    cone_deg = np.degrees(np.arccos(cos_used))
+    return mask, cone_deg, mask.sum(axis=1)
+
+
+def add_ambient(rng: np.random.Generator, I: np.ndarray, mask: np.ndarray, ambient_max: float) -> np.ndarray:
+    """``I + a * max(I over the pixel's chosen lights)`` with one ``a ~ U(0, ambient_max)``
+    per pixel (row), added to every light: real attached shadows are not black (DiLiGenT
+    BALL: ~3 % of the pixel's brightest value from ambient light and the black level),
+    while rendered ones are exactly 0. I: (P, m); mask: (P, m) chosen lights."""
+    a = rng.uniform(0.0, ambient_max, size=(I.shape[0], 1))
+    top = np.where(mask, I, 0.0).max(axis=1, keepdims=True)
+    return I + (a * top).astype(I.dtype)
+
+
+def build_rows(
+    intensities: np.ndarray,
+    normals: np.ndarray,
+    lights: np.ndarray,
+    light_mask: np.ndarray,
+    angles: np.ndarray,
+    w: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Maps (R, P, w, w) float16 and normals (R, P, 3) float32 for every rotation angle:
+    rotation r uses lights and normals rotated about z by ``angles[r]``."""
+
+    # one call for all angles: the masked values are shared, only the cells move
+    rot_lights = np.stack([rotate_z(lights, a) for a in angles])
+    maps = observation_maps_multi(intensities, rot_lights, w, light_mask=light_mask, dtype=np.float16)
+    rot_normals = np.empty((len(angles), len(normals), 3), np.float32)
+    for r, a in enumerate(angles):
+        rot_normals[r] = rotate_z(normals, a)
+    return maps, rot_normals
+
+
+# -- one scene --------------------------------------------------------------------------
+
+
+def list_scenes(render_dir: Path) -> list[tuple[str, Path, dict]]:
+    """(scene_id, folder, scene.json contents) for every rendered scene, sorted by id."""
+    if not render_dir.is_dir():
+        raise InputError(render_dir, "no rendered scenes (run the render stage first)")
+    scenes = []
+    for d in sorted(p for p in render_dir.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        meta_path = d / "scene.json"
+        if not meta_path.is_file():
+            continue  # an unfinished render leaves no scene.json
+        try:
+            meta = json.loads(meta_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise InputError(meta_path, f"not valid JSON ({exc})") from exc
+        if "key" not in meta:
+            raise InputError(meta_path, "has no 'key'")
+        scenes.append((d.name, d, meta))
+    if not scenes:
+        raise InputError(render_dir, "no rendered scenes with a scene.json")
+    return scenes
+
+
+@dataclass
+class SceneJob:
+    scene_id: str
+    folder: Path
+    key: str  # cache key (scene key + row params)
+    scene_key: str
+    out_dir: str | Path  # local folder or fsspec URL
+    params: Params
+    threads: int = 0
+    progress: bool = True
+
+
+def extract_scene(job: SceneJob) -> dict:
+    """Extract one scene into its shards and marker; returns the marker's contents."""
+    from cnnps.core.capture import load_capture
+
+    if job.threads:
+        _limit_threads(job.threads)
+    p = job.params
+    t0 = time.perf_counter()
+    cap = load_capture(job.folder)
+    if cap.normal_gt is None:
+        raise InputError(job.folder, "rendered scene has no ground-truth normals (normal_gt.npy)")
+    rr, cc = np.nonzero(cap.mask)
+    normals = cap.normal_gt[rr, cc].astype(np.float64)
+    norm = np.linalg.norm(normals, axis=1)
+    valid = np.isfinite(norm) & (norm > 0.5)
+    I_all = cap.pixel_intensities()  # (P, m), mask pixels row-major, like rr, cc
+    scene_seed = _hash_int(p.seed, job.scene_key)
+    rng = np.random.default_rng([scene_seed, 0])
+    pix = np.flatnonzero(valid)
+    pix = pix[rng.permutation(len(pix))]
+    if p.pixels_per_scene:
+        pix = pix[: p.pixels_per_scene]
+    angles = rotation_angles(p.rotations)
+    angles_deg = np.degrees(angles).astype(np.float32)
+    schema = shard_schema(p.w)
+    m = cap.lights.shape[0]
+    dropped_dark = 0
+    rows_written = 0
+    bar = tqdm(total=len(pix), desc=f"extract {job.scene_id}", unit="px", disable=not job.progress, leave=False)
+    with SceneShardWriter(job.out_dir, f"shard-{job.scene_id}", schema, p.rows_per_group, p.rows_per_shard) as wr:
+        for c, start in enumerate(range(0, len(pix), p.chunk_pixels)):
+            sel = pix[start : start + p.chunk_pixels]
+            crng = np.random.default_rng([scene_seed, 1, c])
+            mask, cone_deg, k = sample_light_masks(
+                crng, cap.lights, len(sel), p.min_lights, p.max_lights, p.cone_min_deg, p.cone_max_deg
+            )
+            I = I_all[sel]
+            lit = (np.where(mask, I, 0.0) > 0).any(axis=1)
+            dropped_dark += int((~lit).sum())
+            sel, mask, cone_deg, k, I = sel[lit], mask[lit], cone_deg[lit], k[lit], I[lit]
+            if p.ambient_max:
+                I = add_ambient(np.random.default_rng([scene_seed, 2, c]), I, mask, p.ambient_max)
+            n = normals[sel] / norm[sel, None]
+            maps, rot_n = build_rows(I, n, cap.lights, mask, angles, p.w)
+            R, P = len(angles), len(sel)
+            order = crng.permutation(R * P)  # interleave rotations and pixels inside the chunk
+            r_idx, p_idx = np.divmod(order, P)
+            wr.write(
+                make_batch(
+                    schema,
+                    maps.reshape(R * P, p.w, p.w)[order],
+                    rot_n.reshape(R * P, 3)[order],
+                    job.scene_id,
+                    rr[sel][p_idx],
+                    cc[sel][p_idx],
+                    k[p_idx],
+                    cone_deg[p_idx],
+                    r_idx,
+                    angles_deg[r_idx],
+                )
+            )
+            rows_written += R * P
+            bar.update(len(sel) + int((~lit).sum()))
+    bar.close()
+    record = {
+        "scene": job.scene_id,
+        "key": job.key,
+        "scene_key": job.scene_key,
+        "lights": int(m),
+        "pixels": int(len(pix) - dropped_dark),
+        "dropped_dark_pixels": dropped_dark,
+        "rows": rows_written,
+        "seconds": round(time.perf_counter() - t0, 3),
+        "shards": [asdict(s) for s in wr.infos],
+    }
+    storage.write_text(shard_path(job.out_dir, f"scene-{job.scene_id}.json"), json.dumps(record, indent=1))
+    return record
+
+
+def _limit_threads(n: int) -> None:
+    try:
+        import threadpoolctl  # type: ignore
+
+        threadpoolctl.threadpool_limits(n)
+    except ImportError:
+        pass
+
+
+def _cached(out_dir: str | Path, scene_id: str, key: str) -> dict | None:
+    marker = shard_path(out_dir, f"scene-{scene_id}.json")
+    if not storage.exists(marker):
+        return None
+    try:
+        rec = json.loads(storage.read_text(marker))
+    except (json.JSONDecodeError, InputError):
+        return None
+    if rec.get("key") != key:
+        return None
+    for s in rec.get("shards", []):
+        if file_size(shard_path(out_dir, s["file"])) != s["bytes"]:
+            return None
+    return rec
+
+
+def split_scenes(scenes: list[tuple[str, Path, dict]], params: Params) -> dict[str, str]:
+    """scene_id -> 'train' | 'val' (see the module docstring)."""
+    group_of = {sid: str(meta.get("view_id", sid)) for sid, _, meta in scenes}
+    groups = sorted(set(group_of.values()))
+    if params.val_scenes:
+        known = set(group_of) | set(groups)
+        unknown = [s for s in params.val_scenes if s not in known]
+        if unknown:
+            raise ConfigError(f"extract.val_scenes names unknown scenes: {', '.join(unknown)}")
+        val = {g for g in groups if g in params.val_scenes} | {
+            group_of[s] for s in params.val_scenes if s in group_of
+        }
+    else:
+        n_val = int(round(params.val_fraction * len(groups)))
+        if params.val_fraction > 0 and len(groups) >= 2:
+            n_val = min(max(n_val, 1), len(groups) - 1)
+        ranked = sorted(groups, key=lambda g: hashlib.sha256(f"{params.seed}:{g}".encode()).hexdigest())
+        val = set(ranked[:n_val])
+    return {sid: ("val" if group_of[sid] in val else "train") for sid, _, _ in scenes}
+
+
+def output_location(params: Params, data_dir: Path) -> str | Path:
+    """Where the stage writes: ``params.output`` (path or URL) or ``data_dir/extract``."""
+    if params.output is None:
+        return Path(data_dir) / "extract"
+    if storage.is_local(params.output):
+        return storage.local_path(params.output)
+    storage.fsspec_fs(params.output)  # an unknown scheme / missing backend: ConfigError now
+    return params.output.rstrip("/")
+
+
+def _in_process(ex, n_jobs: int) -> bool:
+    """Whether ``ex.map`` runs the jobs in this process (local executor, one worker or job)."""
+    from cnnps.core.executor import LocalExecutor
+
+    return isinstance(ex, LocalExecutor) and (ex.workers == 1 or n_jobs == 1)
+
+
+def run(params: Params, data_dir: Path, executor=None) -> None:
+    """Extract every rendered scene (skipping cached ones) and write the manifest.
+
+    ``executor``: runs the per-scene jobs (``cnnps.core.executor``); None = one made from
+    ``params.executor`` / ``params.workers`` (default: in this process), closed at the end.
+    """
+    from cnnps.core.executor import get_executor
+
+    data_dir = Path(data_dir)
+    out_dir = output_location(params, data_dir)
+    scenes = list_scenes(data_dir / "render")
+    split = split_scenes(scenes, params)
+    jobs, records = [], {}
+    for sid, folder, meta in scenes:
+        key = scene_cache_key(str(meta["key"]), params)
+        rec = _cached(out_dir, sid, key)
+        if rec is not None:
+            records[sid] = rec
+        else:
+            jobs.append(SceneJob(sid, folder, key, str(meta["key"]), out_dir, params))
+    if jobs:
+        own = executor is None
+        if own:
+            ep = params.executor or ExecutorParams(workers=1)
+            if params.workers is not None:
+                ep = replace(ep, workers=params.workers)
+            executor = get_executor(ep)
+        try:
+            in_process = _in_process(executor, len(jobs))
+            if storage.protocol(out_dir) == "memory" and not in_process:
+                raise ConfigError(
+                    f"extract.output {out_dir}: memory:// exists in one process only; use workers: 1 "
+                    "(executor kind local) or a shared location (a path, file://, s3://)"
+                )
+            threads = executor.threads_per_job(len(jobs))
+            if not in_process:
+                jobs = [replace(j, threads=threads, progress=False) for j in jobs]
+            for rec in executor.map(extract_scene, jobs, desc="extract scenes", num_cpus=threads):
+                records[rec["scene"]] = rec
+        finally:
+            if own:
+                executor.close()
+    shards, total = [], {"train": 0, "val": 0}
+    for sid, _, _ in scenes:
+        rec = records[sid]
+        for s in rec["shards"]:
+            shards.append({**s, "scene": sid, "split": split[sid]})
+        total[split[sid]] += rec["rows"]
+    manifest = {
+        "format": FORMAT_VERSION,
+        "w": params.w,
+        "map_dtype": "float16",
+        "params": params.manifest_params(),
+        "total_rows": total["train"] + total["val"],
+        "train_rows": total["train"],
+        "val_rows": total["val"],
+        "train_scenes": [s for s, _, _ in scenes if split[s] == "train"],
+        "val_scenes": [s for s, _, _ in scenes if split[s] == "val"],
+        "scenes": {
+            sid: {k: records[sid][k] for k in ("key", "scene_key", "rows", "pixels", "dropped_dark_pixels", "lights")}
+            | {"split": split[sid]}
+            for sid, _, _ in scenes
+        },
+        "shards": shards,
+    }
+    storage.write_text(shard_path(out_dir, MANIFEST), json.dumps(manifest, indent=1))
+    _remove_stale(out_dir, {s["file"] for s in shards}, {sid for sid, _, _ in scenes})
+
+
+def _remove_stale(out_dir: str | Path, keep_files: set[str], keep_scenes: set[str]) -> None:
+    """Delete shards and markers no longer in the manifest (after it is written)."""
+    for name in storage.listdir(out_dir):
+        stale = (
+            (fnmatch(name, "shard-*.parquet") and name not in keep_files)
+            or (fnmatch(name, "scene-*.json") and name[len("scene-") : -len(".json")] not in keep_scenes)
+        )
+        if stale:
+            storage.remove(shard_path(out_dir, name))
+    if storage.is_local(out_dir):
+        for f in Path(out_dir).glob(".shard-*.parquet.tmp"):
+            f.unlink(missing_ok=True)  # left by a killed run (storage.listdir hides them)

@@ -1,0 +1,335 @@
+"""The ``meshes`` stage: load source meshes and procedural shapes, pose them, write views.
+
+Library side (also used by the render stage):
+
+- :func:`load_mesh` reads OBJ, PLY, OFF, STL, glTF/GLB with trimesh (scenes merged into
+  one mesh), drops degenerate and duplicate faces and unreferenced vertices, merges
+  vertices by position (texture seams would otherwise break smooth shading), makes the
+  winding consistent and the normals point outward (``trimesh.repair``), then
+  :func:`normalize_mesh` centres it on its bounding-box centre and scales it so the
+  largest vertex norm is :data:`RADIUS` (0.95: any rotation of the mesh then projects
+  inside the orthographic camera's x, y in [-1, 1] with a 2.5 % margin).
+- :func:`random_rotation` draws a uniform random rotation (seeded generator);
+  :func:`pose_mesh` applies it (vertices ``v @ R.T``; the origin stays fixed, so the posed
+  mesh stays inside the sphere of radius :data:`RADIUS`).
+
+Stage side: :class:`Params` and :func:`run` write, for every (source mesh or procedural
+shape) × view, ``data_dir/meshes/<view_id>/mesh.ply`` (posed, camera frame: x right, y up,
+z toward the camera) and ``view.json``. A view's ``key`` is a hash of everything that
+determines its mesh (source file bytes or procedural kind and seed, view index, seed,
+radius, code version); ``view_id = <stem>-<k>-<key[:8]>``. Views whose ``view.json``
+already holds the same key are skipped, so adding a mesh only adds its views. View
+folders that are no longer in the plan are removed (``prune``, default on): the
+materials stage iterates over every view folder, and a stale view would otherwise keep
+producing stale scenes.
+
+Poses are seeded per source (``seed``, the source's sha256, view index), not by position
+in the file list, so adding or removing another mesh never changes a view.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from tqdm import tqdm
+
+from cnnps.core.atomic import atomic_dir
+from cnnps.core.errors import ConfigError, InputError
+from cnnps.core.hashing import file_sha256, stable_hash  # noqa: F401 (re-exported for other stages)
+
+RADIUS = 0.95  # largest vertex norm after normalisation (unit sphere with a margin)
+MESH_EXTENSIONS = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
+VERSION = 1  # bump when the processing below changes what is written
+
+
+# --------------------------------------------------------------------------- library
+
+
+def normalize_mesh(mesh: trimesh.Trimesh, radius: float = RADIUS, path=None) -> trimesh.Trimesh:
+    """Centre ``mesh`` on its bounding-box centre and scale its largest vertex norm to ``radius``."""
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    if len(vertices) == 0 or len(mesh.faces) == 0:
+        raise InputError(path, "mesh has no faces")
+    if not np.all(np.isfinite(vertices)):
+        raise InputError(path, "mesh has non-finite vertex coordinates")
+    centre = (vertices.min(axis=0) + vertices.max(axis=0)) / 2.0
+    vertices = vertices - centre
+    r = float(np.linalg.norm(vertices, axis=1).max())
+    if not r > 0:
+        raise InputError(path, "mesh is degenerate (all vertices coincide)")
+    return trimesh.Trimesh(vertices * (radius / r), np.asarray(mesh.faces), process=False)
+
+
+def clean_mesh(mesh: trimesh.Trimesh, path=None) -> trimesh.Trimesh:
+    """Merge vertices by position, drop degenerate/duplicate faces, fix winding and normals."""
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    if len(faces) == 0:
+        raise InputError(path, "mesh has no faces")
+    if not np.all(np.isfinite(vertices)):
+        raise InputError(path, "mesh has non-finite vertex coordinates")
+    # A fresh mesh without visuals: process=True merges vertices by position only.
+    m = trimesh.Trimesh(vertices, faces, process=True, validate=False)
+    m.update_faces(m.nondegenerate_faces())
+    m.update_faces(m.unique_faces())
+    m.remove_unreferenced_vertices()
+    if len(m.faces) == 0:
+        raise InputError(path, "mesh is degenerate (every face has zero area)")
+    if not m.area > 0:
+        raise InputError(path, "mesh is degenerate (zero surface area)")
+    if not m.is_winding_consistent:  # slow on large meshes (graph traversal): only when needed
+        trimesh.repair.fix_winding(m)
+    trimesh.repair.fix_normals(m, multibody=True)
+    return m
+
+
+def load_mesh(path: str | Path, radius: float = RADIUS) -> trimesh.Trimesh:
+    """Read a mesh file, clean it and normalise it into the sphere of radius ``radius``.
+
+    Raises :class:`InputError` naming ``path`` for a missing, unreadable, empty or
+    degenerate file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "mesh file not found")
+    if path.suffix.lower() not in MESH_EXTENSIONS:
+        raise InputError(path, f"unsupported mesh format {path.suffix!r} (use {', '.join(MESH_EXTENSIONS)})")
+    if path.stat().st_size == 0:
+        raise InputError(path, "mesh file is empty")
+    try:
+        loaded = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many kinds for bad files
+        raise InputError(path, f"cannot read mesh: {type(exc).__name__}: {exc}".splitlines()[0]) from None
+    if isinstance(loaded, trimesh.Scene):  # force='mesh' may still hand back an empty scene
+        geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
+        if not geoms:
+            raise InputError(path, "mesh file holds no triangles")
+        loaded = trimesh.util.concatenate(geoms)
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise InputError(path, "mesh file holds no triangles")
+    return normalize_mesh(clean_mesh(loaded, path), radius, path)
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A rotation matrix drawn uniformly from SO(3) (normalised Gaussian quaternion)."""
+    q = rng.standard_normal(4)
+    while np.linalg.norm(q) < 1e-8:  # pragma: no cover - probability ~0
+        q = rng.standard_normal(4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def pose_mesh(mesh: trimesh.Trimesh, rotation: np.ndarray) -> trimesh.Trimesh:
+    """A copy of ``mesh`` rotated about the origin: vertices ``v @ rotation.T``."""
+    rotation = np.asarray(rotation, dtype=np.float64)
+    if rotation.shape != (3, 3):
+        raise ValueError(f"rotation must be 3x3, got {rotation.shape}")
+    return trimesh.Trimesh(np.asarray(mesh.vertices) @ rotation.T, np.asarray(mesh.faces).copy(), process=False)
+
+
+def read_view_mesh(view_dir: str | Path) -> trimesh.Trimesh:
+    """Read the posed ``mesh.ply`` of a view folder written by this stage."""
+    path = Path(view_dir) / "mesh.ply"
+    if not path.is_file():
+        raise InputError(path, "view mesh not found (run the meshes stage)")
+    try:
+        mesh = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as exc:
+        raise InputError(path, f"cannot read mesh: {type(exc).__name__}: {exc}".splitlines()[0]) from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InputError(path, "view mesh holds no triangles")
+    return mesh
+
+
+# --------------------------------------------------------------------------- stage
+
+
+def _procedural_kinds():
+    from cnnps.synth.procedural import PROCEDURAL_KINDS
+
+    return PROCEDURAL_KINDS
+
+
+@dataclass(frozen=True)
+class Params:
+    """Parameters of the meshes stage (``meshes:`` in params.yaml).
+
+    ``mesh_dir``: folder of mesh files (relative paths are relative to the working
+    directory); ``None`` for procedural shapes only. ``extensions``: file suffixes taken
+    from it (searched recursively). ``procedural``: number of procedural shapes, their
+    kinds cycling through ``procedural_kinds``. ``views_per_mesh``: random poses per
+    source mesh and per procedural shape. ``seed``: seeds every pose and shape.
+    """
+
+    mesh_dir: str | None = None
+    extensions: tuple[str, ...] = MESH_EXTENSIONS
+    procedural: int = 0
+    procedural_kinds: tuple[str, ...] = field(default_factory=lambda: tuple(_procedural_kinds()))
+    views_per_mesh: int = 1
+    seed: int = 0
+    radius: float = RADIUS
+    prune: bool = True
+
+    def __post_init__(self):
+        object.__setattr__(self, "extensions", tuple(e.lower() if e.startswith(".") else "." + e.lower() for e in self.extensions))
+        object.__setattr__(self, "procedural_kinds", tuple(self.procedural_kinds))
+        for e in self.extensions:
+            if e not in MESH_EXTENSIONS:
+                raise ConfigError(f"meshes.extensions: unsupported {e!r} (choose from {', '.join(MESH_EXTENSIONS)})")
+        if not isinstance(self.procedural, int) or self.procedural < 0:
+            raise ConfigError(f"meshes.procedural must be an integer >= 0, got {self.procedural!r}")
+        known = _procedural_kinds()
+        for k in self.procedural_kinds:
+            if k not in known:
+                raise ConfigError(f"meshes.procedural_kinds: unknown kind {k!r} (choose from {', '.join(known)})")
+        if self.procedural > 0 and not self.procedural_kinds:
+            raise ConfigError("meshes.procedural_kinds is empty but meshes.procedural > 0")
+        if not isinstance(self.views_per_mesh, int) or self.views_per_mesh < 1:
+            raise ConfigError(f"meshes.views_per_mesh must be an integer >= 1, got {self.views_per_mesh!r}")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ConfigError(f"meshes.seed must be an integer >= 0, got {self.seed!r}")
+        if not 0 < self.radius <= 1:
+            raise ConfigError(f"meshes.radius must be in (0, 1], got {self.radius}")
+        if self.mesh_dir is None and self.procedural == 0:
+            raise ConfigError("meshes: nothing to do (set meshes.mesh_dir or meshes.procedural > 0)")
+
+
+@dataclass(frozen=True)
+class ViewSpec:
+    view_id: str
+    key: str
+    kind: str  # "file" or a procedural kind
+    source: str  # file path relative to mesh_dir, or "procedural:<kind>:<shape_seed>"
+    source_sha256: str | None
+    shape_seed: int | None
+    view_index: int
+    rotation: tuple[tuple[float, ...], ...]
+
+
+def _slug(text: str) -> str:
+    out = "".join(c if c.isalnum() or c in "_." else "_" for c in text)
+    return out.strip("._") or "mesh"
+
+
+def mesh_files(params: Params) -> list[Path]:
+    """The source mesh files of ``params.mesh_dir`` (sorted); ConfigError when it is missing."""
+    if params.mesh_dir is None:
+        return []
+    root = Path(params.mesh_dir)
+    if not root.is_dir():
+        raise ConfigError(f"meshes.mesh_dir: folder not found: {root}")
+    files = sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in params.extensions and not p.name.startswith("."))
+    if not files:
+        raise ConfigError(f"meshes.mesh_dir: no mesh files ({', '.join(params.extensions)}) in {root}")
+    return files
+
+
+def plan_views(params: Params) -> list[ViewSpec]:
+    """Every view the stage should write, with its content key (no mesh is loaded)."""
+    views: list[ViewSpec] = []
+    base = {"version": VERSION, "seed": params.seed, "radius": params.radius}
+    root = Path(params.mesh_dir) if params.mesh_dir is not None else None
+    stems: dict[str, int] = {}
+    for path in mesh_files(params):
+        sha = file_sha256(path)
+        rel = path.relative_to(root).as_posix()
+        stem = _slug(path.stem)
+        stems[stem] = stems.get(stem, 0) + 1
+        for k in range(params.views_per_mesh):
+            rng = np.random.default_rng([params.seed, int(sha[:15], 16), k])
+            rot = random_rotation(rng)
+            key = stable_hash({**base, "kind": "file", "sha256": sha, "view": k})
+            views.append(ViewSpec(f"{stem}-{k}-{key[:8]}", key, "file", rel, sha, None, k, tuple(map(tuple, rot.tolist()))))
+    kinds = params.procedural_kinds
+    for i in range(params.procedural):
+        kind = kinds[i % len(kinds)]
+        shape_seed = int(np.random.SeedSequence([params.seed, 7919, i]).generate_state(1)[0])
+        for k in range(params.views_per_mesh):
+            rng = np.random.default_rng([params.seed, shape_seed, k])
+            rot = random_rotation(rng)
+            key = stable_hash({**base, "kind": kind, "shape_seed": shape_seed, "view": k})
+            views.append(
+                ViewSpec(f"proc_{kind}_{i}-{k}-{key[:8]}", key, kind, f"procedural:{kind}:{shape_seed}", None, shape_seed, k, tuple(map(tuple, rot.tolist())))
+            )
+    return views
+
+
+def _view_is_current(view_dir: Path, key: str) -> bool:
+    try:
+        meta = json.loads((view_dir / "view.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return meta.get("key") == key and (view_dir / "mesh.ply").is_file()
+
+
+def write_view(out_dir: Path, spec: ViewSpec, mesh: trimesh.Trimesh, params: Params) -> None:
+    """Pose ``mesh`` (already normalised) and write ``mesh.ply`` + ``view.json`` atomically."""
+    posed = pose_mesh(mesh, np.asarray(spec.rotation))
+    meta = {
+        "view_id": spec.view_id,
+        "key": spec.key,
+        "kind": spec.kind,
+        "source": spec.source,
+        "source_sha256": spec.source_sha256,
+        "shape_seed": spec.shape_seed,
+        "view_index": spec.view_index,
+        "rotation": [list(r) for r in spec.rotation],
+        "seed": params.seed,
+        "radius": params.radius,
+        "n_vertices": int(len(posed.vertices)),
+        "n_faces": int(len(posed.faces)),
+        "watertight": bool(posed.is_watertight),
+        "frame": "camera: x right, y up, z toward the camera",
+        "version": VERSION,
+    }
+    with atomic_dir(out_dir / spec.view_id) as tmp:
+        # vertex normals are written too (angle-weighted, as Blender computes them), so the
+        # renderer and the rasteriser of the materials stage shade with the same normals
+        posed.export(str(tmp / "mesh.ply"), encoding="binary", vertex_normal=True)
+        (tmp / "view.json").write_text(json.dumps(meta, indent=2) + "\n")
+
+
+def list_views(data_dir: Path) -> list[Path]:
+    """The view folders under ``data_dir/meshes`` (sorted), each with a view.json."""
+    root = Path(data_dir) / "meshes"
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".") and (p / "view.json").is_file())
+
+
+def run(params: Params, data_dir: Path) -> None:
+    """Write every planned view under ``data_dir/meshes`` (skipping current ones)."""
+    from cnnps.synth.procedural import make_shape
+
+    out_dir = Path(data_dir) / "meshes"
+    views = plan_views(params)  # ConfigError for a missing folder happens here, before any work
+    out_dir.mkdir(parents=True, exist_ok=True)
+    todo = [v for v in views if not _view_is_current(out_dir / v.view_id, v.key)]
+    # Group by source so a mesh file is loaded once for all its views.
+    cache: dict[str, trimesh.Trimesh] = {}
+    root = Path(params.mesh_dir) if params.mesh_dir is not None else None
+    for spec in tqdm(todo, desc="meshes", unit="view", disable=not todo):
+        if spec.source not in cache:
+            cache.clear()
+            if spec.kind == "file":
+                cache[spec.source] = load_mesh(root / spec.source, params.radius)
+            else:
+                cache[spec.source] = normalize_mesh(make_shape(spec.kind, spec.shape_seed), params.radius)
+        write_view(out_dir, spec, cache[spec.source], params)
+    if params.prune:
+        wanted = {v.view_id for v in views}
+        for p in out_dir.iterdir():
+            if p.is_dir() and p.name not in wanted and ((p / "view.json").is_file() or p.name.endswith(".tmp")):
+                shutil.rmtree(p, ignore_errors=True)
+    print(f"meshes: {len(views)} views ({len(views) - len(todo)} up to date, {len(todo)} written) in {out_dir}")

@@ -1,0 +1,534 @@
+"""The one module that imports ``bpy``: a small in-process Blender Cycles renderer.
+
+The rest of the code sees :class:`BlenderRenderer` only (kubric-style)::
+
+    r = BlenderRenderer(size=64, samples=16, device="cpu", threads=2, seed=0)
+    r.load_scene(vertices, faces, material={"bsdf": "lambertian", "Color": 1.0})
+    mask, normal = r.render_geometry()          # (S,S) bool, (S,S,3) float32
+    img = r.render((0.3, 0.2, 0.93), 1.0)       # (S,S,3) float32 linear RGB
+    r.close()
+
+Scene set-up (measured facts in ``shared/notes/blender5-facts.md``):
+
+- factory settings, empty scene; Cycles; black world (Background strength 0);
+- orthographic camera at (0, 0, 5) looking down -Z, ``ortho_scale`` 2: the image covers
+  x, y in [-1, 1]; world x, y, z = image right, up, toward the camera; row 0 on top;
+- one sun lamp of zero angular size, strength ``pi * intensity`` (a white Lambertian patch
+  facing it reads ``intensity``), turned with ``Vector(l).to_track_quat('Z', 'Y')``;
+- Gaussian pixel filter of 0.01 px: every camera sample goes through the pixel centre, so
+  pixel (r, c) sees the surface at x = -1 + (c + .5) 2/S, y = 1 - (r + .5) 2/S;
+- no denoiser, no adaptive sampling, no sample clamping, no glossy filter, caustics on:
+  unbiased path tracing with ``max_bounces`` bounces of every kind (global illumination:
+  interreflections and cast shadows);
+- Standard view transform, float32 linear OpenEXR (multilayer, with the Normal pass and
+  alpha, so ground-truth normals and the mask come from the very same ray hits);
+- persistent data: the scene is synced once, each light only moves the sun;
+- the seed is folded into Cycles' range 0 .. 2^31 - 1 (:func:`cycles_seed`);
+- Blender writes each picture into a private temp folder, locked (flock) while the
+  renderer lives, so a later renderer removes the folders of SIGKILLed ones.
+
+Materials: ``{"bsdf": "lambertian", "Color": albedo}`` is a Diffuse BSDF (roughness 0 =
+pure Lambertian). Anything else is a Principled BSDF: every other key is the name of a
+Principled input and its value a constant (scalar or RGB) or a per-pixel map (S, S) or
+(S, S, 3) (image row 0 on top). Maps reach the shader as image-space textures
+(Texture Coordinate ``Window`` -> Image Texture, Closest interpolation, non-colour data),
+so each pixel renders with its own parameters. Scalar maps are packed three to an image.
+Rays that bounce onto the object elsewhere read the map at the point's projection into
+the image (an approximation only for self-occluded points).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from cnnps.core.errors import CnnpsError, ConfigError
+
+LAMBERTIAN = "lambertian"
+_GPU_BACKENDS = ("OPTIX", "CUDA", "HIP", "ONEAPI", "METAL")
+
+
+CYCLES_SEED_RANGE = 2**31  # Cycles' seed property takes 0 .. 2^31 - 1
+_TMP_PREFIX = "cnnps-blender-"
+
+
+def cycles_seed(seed: int) -> int:
+    """``seed`` folded into the range Cycles accepts (seeds already in range are unchanged)."""
+    return int(seed) % CYCLES_SEED_RANGE
+
+
+def _make_tmpdir() -> tuple[Path, int | None]:
+    """A private temp folder for Blender's output file, and a lock held on it while it lives.
+
+    A renderer killed with SIGKILL never runs :meth:`BlenderRenderer.close`; its folder is
+    removed by a later renderer, which sees that nobody holds the lock any more (the
+    kernel drops a dead process's locks).
+    """
+    _remove_stale_tmpdirs()
+    d = Path(tempfile.mkdtemp(prefix=_TMP_PREFIX))
+    try:
+        import fcntl
+    except ImportError:  # no flock (Windows): no clean-up of killed renderers' folders
+        return d, None
+    fd = os.open(d / ".lock", os.O_CREAT | os.O_RDWR, 0o600)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    return d, fd
+
+
+def _remove_stale_tmpdirs(root: str | Path | None = None, min_age_s: float = 60.0) -> list[Path]:
+    """Remove temp folders of renderers whose process is gone (their ``.lock`` is free).
+
+    Folders younger than ``min_age_s`` are left alone (a new renderer takes its lock just
+    after creating its folder), and so are folders without a ``.lock``. Returns the
+    folders removed.
+    """
+    try:
+        import fcntl
+    except ImportError:
+        return []
+    removed = []
+    now = time.time()
+    for d in Path(root or tempfile.gettempdir()).glob(_TMP_PREFIX + "*"):
+        try:
+            if not d.is_dir() or now - d.stat().st_mtime < min_age_s:
+                continue
+            fd = os.open(d / ".lock", os.O_RDWR)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            continue  # a live renderer holds it
+        else:
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d)
+        finally:
+            os.close(fd)
+    return removed
+
+
+def blender_version() -> str:
+    import bpy
+
+    return bpy.app.version_string
+
+
+@contextlib.contextmanager
+def _quiet():
+    """Silence Blender's progress lines on stdout (C-level writes, so redirect fd 1)."""
+    if os.environ.get("CNNPS_BLENDER_VERBOSE"):
+        yield
+        return
+    import sys
+
+    sys.stdout.flush()
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+
+
+def _read_rgba(path: Path) -> np.ndarray:
+    """A Blender RGBA OpenEXR as (S, S, 4) float32, row 0 on top."""
+    import OpenEXR
+
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        ch = f.channels()
+        return np.stack([np.asarray(ch[c].pixels, dtype=np.float32) for c in "RGBA"], axis=-1)
+
+
+class BlenderRenderer:
+    """One Blender scene in this process: build once, render once per light."""
+
+    def __init__(
+        self,
+        size: int,
+        samples: int = 16,
+        device: str = "cpu",
+        threads: int = 0,
+        seed: int = 0,
+        max_bounces: int = 8,
+        persistent: bool = True,
+    ):
+        if size < 1:
+            raise ConfigError(f"render size must be >= 1, got {size}")
+        if samples < 1:
+            raise ConfigError(f"render samples must be >= 1, got {samples}")
+        if device not in ("cpu", "gpu"):
+            raise ConfigError(f"render device must be 'cpu' or 'gpu', got {device!r}")
+        import bpy
+
+        self._bpy = bpy
+        self.size = int(size)
+        self.samples = int(samples)
+        self.device = device
+        self.threads = int(threads)
+        self.seed = cycles_seed(seed)
+        self.max_bounces = int(max_bounces)
+        self.persistent = bool(persistent)
+        self.renders = 0  # number of light renders done (for tests / benchmarks)
+        self._tmpdir, self._lock_fd = _make_tmpdir()
+        self._images: list[Any] = []
+        self.obj = None
+        try:
+            self._setup()
+        except BaseException:  # e.g. no GPU: leave no temp folder behind
+            self.close()
+            raise
+
+    # ------------------------------------------------------------------ set-up
+    def _setup(self) -> None:
+        bpy = self._bpy
+        with _quiet():
+            bpy.ops.wm.read_factory_settings(use_empty=True)
+        scene = bpy.context.scene
+        self.scene = scene
+        r = scene.render
+        r.engine = "CYCLES"
+        r.resolution_x = r.resolution_y = self.size
+        r.resolution_percentage = 100
+        r.film_transparent = True  # alpha = object coverage
+        r.use_persistent_data = self.persistent
+        if self.threads > 0:
+            r.threads_mode = "FIXED"
+            r.threads = self.threads
+        r.image_settings.media_type = "IMAGE"
+        r.image_settings.file_format = "OPEN_EXR"
+        r.image_settings.color_mode = "RGBA"
+        r.image_settings.color_depth = "32"
+        r.image_settings.exr_codec = "NONE"
+        r.use_file_extension = False
+        scene.view_settings.view_transform = "Standard"
+        scene.view_settings.look = "None"
+        scene.view_settings.exposure = 0.0
+        scene.view_settings.gamma = 1.0
+        self.view_layer = scene.view_layers[0]
+
+        c = scene.cycles
+        c.samples = self.samples
+        c.use_adaptive_sampling = False
+        c.use_denoising = False
+        c.seed = self.seed
+        c.use_animated_seed = False
+        c.pixel_filter_type = "GAUSSIAN"
+        c.filter_width = 0.01
+        c.max_bounces = self.max_bounces
+        c.diffuse_bounces = self.max_bounces
+        c.glossy_bounces = self.max_bounces
+        c.transmission_bounces = self.max_bounces
+        c.transparent_max_bounces = self.max_bounces
+        c.volume_bounces = 0
+        c.sample_clamp_direct = 0.0
+        c.sample_clamp_indirect = 0.0
+        c.blur_glossy = 0.0
+        c.caustics_reflective = True
+        c.caustics_refractive = True
+        self._set_device()
+
+        world = bpy.data.worlds.new("black")
+        if world.node_tree is None:  # Blender 5 makes the tree already (use_nodes is deprecated)
+            world.use_nodes = True
+        for bg in world.node_tree.nodes:  # the default tree emits grey light: switch it off
+            if bg.type == "BACKGROUND":
+                bg.inputs["Strength"].default_value = 0.0
+                bg.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
+        world.color = (0.0, 0.0, 0.0)
+        scene.world = world
+
+        cam_data = bpy.data.cameras.new("camera")
+        cam_data.type = "ORTHO"
+        cam_data.ortho_scale = 2.0
+        cam_data.clip_start = 0.1
+        cam_data.clip_end = 20.0
+        cam = bpy.data.objects.new("camera", cam_data)
+        cam.location = (0.0, 0.0, 5.0)
+        cam.rotation_euler = (0.0, 0.0, 0.0)
+        scene.collection.objects.link(cam)
+        scene.camera = cam
+
+        sun_data = bpy.data.lights.new("sun", type="SUN")
+        sun_data.angle = 0.0
+        sun_data.energy = math.pi
+        sun = bpy.data.objects.new("sun", sun_data)
+        sun.rotation_mode = "QUATERNION"
+        scene.collection.objects.link(sun)
+        self.sun = sun
+        self.obj = None
+
+    def _set_device(self) -> None:
+        c = self.scene.cycles
+        if self.device == "cpu":
+            c.device = "CPU"
+            return
+        prefs = self._bpy.context.preferences.addons["cycles"].preferences
+        found: list[str] = []
+        for backend in _GPU_BACKENDS:
+            try:
+                prefs.compute_device_type = backend
+            except TypeError:  # backend not compiled into this build
+                continue
+            with _quiet():
+                prefs.refresh_devices()
+            gpus = [d for d in prefs.devices if d.type == backend]
+            if gpus:
+                for d in prefs.devices:
+                    d.use = d.type == backend
+                found = [f"{d.name} ({backend})" for d in gpus]
+                break
+        if not found:
+            raise CnnpsError(
+                "render device 'gpu' asked for, but Blender Cycles finds no GPU "
+                f"(tried {', '.join(_GPU_BACKENDS)}); use --device cpu"
+            )
+        self.gpu_devices = found
+        c.device = "GPU"
+
+    # ------------------------------------------------------------------ scene
+    def load_scene(
+        self,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        material: Mapping[str, Any] | None = None,
+        vertex_normals: np.ndarray | None = None,
+    ) -> None:
+        """Replace the object: a smooth-shaded triangle mesh (camera frame) and its material.
+
+        vertex_normals: optional (V, 3) normals to shade with (custom normals); by default
+        Blender's own smooth vertex normals.
+        """
+        bpy = self._bpy
+        vertices = np.ascontiguousarray(vertices, dtype=np.float32)
+        faces = np.ascontiguousarray(faces, dtype=np.int32)
+        if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+            raise ValueError(f"need (V,3) vertices and (F,3) triangles, got {vertices.shape}, {faces.shape}")
+        if self.obj is not None:
+            mesh = self.obj.data
+            old = [m for m in mesh.materials if m is not None]
+            bpy.data.objects.remove(self.obj)
+            bpy.data.meshes.remove(mesh)
+            for m in old:
+                bpy.data.materials.remove(m)
+        for img in self._images:
+            bpy.data.images.remove(img)
+        self._images = []
+
+        mesh = bpy.data.meshes.new("object")
+        mesh.vertices.add(len(vertices))
+        mesh.vertices.foreach_set("co", vertices.ravel())
+        mesh.loops.add(faces.size)
+        mesh.loops.foreach_set("vertex_index", faces.ravel())
+        mesh.polygons.add(len(faces))
+        mesh.polygons.foreach_set("loop_start", np.arange(0, faces.size, 3, dtype=np.int32))
+        mesh.polygons.foreach_set("use_smooth", np.ones(len(faces), dtype=bool))
+        mesh.update()
+        if vertex_normals is not None:
+            vn = np.asarray(vertex_normals, dtype=np.float64)
+            vn = vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
+            mesh.normals_split_custom_set_from_vertices([tuple(n) for n in vn])
+        obj = bpy.data.objects.new("object", mesh)
+        self.scene.collection.objects.link(obj)
+        obj.data.materials.append(self._material(material or {"bsdf": LAMBERTIAN, "Color": 1.0}))
+        self.obj = obj
+
+    def set_material(self, material: Mapping[str, Any]) -> None:
+        """Replace the object's material (keeps the mesh)."""
+        if self.obj is None:
+            raise RuntimeError("load_scene first")
+        bpy = self._bpy
+        old = list(self.obj.data.materials)
+        for img in self._images:
+            bpy.data.images.remove(img)
+        self._images = []
+        self.obj.data.materials.clear()
+        self.obj.data.materials.append(self._material(material))
+        for m in old:
+            bpy.data.materials.remove(m)
+
+    def _image(self, name: str, rgb: np.ndarray):
+        """An S x S float, non-colour image holding rgb (S, S, 3), row 0 on top."""
+        S = self.size
+        if rgb.shape[:2] != (S, S):
+            raise ConfigError(f"material map {name!r} is {rgb.shape[1]}x{rgb.shape[0]}, render size is {S}x{S}")
+        img = self._bpy.data.images.new(name, S, S, alpha=False, float_buffer=True, is_data=True)
+        img.colorspace_settings.name = "Non-Color"
+        rgba = np.ones((S, S, 4), dtype=np.float32)
+        rgba[:, :, :3] = rgb[::-1]  # Blender images start at the bottom row
+        img.pixels.foreach_set(rgba.ravel())
+        img.pack()
+        self._images.append(img)
+        return img
+
+    def _empty_material(self, name: str):
+        """A new material and its node tree, emptied."""
+        mat = self._bpy.data.materials.new(name)
+        if mat.node_tree is None:  # Blender 5 makes the tree already (use_nodes is deprecated)
+            mat.use_nodes = True
+        mat.node_tree.nodes.clear()
+        return mat, mat.node_tree
+
+    def _material(self, spec: Mapping[str, Any]):
+        bpy = self._bpy
+        spec = dict(spec)
+        kind = spec.pop("bsdf", "principled")
+        mat, nt = self._empty_material("material")
+        out = nt.nodes.new("ShaderNodeOutputMaterial")
+        if kind == LAMBERTIAN:
+            bsdf = nt.nodes.new("ShaderNodeBsdfDiffuse")
+            bsdf.inputs["Roughness"].default_value = 0.0
+            spec.setdefault("Color", 1.0)
+        elif kind == "principled":
+            bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
+            bsdf.inputs["Diffuse Roughness"].default_value = 0.0
+        else:
+            raise ConfigError(f"unknown material bsdf {kind!r} (use 'lambertian' or 'principled')")
+        nt.links.new(bsdf.outputs[0], out.inputs["Surface"])
+
+        coord = None
+        scalar_maps: list[tuple[str, np.ndarray]] = []
+        for name, value in spec.items():
+            if name not in bsdf.inputs:
+                raise ConfigError(f"material input {name!r} is not an input of {bsdf.bl_idname}")
+            sock = bsdf.inputs[name]
+            arr = np.asarray(value, dtype=np.float32)
+            is_color = sock.type == "RGBA"
+            if arr.ndim <= 1:  # constant
+                if is_color:
+                    rgb = np.broadcast_to(arr, (3,))
+                    sock.default_value = (float(rgb[0]), float(rgb[1]), float(rgb[2]), 1.0)
+                elif arr.ndim == 0:
+                    sock.default_value = float(arr)
+                else:
+                    raise ConfigError(f"material input {name!r} takes one number, got {arr.shape}")
+                continue
+            if coord is None:
+                coord = nt.nodes.new("ShaderNodeTexCoord")
+            if arr.ndim == 3 and arr.shape[2] == 3:
+                if not is_color:
+                    raise ConfigError(f"material input {name!r} takes one number per pixel, got an RGB map")
+                tex = self._texture(nt, coord, self._image(name, arr))
+                nt.links.new(tex.outputs["Color"], sock)
+            elif arr.ndim == 2:
+                if is_color:
+                    tex = self._texture(nt, coord, self._image(name, np.repeat(arr[:, :, None], 3, axis=2)))
+                    nt.links.new(tex.outputs["Color"], sock)
+                else:
+                    scalar_maps.append((name, arr))
+            else:
+                raise ConfigError(f"material map {name!r} must be (S,S) or (S,S,3), got {arr.shape}")
+        for i in range(0, len(scalar_maps), 3):  # pack three scalar maps per image
+            group = scalar_maps[i : i + 3]
+            rgb = np.zeros((self.size, self.size, 3), dtype=np.float32)
+            for k, (_, arr) in enumerate(group):
+                if arr.shape != (self.size, self.size):
+                    raise ConfigError(f"material map {group[k][0]!r} is {arr.shape}, render size is {self.size}")
+                rgb[:, :, k] = arr
+            tex = self._texture(nt, coord, self._image("+".join(n for n, _ in group), rgb))
+            sep = nt.nodes.new("ShaderNodeSeparateColor")
+            sep.mode = "RGB"
+            nt.links.new(tex.outputs["Color"], sep.inputs[0])
+            for k, (name, _) in enumerate(group):
+                nt.links.new(sep.outputs[k], bsdf.inputs[name])
+        return mat
+
+    @staticmethod
+    def _texture(nt, coord, image):
+        tex = nt.nodes.new("ShaderNodeTexImage")
+        tex.image = image
+        tex.interpolation = "Closest"
+        tex.extension = "EXTEND"
+        nt.links.new(coord.outputs["Window"], tex.inputs["Vector"])
+        return tex
+
+    # ------------------------------------------------------------------ render
+    def _render_file(self) -> np.ndarray:
+        path = self._tmpdir / "render.exr"
+        self.scene.render.filepath = str(path)
+        with _quiet():
+            self._bpy.ops.render.render(write_still=True)
+        return _read_rgba(path)
+
+    def render(self, light_direction, intensity: float = 1.0) -> np.ndarray:
+        """(S, S, 3) float32 linear RGB under one sun from ``light_direction`` (camera frame)."""
+        if self.obj is None:
+            raise RuntimeError("load_scene first")
+        from mathutils import Vector
+
+        l = np.asarray(light_direction, dtype=np.float64)
+        n = np.linalg.norm(l)
+        if l.shape != (3,) or not n > 0:
+            raise ValueError(f"light direction must be a non-zero 3-vector, got {light_direction!r}")
+        self.sun.rotation_quaternion = Vector((l / n).tolist()).to_track_quat("Z", "Y")
+        self.sun.data.energy = math.pi * float(intensity)
+        rgba = self._render_file()
+        self.renders += 1
+        return np.ascontiguousarray(rgba[:, :, :3])
+
+    def _normal_material(self):
+        """Emission of (N + 1) / 2 with N Blender's smooth shading normal (world = camera frame)."""
+        mat, nt = self._empty_material("normals")
+        geo = nt.nodes.new("ShaderNodeNewGeometry")
+        scale = nt.nodes.new("ShaderNodeVectorMath")
+        scale.operation = "MULTIPLY_ADD"
+        scale.inputs[1].default_value = (0.5, 0.5, 0.5)
+        scale.inputs[2].default_value = (0.5, 0.5, 0.5)
+        emit = nt.nodes.new("ShaderNodeEmission")
+        emit.inputs["Strength"].default_value = 1.0
+        out = nt.nodes.new("ShaderNodeOutputMaterial")
+        nt.links.new(geo.outputs["Normal"], scale.inputs[0])
+        nt.links.new(scale.outputs["Vector"], emit.inputs["Color"])
+        nt.links.new(emit.outputs[0], out.inputs["Surface"])
+        return mat
+
+    def render_geometry(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mask (S, S) bool and unit normals (S, S, 3) float32 (camera frame, 0 outside)
+        at the pixel centres, from Blender's own camera-ray hits: alpha, and an emission
+        override showing the smooth shading normal (the normal the BSDFs are lit with)."""
+        if self.obj is None:
+            raise RuntimeError("load_scene first")
+        c = self.scene.cycles
+        saved = c.samples, self.sun.hide_render
+        c.samples = 1
+        self.sun.hide_render = True
+        self.view_layer.material_override = self._normal_material()
+        try:
+            rgba = self._render_file()
+        finally:
+            c.samples, self.sun.hide_render = saved
+            mat = self.view_layer.material_override
+            self.view_layer.material_override = None
+            self._bpy.data.materials.remove(mat)
+        mask = rgba[:, :, 3] > 0.5
+        normal = rgba[:, :, :3] * 2.0 - 1.0
+        norm = np.linalg.norm(normal, axis=-1, keepdims=True)
+        normal = np.divide(normal, norm, out=np.zeros_like(normal), where=norm > 1e-6)
+        normal[~mask] = 0.0
+        return mask, normal.astype(np.float32)
+
+    def close(self) -> None:
+        shutil.rmtree(self._tmpdir, ignore_errors=True)
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
+        if self.obj is not None:
+            with _quiet():
+                self._bpy.ops.wm.read_factory_settings(use_empty=True)
+            self.obj = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

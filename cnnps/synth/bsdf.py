@@ -1,0 +1,297 @@
+"""Material categories, their parameter ranges, and the mapping to Blender 5's Principled BSDF.
+
+Paper parameters (Disney 2012 "principled" model, as in CNN-PS / CyclesPS):
+``base_color`` (RGB), ``metallic``, ``specular``, ``roughness``, ``sheen``, ``sheen_tint``.
+
+Categories and default ranges (uniform draws, one row per superpixel):
+
+=========  ==========  ========  ========  =========  =====  ==========
+category   base_color  metallic  specular  roughness  sheen  sheen_tint
+=========  ==========  ========  ========  =========  =====  ==========
+diffuse    0–1         0         0–1       0–1        0–1    0–1
+specular   0–1         0         0–4       0–1        0–1    0–1
+metallic   0–1         1         0–1       0.3–0.7    0–1    0–1
+=========  ==========  ========  ========  =========  =====  ==========
+
+Ranges are a :class:`MaterialRanges` (one :class:`CategoryRanges` per category) built from
+params.yaml with :meth:`MaterialRanges.from_dict` (partial overrides of the defaults,
+snake_case or the paper's camelCase names). Validation raises ``ConfigError``: lo ≤ hi and
+both inside the physical limits (all in [0, 1] except specular in [0, 12]: F0 = 0.08·s
+must stay below 1).
+
+Excluded combination (decision): a strong near-mirror dielectric. Where a drawn
+``specular`` exceeds ``high_specular`` (default 1, i.e. F0 > 0.08, brighter than any
+common dielectric), ``roughness`` is drawn from [max(lo, high_specular_min_roughness), hi]
+(default floor 0.05) instead of [lo, hi] (the same uniform number, rescaled, so draws stay
+reproducible). Under the renderer's delta (sun) lights such a surface shows only a
+sub-pixel, firefly-like highlight: noise in the observation map, not a learnable
+reflectance. The metallic category's 0.3–0.7 roughness already avoids the metal mirror.
+
+Blender 5 mapping (:func:`to_blender_inputs`, pure: no bpy):
+
+- ``Base Color`` = base_color; ``Metallic`` = metallic; ``Roughness`` = roughness (both
+  Disney and Blender square it into the GGX alpha).
+- Specular: Cycles computes ``f0 = ((ior−1)/(ior+1))²`` and, when ``Specular IOR Level``
+  ≠ 0.5, ``f0 *= 2·level`` and re-derives the IOR from f0 (``kernel/svm/closure.h``).
+  With ``IOR`` = 1.5 (f0 = 0.04) that gives f0 = 0.08·level, exactly Disney's
+  f0 = 0.08·specular. So we set **IOR = 1.5 and Specular IOR Level = specular** (linear,
+  so a per-pixel specular map plugs straight into the socket; the socket accepts values
+  above 1). This is equivalent to IOR = 2/(1 − √(0.08 s)) − 1 with level 0.5
+  (:func:`specular_to_ior`; 1.5 at s = 0.5, 3.6 at s = 4) without capping anything: the
+  Specular category keeps the paper's full 0–4 range.
+- ``Specular Tint`` = white (Disney specularTint = 0 in the paper).
+- Sheen: ``Sheen Weight`` = sheen·(1 − metallic) (Disney 2012 puts sheen in the
+  dielectric lobe only; Blender 5 layers sheen over metals too, so metals would get a
+  sheen the paper's renderer never made); ``Sheen Tint`` (a colour in Blender 4+) =
+  mix(white, base_color, sheen_tint) (as MaterialX's Disney-principled graph does;
+  Blender 2.79 mixed toward the luminance-normalised base colour, which can exceed 1);
+  ``Sheen Roughness`` = 0.5 (Blender's default; the Disney sheen had none). Blender 5's
+  sheen is a different (microfibre) model: a close, not exact, match.
+- ``Diffuse Roughness`` = 0 (Lambertian; Disney's roughness-dependent retro-reflection
+  has no exact counterpart in Blender 5).
+- Everything else off: Subsurface / Transmission / Coat / Emission Strength / Anisotropic /
+  Thin Film 0, Alpha 1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, replace
+
+import numpy as np
+
+from cnnps.core.errors import ConfigError
+
+CATEGORIES = ("diffuse", "specular", "metallic")
+PARAM_NAMES = ("base_color", "metallic", "specular", "roughness", "sheen", "sheen_tint")
+RANGE_NAMES = PARAM_NAMES
+PHYSICAL_LIMITS = {
+    "base_color": (0.0, 1.0),
+    "metallic": (0.0, 1.0),
+    "specular": (0.0, 12.0),  # F0 = 0.08 s < 1
+    "roughness": (0.0, 1.0),
+    "sheen": (0.0, 1.0),
+    "sheen_tint": (0.0, 1.0),
+}
+_ALIASES = {"baseColor": "base_color", "sheenTint": "sheen_tint", "basecolor": "base_color", "sheentint": "sheen_tint"}
+
+
+def _pair(value, name: str, where: str) -> tuple[float, float]:
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        lo = hi = float(value)
+    else:
+        try:
+            lo, hi = (float(v) for v in value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}.{name} must be a number or [lo, hi], got {value!r}") from None
+    plo, phi = PHYSICAL_LIMITS[name]
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        raise ConfigError(f"{where}.{name} must be finite, got {value!r}")
+    if lo > hi:
+        raise ConfigError(f"{where}.{name}: lo {lo} > hi {hi}")
+    if lo < plo or hi > phi:
+        raise ConfigError(f"{where}.{name}: [{lo}, {hi}] is outside the physical limits [{plo}, {phi}]")
+    return (lo, hi)
+
+
+@dataclass(frozen=True)
+class CategoryRanges:
+    """Uniform ranges ``(lo, hi)`` of one category, plus the near-mirror exclusion."""
+
+    base_color: tuple[float, float] = (0.0, 1.0)
+    metallic: tuple[float, float] = (0.0, 0.0)
+    specular: tuple[float, float] = (0.0, 1.0)
+    roughness: tuple[float, float] = (0.0, 1.0)
+    sheen: tuple[float, float] = (0.0, 1.0)
+    sheen_tint: tuple[float, float] = (0.0, 1.0)
+    high_specular: float = 1.0
+    high_specular_min_roughness: float = 0.05
+    name: str = "category"
+
+    def __post_init__(self):
+        where = f"materials.ranges.{self.name}"
+        for n in RANGE_NAMES:
+            object.__setattr__(self, n, _pair(getattr(self, n), n, where))
+        if not 0 <= self.high_specular_min_roughness <= 1:
+            raise ConfigError(f"{where}.high_specular_min_roughness must be in [0, 1], got {self.high_specular_min_roughness}")
+        if not self.high_specular >= 0:
+            raise ConfigError(f"{where}.high_specular must be >= 0, got {self.high_specular}")
+        if self.specular[1] > self.high_specular and max(self.roughness[0], self.high_specular_min_roughness) > self.roughness[1]:
+            raise ConfigError(
+                f"{where}: roughness range {list(self.roughness)} is entirely below high_specular_min_roughness "
+                f"{self.high_specular_min_roughness} while specular may exceed {self.high_specular}"
+            )
+
+    @classmethod
+    def from_dict(cls, d: dict, name: str = "category", base: "CategoryRanges | None" = None) -> "CategoryRanges":
+        """Ranges from a mapping (params.yaml), missing keys taken from ``base`` (or the class defaults)."""
+        if not isinstance(d, dict):
+            raise ConfigError(f"materials.ranges.{name} must be a mapping, got {type(d).__name__}")
+        known = {f.name for f in fields(cls)} - {"name"}
+        kw = {}
+        for k, v in d.items():
+            k2 = _ALIASES.get(k, k)
+            if k2 == "name":
+                continue
+            if k2 not in known:
+                raise ConfigError(f"materials.ranges.{name}: unknown key {k!r} (known: {', '.join(sorted(known))})")
+            kw[k2] = v
+        start = base if base is not None else cls(name=name)
+        return replace(start, name=name, **kw)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d.pop("name")
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+
+def _default(category: str) -> CategoryRanges:
+    if category == "diffuse":
+        return CategoryRanges(name="diffuse")
+    if category == "specular":
+        return CategoryRanges(specular=(0.0, 4.0), name="specular")
+    if category == "metallic":
+        return CategoryRanges(metallic=(1.0, 1.0), roughness=(0.3, 0.7), name="metallic")
+    raise ConfigError(f"unknown material category {category!r} (choose from {', '.join(CATEGORIES)})")
+
+
+@dataclass(frozen=True)
+class MaterialRanges:
+    """Ranges of all categories (the ``materials.ranges`` section of params.yaml)."""
+
+    diffuse: CategoryRanges = field(default_factory=lambda: _default("diffuse"))
+    specular: CategoryRanges = field(default_factory=lambda: _default("specular"))
+    metallic: CategoryRanges = field(default_factory=lambda: _default("metallic"))
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "MaterialRanges":
+        """Per-category overrides of the paper's defaults, e.g. ``{"specular": {"specular": [0, 2]}}``."""
+        if d is None:
+            return cls()
+        if not isinstance(d, dict):
+            raise ConfigError(f"materials.ranges must be a mapping, got {type(d).__name__}")
+        kw = {}
+        for cat, sub in d.items():
+            c = str(cat).lower()
+            if c not in CATEGORIES:
+                raise ConfigError(f"materials.ranges: unknown category {cat!r} (choose from {', '.join(CATEGORIES)})")
+            kw[c] = CategoryRanges.from_dict(sub or {}, c, base=_default(c))
+        return cls(**kw)
+
+    def get(self, category: str) -> CategoryRanges:
+        c = category.lower()
+        if c not in CATEGORIES:
+            raise ConfigError(f"unknown material category {category!r} (choose from {', '.join(CATEGORIES)})")
+        return getattr(self, c)
+
+    def to_dict(self) -> dict:
+        return {c: self.get(c).to_dict() for c in CATEGORIES}
+
+
+def sample_parameters(ranges: CategoryRanges, n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """``n`` parameter rows drawn uniformly from ``ranges``: base_color (n,3), others (n,), float32.
+
+    Draw order is fixed (base_color, metallic, specular, roughness, sheen, sheen_tint),
+    so a seed gives the same table whatever the ranges are.
+    """
+    u = {
+        "base_color": rng.random((n, 3)),
+        "metallic": rng.random(n),
+        "specular": rng.random(n),
+        "roughness": rng.random(n),
+        "sheen": rng.random(n),
+        "sheen_tint": rng.random(n),
+    }
+    out = {}
+    for name in PARAM_NAMES:
+        lo, hi = getattr(ranges, name)
+        out[name] = lo + u[name] * (hi - lo)
+    # near-mirror exclusion: high specular draws roughness above the floor
+    lo, hi = ranges.roughness
+    floor = max(lo, ranges.high_specular_min_roughness)
+    high = out["specular"] > ranges.high_specular
+    if high.any() and floor > lo:
+        out["roughness"][high] = floor + u["roughness"][high] * (hi - floor)
+    return {k: v.astype(np.float32) for k, v in out.items()}
+
+
+# --------------------------------------------------------------------------- Blender 5
+
+
+def specular_to_ior(s):
+    """IOR whose normal-incidence reflectance equals Disney's F0 = 0.08·s (1.5 at s = 0.5)."""
+    s = np.asarray(s, dtype=np.float64)
+    if np.any(s < 0) or np.any(s >= 12.5):
+        raise ValueError("specular must be in [0, 12.5)")
+    r = 2.0 / (1.0 - np.sqrt(0.08 * s)) - 1.0
+    return float(r) if r.ndim == 0 else r
+
+
+def ior_to_specular(ior):
+    """Inverse of :func:`specular_to_ior`: s = ((ior − 1)/(ior + 1))² / 0.08."""
+    ior = np.asarray(ior, dtype=np.float64)
+    s = ((ior - 1.0) / (ior + 1.0)) ** 2 / 0.08
+    return float(s) if s.ndim == 0 else s
+
+
+def blender_f0(inputs: dict) -> np.ndarray | float:
+    """Dielectric F0 Cycles derives from ``IOR`` and ``Specular IOR Level`` (for tests/checks)."""
+    ior = np.asarray(inputs["IOR"], dtype=np.float64)
+    level = np.maximum(np.asarray(inputs["Specular IOR Level"], dtype=np.float64), 0.0)
+    f0 = ((ior - 1.0) / (ior + 1.0)) ** 2 * 2.0 * level
+    return float(f0) if f0.ndim == 0 else f0
+
+
+def _rgba(c):
+    c = np.asarray(c, dtype=np.float64)
+    if c.shape[-1] != 3:
+        raise ValueError(f"a colour must have 3 channels, got shape {c.shape}")
+    out = np.concatenate([c, np.ones(c.shape[:-1] + (1,))], axis=-1)
+    return tuple(float(v) for v in out) if out.ndim == 1 else out
+
+
+def to_blender_inputs(params: dict) -> dict:
+    """Principled BSDF input values (Blender 5 socket names) for paper parameters.
+
+    ``params``: ``base_color`` (3,) or (...,3) and ``metallic``, ``specular``, ``roughness``,
+    ``sheen``, ``sheen_tint`` scalars or (...) arrays (e.g. a :class:`MaterialMaps.table`
+    or per-pixel maps). Scalars give floats and RGBA 4-tuples (ready for
+    ``node.inputs[name].default_value``); arrays give arrays, colours with a last axis
+    of 4 (RGBA, alpha 1). See the module docstring for the mapping and its reasons.
+    """
+    missing = [k for k in PARAM_NAMES if k not in params]
+    if missing:
+        raise ValueError(f"missing paper parameters: {missing}")
+    base = np.asarray(params["base_color"], dtype=np.float64)
+    metallic = np.asarray(params["metallic"], dtype=np.float64)
+    specular = np.asarray(params["specular"], dtype=np.float64)
+    roughness = np.asarray(params["roughness"], dtype=np.float64)
+    sheen = np.asarray(params["sheen"], dtype=np.float64)
+    sheen_tint = np.asarray(params["sheen_tint"], dtype=np.float64)
+
+    def val(x):
+        x = np.asarray(x, dtype=np.float64)
+        return float(x) if x.ndim == 0 else x
+
+    tint = 1.0 + sheen_tint[..., None] * (base - 1.0)  # mix(white, base, sheen_tint)
+    shape = roughness.shape
+    zeros = np.zeros(shape)
+    white = np.ones(shape + (3,))
+    return {
+        "Base Color": _rgba(base),
+        "Metallic": val(metallic),
+        "Roughness": val(roughness),
+        "IOR": val(np.full(shape, 1.5)),
+        "Specular IOR Level": val(specular),
+        "Specular Tint": _rgba(white),
+        "Sheen Weight": val(sheen * (1.0 - metallic)),
+        "Sheen Tint": _rgba(tint),
+        "Sheen Roughness": val(np.full(shape, 0.5)),
+        "Diffuse Roughness": val(zeros),
+        "Subsurface Weight": val(zeros),
+        "Transmission Weight": val(zeros),
+        "Coat Weight": val(zeros),
+        "Anisotropic": val(zeros),
+        "Emission Strength": val(zeros),
+        "Thin Film Thickness": val(zeros),
+        "Alpha": val(np.ones(shape)),
+    }

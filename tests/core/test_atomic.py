@@ -1,0 +1,88 @@
+"""cnnps.core.atomic: outputs get the umask's mode (not mkstemp's 0600), nothing half-written."""
+
+from __future__ import annotations
+
+import os
+import stat
+
+import numpy as np
+import pytest
+
+from cnnps.core import atomic
+from cnnps.core.atomic import atomic_dir, atomic_path, current_umask, write_text
+
+
+def mode(path) -> int:
+    return stat.S_IMODE(os.stat(path).st_mode)
+
+
+@pytest.fixture(params=[0o022, 0o027, 0o002])
+def umask(request):
+    old = os.umask(request.param)
+    try:
+        yield request.param
+    finally:
+        os.umask(old)
+
+
+def test_current_umask(umask):
+    assert current_umask() == umask
+
+
+def test_current_umask_without_proc(umask, monkeypatch):
+    def no_proc(*a, **k):
+        raise FileNotFoundError(2, "No such file or directory", "/proc/self/status")
+
+    monkeypatch.setattr(atomic, "open", no_proc, raising=False)  # shadows the builtin in the module
+    assert current_umask() == umask
+    assert current_umask() == umask  # and the fallback left the umask as it was
+
+
+def test_modes_match_plain_open_and_mkdir(tmp_path, umask):
+    ref_file = tmp_path / "plain.txt"
+    ref_file.write_text("x")
+    ref_dir = tmp_path / "plain_dir"
+    ref_dir.mkdir()
+    assert mode(ref_file) == 0o666 & ~umask and mode(ref_dir) == 0o777 & ~umask  # the reference
+
+    with atomic_path(tmp_path / "a.npy") as tmp:
+        assert mode(tmp) == 0o600  # mkstemp's private mode while being written
+        np.save(tmp, np.arange(3))
+    assert mode(tmp_path / "a.npy") == mode(ref_file)
+    assert np.load(tmp_path / "a.npy").tolist() == [0, 1, 2]
+
+    write_text(tmp_path / "sub" / "b.json", "{}\n")
+    assert mode(tmp_path / "sub" / "b.json") == mode(ref_file)
+    assert mode(tmp_path / "sub") == mode(ref_dir)
+
+    for _ in range(2):  # new, then replacing an existing folder
+        with atomic_dir(tmp_path / "out") as tmp:
+            assert mode(tmp) == 0o700
+            (tmp / "f.txt").write_text("y")
+        assert mode(tmp_path / "out") == mode(ref_dir)
+        assert mode(tmp_path / "out" / "f.txt") == mode(ref_file)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npy", "out", "plain.txt", "plain_dir", "sub"]
+
+
+def test_failure_leaves_nothing(tmp_path):
+    with pytest.raises(RuntimeError):
+        with atomic_path(tmp_path / "a.txt") as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("boom")
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "old.txt").write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_dir(tmp_path / "out") as tmp:
+            (tmp / "new.txt").write_text("half")
+            raise RuntimeError("boom")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert [p.name for p in (tmp_path / "out").iterdir()] == ["old.txt"]
+
+
+def test_atomic_dir_no_overwrite_is_a_named_os_error(tmp_path):
+    (tmp_path / "out").mkdir()
+    with pytest.raises(FileExistsError) as info:
+        with atomic_dir(tmp_path / "out", overwrite=False) as tmp:
+            (tmp / "x").write_text("x")
+    assert info.value.filename == str(tmp_path / "out") and info.value.strerror
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]

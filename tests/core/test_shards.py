@@ -1,0 +1,125 @@
+"""Tests of the Parquet shard writer and the streaming, resumable loader."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from cnnps.core.shards import SceneShardWriter, ShardStream, make_batch, read_row_group, shard_schema
+
+W = 4
+
+
+def write_scene(d, name, start, n, rows_per_group=30, rows_per_shard=100):
+    schema = shard_schema(W)
+    ids = np.arange(start, start + n)
+    maps = np.zeros((n, W, W), np.float16)
+    maps[:, 0, 0] = ids % 1000  # row id recoverable from the map (exact in float16 below 2048)
+    maps[:, 0, 1] = ids // 1000
+    normals = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (n, 1))
+    with SceneShardWriter(d, f"shard-{name}", schema, rows_per_group, rows_per_shard) as wr:
+        for s in range(0, n, 17):  # odd batch sizes to exercise regrouping
+            e = min(n, s + 17)
+            z = np.zeros(e - s)
+            wr.write(make_batch(schema, maps[s:e], normals[s:e], name, ids[s:e], z, z + 5, z + 30, z, z))
+    return wr.infos
+
+
+def ids_of(batch_maps):
+    m = batch_maps.astype(np.float32)
+    return (m[:, 0, 0] + 1000 * m[:, 0, 1]).astype(int)
+
+
+@pytest.fixture(scope="module")
+def shards(tmp_path_factory):
+    d = tmp_path_factory.mktemp("shards")
+    infos = write_scene(d, "a", 0, 250) + write_scene(d, "b", 1000, 170)
+    return d, [d / i.file for i in infos]
+
+
+def test_writer_splits_files_and_groups(shards):
+    d, files = shards
+    assert [f.name for f in files] == [f"shard-a-00{i}.parquet" for i in range(3)] + [
+        f"shard-b-00{i}.parquet" for i in range(2)
+    ]
+    rows = [pq.read_metadata(f).num_rows for f in files]
+    assert rows == [100, 100, 50, 100, 70]
+    for f in files:
+        meta = pq.read_metadata(f)
+        assert all(meta.row_group(g).num_rows <= 30 for g in range(meta.num_row_groups))
+    got = read_row_group(files[1], 0, W, columns=("map", "row", "scene"))
+    assert np.array_equal(ids_of(got["map"]), got["row"]) and got["row"][0] == 100
+    assert set(got["scene"]) == {"a"}
+
+
+def test_writer_abort_leaves_nothing(tmp_path):
+    schema = shard_schema(W)
+    with pytest.raises(RuntimeError):
+        with SceneShardWriter(tmp_path, "shard-x", schema, 10, 20) as wr:
+            z = np.zeros(50)
+            wr.write(make_batch(schema, np.zeros((50, W, W)), np.zeros((50, 3)), "x", z, z, z, z, z, z))
+            raise RuntimeError("crash")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_epoch_covers_every_row_once_and_is_seeded(shards):
+    _, files = shards
+    s = ShardStream(files, W, batch_size=16, seed=3, buffer_rows=64, drop_last=False)
+    e0 = np.concatenate([ids_of(m) for m, _ in s.iter_epoch(0)])
+    assert sorted(e0) == list(range(250)) + list(range(1000, 1170))
+    again = np.concatenate([ids_of(m) for m, _ in s.iter_epoch(0)])
+    assert np.array_equal(e0, again)
+    e1 = np.concatenate([ids_of(m) for m, _ in s.iter_epoch(1)])
+    assert not np.array_equal(e0, e1) and sorted(e1) == sorted(e0)
+    # well mixed: first 60 rows draw from both scenes
+    assert (e0[:60] < 1000).any() and (e0[:60] >= 1000).any()
+    # drop_last: 420 rows -> 26 full batches of 16
+    s2 = ShardStream(files, W, batch_size=16, seed=3, buffer_rows=64)
+    assert s2.batches_per_epoch() == 26 == sum(1 for _ in s2.iter_epoch(0))
+
+
+def test_skip_resumes_exactly(shards):
+    _, files = shards
+    s = ShardStream(files, W, batch_size=16, seed=5, buffer_rows=64)
+    full = [ids_of(m) for m, _ in s.iter_epoch(2)]
+    tail = [ids_of(m) for m, _ in s.iter_epoch(2, skip_batches=11)]
+    assert len(tail) == len(full) - 11
+    assert all(np.array_equal(a, b) for a, b in zip(full[11:], tail))
+
+
+def test_ranks_partition_row_groups(shards):
+    _, files = shards
+    parts = [ShardStream(files, W, 8, seed=1, buffer_rows=32, drop_last=False, rank=r, world_size=3) for r in range(3)]
+    seen = [set(np.concatenate([ids_of(m) for m, _ in p.iter_epoch(0)])) for p in parts]
+    assert all(seen) and not (seen[0] & seen[1]) and not (seen[1] & seen[2]) and not (seen[0] & seen[2])
+    assert set().union(*seen) == set(range(250)) | set(range(1000, 1170))
+
+
+def test_torch_dataset_batches(shards):
+    import torch
+
+    from cnnps.core.shards import ShardDataset
+
+    _, files = shards
+    ds = ShardDataset(ShardStream(files, W, batch_size=16, seed=0, buffer_rows=64))
+    ds.set_epoch(0)
+    ds.set_skip(3)
+    batches = list(torch.utils.data.DataLoader(ds, batch_size=None))
+    x, n = batches[0]
+    assert x.shape == (16, 1, W, W) and x.dtype == torch.float32 and n.shape == (16, 3)
+    ref = list(ds.stream.iter_epoch(0))
+    assert len(batches) == len(ref) - 3
+    assert np.array_equal(ids_of(x[:, 0].numpy()), ids_of(ref[3][0]))
+
+
+def test_shards_get_the_umask_mode_not_mkstemps(tmp_path):
+    import os
+    import stat
+
+    old = os.umask(0o022)
+    try:
+        infos = write_scene(tmp_path, "m", 0, 40)
+    finally:
+        os.umask(old)
+    assert infos and all(stat.S_IMODE(os.stat(tmp_path / i.file).st_mode) == 0o644 for i in infos)

@@ -1,0 +1,164 @@
+"""cnnps.pipeline.predict.predict_capture: outputs, metrics, atomicity, the CNN plumbing."""
+
+import json
+import sys
+import types
+
+import numpy as np
+import pytest
+
+from cnnps.core.errors import CnnpsError, ConfigError, InputError
+from cnnps.pipeline.predict import predict_capture
+from tests.support.synthetic import write_capture
+
+
+@pytest.fixture
+def sphere(tmp_path):
+    truth = write_capture(tmp_path / "sphere", fmt="exr", size=32, m=20, max_tilt_deg=45)
+    return tmp_path / "sphere", truth
+
+
+def test_lambertian_outputs_and_metrics(sphere, tmp_path):
+    cap, truth = sphere
+    out = tmp_path / "out"
+    res = predict_capture(cap, out, method="lambertian", shadow_threshold=0.0, progress=False)
+    assert sorted(p.name for p in out.iterdir()) == ["error.png", "metrics.json", "normal.npy", "normal.png", "prediction.json"]
+    normal = np.load(out / "normal.npy")
+    assert normal.dtype == np.float32 and normal.shape == (32, 32, 3)
+    assert np.all(normal[~truth["mask"]] == 0)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["mean_deg"] < 0.01 and metrics["median_deg"] < 0.01
+    assert metrics["method"] == "lambertian" and metrics["n_images"] == 20 and metrics["dropped"] == []
+    assert metrics["pixels"] == truth["mask"].sum()
+    assert res["mean_deg"] == pytest.approx(metrics["mean_deg"])
+    # without the shadow threshold, the attached shadows bias the plain fit
+    res2 = predict_capture(cap, out, method="lambertian", progress=False)
+    assert res2["mean_deg"] > 0.1
+
+
+def test_no_ground_truth_writes_no_metrics(tmp_path):
+    write_capture(tmp_path / "cap", fmt="png16", m=8, gt=None)
+    res = predict_capture(tmp_path / "cap", tmp_path / "out", method="lambertian", drop=[1], progress=False)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["normal.npy", "normal.png", "prediction.json"]
+    assert "mean_deg" not in res and res["dropped"] == [1] and res["n_images"] == 7
+    info = json.loads((tmp_path / "out" / "prediction.json").read_text())
+    assert info["dropped"] == [1] and info["method"] == "lambertian"
+
+
+def _fake_models(monkeypatch, truth, calls, fail=False, load_fail=False):
+    """Stand-ins for cnnps.models.checkpoint / cnnps.models.inference (tests the plumbing only)."""
+    ckpt = types.ModuleType("cnnps.models.checkpoint")
+    inf = types.ModuleType("cnnps.models.inference")
+
+    def load_checkpoint(path, device="cpu"):
+        calls["load"] = (str(path), device)
+        if load_fail:
+            raise ValueError("not a checkpoint")
+        return "NET", {}, {}
+
+    def predict_normals(model, I, L, rotations, device, precision, batch_size, progress):
+        calls["predict"] = dict(model=model, shape=I.shape, L=L, rotations=rotations, device=device,
+                                precision=precision, batch_size=batch_size)
+        if fail:
+            raise RuntimeError("boom")
+        return truth["normals"][truth["mask"]] * 2.0  # right directions, not unit length
+
+    ckpt.load_checkpoint = load_checkpoint
+    inf.predict_normals = predict_normals
+    monkeypatch.setitem(sys.modules, "cnnps.models.checkpoint", ckpt)
+    monkeypatch.setitem(sys.modules, "cnnps.models.inference", inf)
+
+
+def test_cnn_method_plumbing(sphere, tmp_path, monkeypatch):
+    cap, truth = sphere
+    calls = {}
+    _fake_models(monkeypatch, truth, calls)
+    model = tmp_path / "m.pt"
+    model.write_bytes(b"x")
+    res = predict_capture(cap, tmp_path / "out", model=model, rotations=4, device="cpu",
+                          precision="bf16", batch_size=123, progress=False)
+    assert calls["load"] == (str(model), "cpu")
+    p = calls["predict"]
+    assert p["model"] == "NET" and p["rotations"] == 4 and p["device"] == "cpu"
+    assert p["precision"] == "bf16" and p["batch_size"] == 123
+    assert p["shape"] == (truth["mask"].sum(), 20)
+    np.testing.assert_allclose(p["L"], truth["lights"], atol=1e-8)
+    assert res["mean_deg"] < 1e-3 and res["rotations"] == 4
+    normal = np.load(tmp_path / "out" / "normal.npy")
+    np.testing.assert_allclose(np.linalg.norm(normal[truth["mask"]], axis=1), 1.0, rtol=1e-6)
+
+
+def test_failure_leaves_no_output(sphere, tmp_path, monkeypatch):
+    cap, truth = sphere
+    _fake_models(monkeypatch, truth, {}, fail=True)
+    model = tmp_path / "m.pt"
+    model.write_bytes(b"x")
+    out = tmp_path / "sub" / "out"
+    with pytest.raises(RuntimeError):
+        predict_capture(cap, out, model=model, device="cpu", progress=False)
+    assert not out.exists()
+    assert not (tmp_path / "sub").exists() or list((tmp_path / "sub").iterdir()) == []
+
+
+def test_missing_default_model_says_how_to_get_one(sphere, tmp_path, monkeypatch):
+    import cnnps.pipeline.predict as pred
+
+    monkeypatch.setattr(pred, "default_model_path", lambda: tmp_path / "none.pt")
+    cap, _ = sphere
+    with pytest.raises(CnnpsError, match="--model PATH") as info:
+        predict_capture(cap, tmp_path / "out", progress=False)
+    assert "cnnps run-stage train" in str(info.value)
+    with pytest.raises(InputError, match="model file not found"):
+        predict_capture(cap, tmp_path / "out", model=tmp_path / "nope.pt", progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    "kwargs, words",
+    [
+        (dict(method="svm"), "--method"),
+        (dict(method="lambertian", rotations=0), "--rotations"),
+        (dict(method="lambertian", device="tpu"), "--device"),
+        (dict(method="lambertian", precision="fp16"), "--precision"),
+        (dict(method="lambertian", batch_size=0), "--batch-size"),
+        (dict(method="lambertian", shadow_threshold=1.5), "--shadow-threshold"),
+        (dict(method="cnn", shadow_threshold=0.1, model="x"), "--shadow-threshold"),
+        (dict(method="lambertian", grey="red"), "grey"),
+        (dict(method="lambertian", drop=[99]), "out of range"),
+    ],
+)
+def test_bad_options(sphere, tmp_path, kwargs, words):
+    cap, _ = sphere
+    with pytest.raises(ConfigError, match=words):
+        predict_capture(cap, tmp_path / "out", progress=False, **kwargs)
+    assert not (tmp_path / "out").exists()
+
+
+def test_refuses_to_replace_foreign_folders(sphere, tmp_path):
+    cap, _ = sphere
+    with pytest.raises(InputError, match="capture folder"):
+        predict_capture(cap, cap, method="lambertian", progress=False)
+    with pytest.raises(InputError, match="capture folder"):
+        predict_capture(cap, tmp_path, method="lambertian", progress=False)
+    other = tmp_path / "mine"
+    other.mkdir()
+    (other / "thesis.tex").write_text("precious")
+    with pytest.raises(InputError, match="thesis.tex"):
+        predict_capture(cap, other, method="lambertian", progress=False)
+    assert (other / "thesis.tex").read_text() == "precious"
+    # a previous output folder is replaced
+    out = tmp_path / "out"
+    predict_capture(cap, out, method="lambertian", progress=False)
+    predict_capture(cap, out, method="lambertian", drop=[0], progress=False)
+    assert json.loads((out / "metrics.json").read_text())["dropped"] == [0]
+
+
+def test_unloadable_model_names_the_file(sphere, tmp_path):
+    # the real checkpoint loader on a file that is not a checkpoint
+    cap, truth = sphere
+    model = tmp_path / "bad.pt"
+    model.write_bytes(b"x")
+    with pytest.raises(InputError) as info:
+        predict_capture(cap, tmp_path / "out", model=model, device="cpu", progress=False)
+    assert info.value.path == model
+    assert not (tmp_path / "out").exists()
