@@ -158,7 +158,7 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> tup
 
 
 def _load_checkpoint(path: str | Path, device: str | torch.device) -> tuple[CNNPS, dict, dict]:
-    from cnnps.models.inference import resolve_device  # lazy: inference imports this module's siblings
+    from cnnps.models.devices import resolve_device
 
     path = Path(path)
     payload = read_checkpoint(path)

@@ -27,6 +27,7 @@ from torch import nn
 from cnnps.core.errors import CnnpsError
 from cnnps.core.obsmap import observation_maps
 from cnnps.core.rotation import average_rotated_predictions, rotate_z, rotation_angles
+from cnnps.models.devices import resolve_device  # noqa: F401 (part of this module's API)
 from cnnps.models.network import CNNPS, fast_cpu_model, fold_for_inference
 
 PRECISIONS = ("fp32", "bf16")
@@ -38,31 +39,6 @@ PIXEL_CHUNK = 4096
 # 3,800-4,400, 1024 -> 2,600-2,800, 4096 -> 1,800-2,100. GPUs want large batches.
 DEFAULT_BATCH_CPU = 256
 DEFAULT_BATCH_CUDA = 4096
-
-
-def resolve_device(name: str | torch.device | None = "auto") -> torch.device:
-    """'auto' (or None) -> CUDA when available, else CPU; 'cpu', 'cuda', 'cuda:1' as named.
-
-    Asking for CUDA where torch has none raises CnnpsError with a clear message.
-    """
-    if isinstance(name, torch.device):
-        name = str(name)
-    name = "auto" if name is None else str(name).strip().lower()
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise CnnpsError(f"unknown device {name!r}: use auto, cpu or cuda[:N]") from None
-    if device.type == "cuda":
-        if not torch.cuda.is_available():
-            why = "this torch build has no CUDA support" if torch.version.cuda is None else "no CUDA GPU is visible"
-            raise CnnpsError(f"device {name!r} requested but {why}; use --device cpu (or auto)")
-        if device.index is not None and device.index >= torch.cuda.device_count():
-            raise CnnpsError(f"device {name!r} requested but only {torch.cuda.device_count()} CUDA GPU(s) exist")
-    elif device.type != "cpu":
-        raise CnnpsError(f"unsupported device {name!r}: use auto, cpu or cuda[:N]")
-    return device
 
 
 def check_precision(precision: str) -> str:
