@@ -4,6 +4,11 @@ Temporary files and folders are made with ``mkstemp`` / ``mkdtemp``, which creat
 private (0600 / 0700) whatever the umask; before the final rename they get the mode a
 plain ``open()`` / ``mkdir`` would have given (0666 / 0777 less the umask), so outputs
 stay readable by the other users and cluster accounts the umask allows.
+
+Every rename is preceded by an ``fsync`` of what was written (the file, or every file and
+folder of a temporary tree) and followed by an ``fsync`` of the parent folder, so a power
+cut or a node crash leaves either the old output or the complete new one, never a
+renamed file whose data blocks were not yet on disk.
 """
 
 from __future__ import annotations
@@ -39,6 +44,36 @@ def publish_mode(tmp: Path, is_dir: bool) -> None:
     os.chmod(tmp, base & ~current_umask())
 
 
+def fsync_path(path: Path) -> None:
+    """Flush a file's or a folder's data and metadata to the disk (best effort on folders:
+    some filesystems refuse to open or fsync a directory)."""
+    if path.is_dir():
+        try:
+            fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+        except OSError:
+            return
+        try:
+            os.fsync(fd)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+        return
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def fsync_tree(root: Path) -> None:
+    """fsync every file and folder below ``root`` (deepest first), then ``root`` itself."""
+    for dirpath, _dirs, files in os.walk(root, topdown=False):
+        for name in files:
+            fsync_path(Path(dirpath) / name)
+        fsync_path(Path(dirpath))
+
+
 def _tmp_sibling(path: Path, is_dir: bool) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     if is_dir:
@@ -64,7 +99,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:
         yield tmp
         publish_mode(tmp, is_dir=False)
+        fsync_path(tmp)
         os.replace(tmp, path)
+        fsync_path(path.parent)
     finally:
         if tmp.exists():
             tmp.unlink()
@@ -83,6 +120,7 @@ def atomic_dir(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
     try:
         yield tmp
         publish_mode(tmp, is_dir=True)
+        fsync_tree(tmp)
         if path.exists():
             if not overwrite:
                 raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(path))
@@ -90,9 +128,11 @@ def atomic_dir(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
             old.rmdir()
             os.replace(path, old)
             os.replace(tmp, path)
+            fsync_path(path.parent)
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, path)
+            fsync_path(path.parent)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)

@@ -1,1 +1,2 @@
-"""Orchestration: configuration (params.yaml), caching, the command line."""
+"""The top layer: params.yaml configuration, stage orchestration, ``cnnps predict`` and
+the ``cnnps`` command line (Typer), a thin layer over the library below."""

@@ -86,3 +86,51 @@ def test_atomic_dir_no_overwrite_is_a_named_os_error(tmp_path):
             (tmp / "x").write_text("x")
     assert info.value.filename == str(tmp_path / "out") and info.value.strerror
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def _record_fsync_and_replace(monkeypatch):
+    """Log (op, path) of every fsync and rename, in order."""
+    log = []
+    real_fsync, real_replace, real_open = os.fsync, os.replace, os.open
+    fd_paths = {}
+
+    def fake_open(path, flags, *a, **k):
+        fd = real_open(path, flags, *a, **k)
+        fd_paths[fd] = str(path)
+        return fd
+
+    def fake_fsync(fd):
+        log.append(("fsync", fd_paths.get(fd, "?")))
+        return real_fsync(fd)
+
+    def fake_replace(a, b):
+        log.append(("replace", str(a)))
+        return real_replace(a, b)
+
+    monkeypatch.setattr(atomic.os, "open", fake_open)
+    monkeypatch.setattr(atomic.os, "fsync", fake_fsync)
+    monkeypatch.setattr(atomic.os, "replace", fake_replace)
+    return log
+
+
+def test_atomic_path_fsyncs_the_file_before_the_rename_and_the_folder_after(tmp_path, monkeypatch):
+    log = _record_fsync_and_replace(monkeypatch)
+    write_text(tmp_path / "a.txt", "hello")
+    ops = [op for op, _ in log]
+    i = ops.index("replace")
+    tmp_name = log[i][1]
+    assert ("fsync", tmp_name) in log[:i]  # the data reached the disk before the name did
+    assert ("fsync", str(tmp_path)) in log[i + 1:]  # and the new name after it
+    assert (tmp_path / "a.txt").read_text() == "hello"
+
+
+def test_atomic_dir_fsyncs_every_file_before_the_rename(tmp_path, monkeypatch):
+    log = _record_fsync_and_replace(monkeypatch)
+    with atomic_dir(tmp_path / "out") as d:
+        (d / "sub").mkdir()
+        (d / "sub" / "x.bin").write_bytes(b"x")
+        (d / "y.bin").write_bytes(b"y")
+    i = [op for op, _ in log].index("replace")
+    synced = {p for op, p in log[:i] if op == "fsync"}
+    assert any(p.endswith("/sub/x.bin") for p in synced) and any(p.endswith("/y.bin") for p in synced)
+    assert ("fsync", str(tmp_path)) in log[i + 1:]
