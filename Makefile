@@ -1,30 +1,58 @@
 # Two entry points for a fresh machine: `make demo` and `make test`.
 PYTHON ?= python3.11
+# torch is installed first and pinned, so no resolver ever pulls a multi-GB CUDA build on
+# a CPU machine (the dev machines and CI have this CPU build on disk).
+TORCH  ?= torch==2.13.0
+PIP    := -m pip install -qq
+
+# .venv: the full install (core + Blender for rendering + test tools; numpy <2 for bpy).
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup demo test bench clean-venv
+# .venv-core: the core install without Blender (numpy 2), for `make test-core`.
+CORE_VENV  := .venv-core
+CORE_PY    := $(CORE_VENV)/bin/python
+CORE_STAMP := $(CORE_VENV)/.installed
+
+.PHONY: setup setup-core demo test test-core bench clean-venv
 
 setup: $(STAMP)
 
-# Re-run only when the dependency list changes. torch is installed first and pinned,
-# so no resolver ever pulls a multi-GB CUDA build on a CPU machine.
+setup-core: $(CORE_STAMP)
+
+# Re-run only when the dependency list changes.
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) $(PIP) --upgrade pip
+	$(PY) $(PIP) $(TORCH)
+	$(PY) $(PIP) -e '.[render,dev]'
+	@touch $@
+
+$(CORE_STAMP): pyproject.toml
+	@test -x $(CORE_PY) || $(PYTHON) -m venv $(CORE_VENV)
+	$(CORE_PY) $(PIP) --upgrade pip
+	$(CORE_PY) $(PIP) $(TORCH)
+	$(CORE_PY) $(PIP) -e '.[dev]'
 	@touch $@
 
 demo: setup
 	$(VENV)/bin/cnnps demo
 
 test: setup
-	$(VENV)/bin/python -m pytest -q
+	$(PY) -m pytest -q
+
+# The suite in the core install: tests marked `blender` skip (tests/conftest.py), all
+# others must pass with numpy 2 and without bpy.
+test-core: setup-core
+	$(CORE_PY) -c 'import importlib.util as u, numpy; \
+	assert u.find_spec("bpy") is None, "bpy is installed in $(CORE_VENV)"; \
+	assert int(numpy.__version__.split(".")[0]) >= 2, "numpy " + numpy.__version__ + " in $(CORE_VENV)"; \
+	print("$(CORE_VENV): no bpy, numpy", numpy.__version__)'
+	$(CORE_PY) -m pytest -q
 
 bench: setup
 	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
 
 clean-venv:
-	rm -rf $(VENV)
+	rm -rf $(VENV) $(CORE_VENV)

@@ -25,7 +25,8 @@ import numpy as np
 
 from cnnps.core.obsmap import observation_maps
 from cnnps.core.rotation import rotation_angles
-from cnnps.stages.extract import Params, build_rows, sample_light_masks
+from cnnps.stages.extract import Params
+from cnnps.synth.training_samples import build_rows, sample_light_masks
 from cnnps.core.shards import SceneShardWriter, make_batch, shard_schema
 
 

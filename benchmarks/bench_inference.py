@@ -5,7 +5,7 @@
 
 Measures network inferences per second (maps prebuilt) for
   * eager fp32: the trained ``CNNPS`` as is (NCHW, batch 256) - the naive baseline;
-  * fast fp32: what ``predict_normals`` runs on CPU (``FastCNNPS``, channels_last, batch 64),
+  * fast fp32: what ``predict_normals`` runs on CPU (``FastCNNPS``, channels_last, batch 256),
     with all threads and with one thread (that one also in thread CPU time, which other
     processes on a shared machine disturb much less than wall time);
   * bf16: ``FoldedCNNPS`` under ``torch.autocast(bfloat16)`` (what precision="bf16" runs);

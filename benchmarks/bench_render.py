@@ -10,7 +10,7 @@ Three ways to render one scene under ``--lights`` suns (same images each way):
   the Python start-up (~0.5 s import of bpy, not counted);
 - ``in_process``: the scene built once, the sun moved per light, persistent data off;
 - ``persistent``: as ``in_process`` with ``render.use_persistent_data`` (what
-  :mod:`cnnps.stages.render` does).
+  :mod:`cnnps.synth.capture_render` does for the render stage).
 
 Also the whole ``render_capture`` (EXR writing, geometry pass included). Path samples/s =
 pixels x samples x images / seconds. Timings are noisy on shared 2-core machines: the
@@ -34,22 +34,20 @@ sys.path.insert(0, str(REPO))
 
 
 def _scene(mesh_spec: str):
-    from cnnps.stages.render import _load_mesh_arg
+    from cnnps.synth.capture_render import load_mesh_arg
 
-    mesh, _ = _load_mesh_arg(mesh_spec)
+    mesh, _ = load_mesh_arg(mesh_spec)
     return np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
 
 def _material(size: int) -> dict:
     """A per-pixel principled material (textures bound as in the stage)."""
-    from cnnps.stages.materials import sample_material_maps
-    from cnnps.stages.render import principled_material
+    from cnnps.synth.capture_render import extend_maps, principled_material
+    from cnnps.synth.material_maps import sample_material_maps
 
     yy, xx = np.mgrid[0:size, 0:size]
     mask = (xx - size / 2 + 0.5) ** 2 + (yy - size / 2 + 0.5) ** 2 < (0.95 * size / 2) ** 2
     maps = sample_material_maps(mask, "specular", 50, 0)
-    from cnnps.stages.render import extend_maps
-
     return principled_material(extend_maps(dict(maps.params), mask))
 
 
@@ -79,7 +77,7 @@ def bench(args) -> dict:
         return go
 
     def capture():
-        from cnnps.stages.render import render_capture
+        from cnnps.synth.capture_render import render_capture
 
         with tempfile.TemporaryDirectory() as d:
             render_capture(args.mesh, Path(d) / "cap", lights=args.lights, size=args.size, samples=args.samples,

@@ -24,10 +24,13 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.stages.train import Params, compile_model, make_model, prefer_passive_openmp, train_step
+from cnnps.models.openmp import prefer_passive_openmp
+from cnnps.stages.train import Params
 
 prefer_passive_openmp()  # as the stage does (before torch loads); OMP_WAIT_POLICY=ACTIVE to compare
 import torch  # noqa: E402
+
+from cnnps.models.optimiser import compile_model, make_model, train_step  # noqa: E402
 
 BASELINE = dict(channels_last=False, fused_adam=False)  # the stage's settings before the tuning
 VARIANTS = [

@@ -131,7 +131,7 @@ def main() -> None:
 
     if not args.init.is_file() and any(VARIANTS[n] is not None or n == "init" for n in args.variants if n != "shipped"):
         sys.exit(f"{args.init}: not found. The results in benchmarks/results/variants.json started from the "
-                 f"stage-1 model shipped at commit 886219e: git show 886219e:cnnps/models/weights/cnnps_default.pt > {args.init}")
+                 f"stage-1 model shipped at commit 886219e: git show 886219e:models/weights/cnnps_default.pt > {args.init}")
     results = json.loads(args.out.read_text()) if args.out.is_file() else {"variants": {}}
     val = common_val()
     for name in args.variants:

@@ -1,7 +1,8 @@
-"""Fixtures shared by the whole suite."""
+"""Fixtures shared by the whole suite, and the skip rule for tests that need Blender."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from pathlib import Path
 
@@ -9,6 +10,18 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("CNNPS_SHARED", REPO.parent / "shared"))
+HAVE_BPY = importlib.util.find_spec("bpy") is not None  # without importing it (slow)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``blender`` skip in an install without bpy (``pip install .``, no
+    ``[render]`` extra: what ``make test-core`` checks); every other test must pass there."""
+    if HAVE_BPY:
+        return
+    skip = pytest.mark.skip(reason="needs Blender: bpy is not installed (pip install '.[render]')")
+    for item in items:
+        if item.get_closest_marker("blender") is not None:
+            item.add_marker(skip)
 
 
 @pytest.fixture(scope="session")

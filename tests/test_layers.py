@@ -8,7 +8,6 @@ other, directly or round a loop; only the Blender renderer imports bpy.
 from __future__ import annotations
 
 import ast
-import shutil
 from pathlib import Path
 
 import pytest

@@ -17,16 +17,19 @@ they need, and a task whose worker process dies (segfault, OOM kill, lost node) 
 retried up to ``max_retries`` times; an exception raised by the job itself is not
 retried and is raised here.
 
-Usage in a stage::
+Usage in a stage (``params`` has ``executor`` and ``workers`` fields; ``executor`` is
+the one the caller passed, or None)::
 
-    ex = get_executor(params.executor)
-    threads = ex.threads_per_job(len(jobs))          # e.g. Blender's thread count
-    jobs = [dataclasses.replace(j, threads=threads) for j in jobs]
-    results = ex.map(render_one, jobs, "render", num_cpus=threads, num_gpus=1 if gpu else 0)
+    with stage_executor(params, executor) as ex:     # made here and closed at the end when None
+        threads = ex.threads_per_job(len(jobs))      # e.g. Blender's thread count
+        jobs = [dataclasses.replace(j, threads=threads) for j in jobs]
+        results = ex.map(render_one, jobs, "render", num_cpus=threads, num_gpus=1 if gpu else 0)
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import importlib.util
 import logging
 import os
@@ -35,7 +38,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from multiprocessing import get_context
-from typing import Any, Callable, Protocol, Sequence
+from typing import Any, Callable, Iterator, Protocol, Sequence
 
 from tqdm import tqdm
 
@@ -369,3 +372,36 @@ def get_executor(params: ExecutorParams | None = None) -> Executor:
             cpus_per_job=params.cpus_per_job,
         )
     raise ConfigError(f"executor.kind must be 'local' or 'ray', got {params.kind!r}")  # pragma: no cover
+
+
+def make_executor(params: ExecutorParams | None = None, workers: int | None = None) -> Executor:
+    """The executor a stage makes for itself: ``params`` (default: in this process, one
+    worker) with ``workers`` replacing its ``workers`` when set."""
+    ep = params or ExecutorParams(workers=1)
+    if workers is not None:
+        ep = dataclasses.replace(ep, workers=workers)
+    return get_executor(ep)
+
+
+@contextlib.contextmanager
+def stage_executor(params: Any, executor: Executor | None = None) -> Iterator[Executor]:
+    """The executor a stage runs its per-scene jobs on.
+
+    ``executor`` when given (the caller owns it: left open); otherwise one made from the
+    stage's ``params.executor`` and ``params.workers`` (:func:`make_executor`) and closed
+    when the block ends, on error too.
+    """
+    if executor is not None:
+        yield executor
+        return
+    own = make_executor(getattr(params, "executor", None), getattr(params, "workers", None))
+    try:
+        yield own
+    finally:
+        own.close()
+
+
+def runs_in_process(executor: Executor, n_jobs: int) -> bool:
+    """Whether ``executor.map`` runs ``n_jobs`` jobs in this process (the local executor
+    with one worker, or a single job): the jobs' own progress bars may show then."""
+    return isinstance(executor, LocalExecutor) and (executor.workers == 1 or n_jobs == 1)

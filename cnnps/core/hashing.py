@@ -1,4 +1,26 @@
-"""Content keys: SHA-256 of files and of JSON-serialisable objects."""
+"""Content keys and seeds: the one place where digests and derived seeds are made.
+
+Every cached output carries a content key, and every per-scene random stream a seed
+derived from the stage seed; both must be the same on every run and machine (no
+``hash()``, no process state). All of them come from these functions:
+
+- :func:`file_sha256`, :func:`files_sha256`, :func:`bytes_sha256`: SHA-256 of bytes (mesh
+  and material files, in-memory meshes, split ranks);
+- :func:`stable_hash`: SHA-256 of a JSON-serialisable object, keys sorted: the content
+  key of a view, a scene, a capture;
+- :func:`derive_seed`: a 31-bit seed named by its parts (the render stage's lights and
+  Cycles seeds, ``cnnps render``'s lights and materials);
+- :func:`derive_seed64`: a 64-bit seed named by its parts (the extract stage's scene streams);
+- :func:`entropy_seed`: a 32-bit seed from integers through NumPy's ``SeedSequence``
+  (procedural shape seeds, material-map seeds, the eval test set's material seeds), and
+  :func:`key_entropy` to feed a hex key into such a sequence or a generator.
+
+The VALUES these give are part of the caches: a change re-renders (or re-extracts)
+everything, so each function reproduces exactly what the stages computed before they
+shared this module (the ``compact`` flag of :func:`stable_hash` and the byte order of
+:func:`derive_seed64` are such historical details). Add a new function rather than
+changing one.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +32,7 @@ from typing import Iterable
 from cnnps.core.errors import InputError
 
 CHUNK = 1 << 20
+SEED31_MASK = 0x7FFFFFFF
 
 
 def _update_from_file(digest, path: Path) -> None:
@@ -37,6 +60,49 @@ def files_sha256(paths: Iterable[str | Path]) -> str:
     return digest.hexdigest()
 
 
-def stable_hash(obj) -> str:
-    """SHA-256 of a JSON-serialisable object with sorted keys: a content key."""
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+def bytes_sha256(*chunks: bytes) -> str:
+    """Hex SHA-256 of the concatenated ``chunks``."""
+    digest = hashlib.sha256()
+    for c in chunks:
+        digest.update(c)
+    return digest.hexdigest()
+
+
+def stable_json(obj, *, compact: bool = True) -> str:
+    """``obj`` as JSON with sorted keys; ``compact``: no spaces after ``,`` and ``:``."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":") if compact else None)
+
+
+def stable_hash(obj, *, compact: bool = True) -> str:
+    """Hex SHA-256 of a JSON-serialisable object with sorted keys: a content key.
+
+    ``compact=False`` hashes json's default spacing (``", "``, ``": "``), which the
+    extract stage's keys use.
+    """
+    return bytes_sha256(stable_json(obj, compact=compact).encode())
+
+
+def derive_seed(*parts) -> int:
+    """A 31-bit seed (0 .. 2^31 - 1) named by ``parts`` (JSON values, e.g. the stage seed
+    and a scene name): the first 32 bits of ``stable_hash(list(parts))``, top bit cleared."""
+    return int(stable_hash(list(parts))[:8], 16) & SEED31_MASK
+
+
+def derive_seed64(*parts) -> int:
+    """A 64-bit seed named by ``parts`` (each taken as ``str``): the first 8 bytes,
+    little-endian, of ``stable_hash([str(p) ...], compact=False)``."""
+    digest = bytes.fromhex(stable_hash([str(p) for p in parts], compact=False))
+    return int.from_bytes(digest[:8], "little")
+
+
+def entropy_seed(*entropy: int) -> int:
+    """A 32-bit seed from non-negative integers: the first word NumPy's
+    ``SeedSequence(entropy)`` generates."""
+    import numpy as np
+
+    return int(np.random.SeedSequence([int(e) for e in entropy]).generate_state(1)[0])
+
+
+def key_entropy(key: str) -> int:
+    """A hex content key as an integer for a seed sequence (its first 15 hex digits, 60 bits)."""
+    return int(key[:15], 16)

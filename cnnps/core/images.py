@@ -27,20 +27,32 @@ def _scale_integer(img: np.ndarray, path: Path) -> np.ndarray:
     raise InputError(path, f"unsupported pixel type {img.dtype}")
 
 
-def _read_exr(path: Path) -> np.ndarray:
+def read_exr(path: str | Path, channels: str | None = None) -> np.ndarray:
+    """Read an OpenEXR image as float32, row 0 on top, values linear as stored.
+
+    ``channels``: the channel names to return, in that order (e.g. ``"RGBA"`` gives
+    (H, W, 4)); a missing one is an InputError. ``None`` (what :func:`read_image` uses):
+    RGB when the file has R, G and B, else Y (grey), else its first channel (group).
+    """
     import OpenEXR
 
+    path = Path(path)
     try:
-        with OpenEXR.File(str(path)) as f:
-            channels = f.channels()
-            if "RGB" in channels:
-                img = np.asarray(channels["RGB"].pixels)
-            elif all(c in channels for c in "RGB"):
-                img = np.stack([np.asarray(channels[c].pixels) for c in "RGB"], axis=-1)
-            elif "Y" in channels:
-                img = np.asarray(channels["Y"].pixels)
-            elif len(channels) >= 1:
-                img = np.asarray(next(iter(channels.values())).pixels)
+        with OpenEXR.File(str(path), separate_channels=channels is not None) as f:
+            found = f.channels()
+            if channels is not None:
+                missing = [c for c in channels if c not in found]
+                if missing:
+                    raise InputError(path, f"EXR file has no channel {missing[0]!r} (has {', '.join(sorted(found))})")
+                img = np.stack([np.asarray(found[c].pixels) for c in channels], axis=-1)
+            elif "RGB" in found:
+                img = np.asarray(found["RGB"].pixels)
+            elif all(c in found for c in "RGB"):
+                img = np.stack([np.asarray(found[c].pixels) for c in "RGB"], axis=-1)
+            elif "Y" in found:
+                img = np.asarray(found["Y"].pixels)
+            elif len(found) >= 1:
+                img = np.asarray(next(iter(found.values())).pixels)
             else:
                 raise InputError(path, "EXR file has no channels")
     except InputError:
@@ -80,7 +92,7 @@ def read_image(path: str | Path) -> np.ndarray:
         raise InputError(path, "file not found")
     suffix = path.suffix.lower()
     if suffix == ".exr":
-        img = _read_exr(path)
+        img = read_exr(path)
     elif suffix in (".tif", ".tiff"):
         img = _read_tiff(path)
     elif suffix == ".png":

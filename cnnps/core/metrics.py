@@ -1,10 +1,16 @@
-"""Angular error between normal maps and its summary statistics."""
+"""Angular error between normal maps, its summary statistics, and scoring against ground truth."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
+
 import numpy as np
 
+from cnnps.core.errors import InputError
+
 THRESHOLDS_DEG = (5.0, 10.0, 20.0)
+GT_MIN_NORM = 0.5  # a ground-truth normal shorter than this means "no ground truth here"
 
 
 def angular_error_deg(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -53,3 +59,39 @@ def error_stats(err: np.ndarray, mask: np.ndarray | None = None) -> dict:
     for t in THRESHOLDS_DEG:
         stats[f"under_{t:g}_deg"] = float(np.mean(err < t))
     return stats
+
+
+@dataclass
+class GroundTruthScore:
+    """Normals scored against ground truth (:func:`score_normals`)."""
+
+    errors: np.ndarray  # (H, W) float64 angular error in degrees, 0 where not scored
+    scored: np.ndarray  # (H, W) bool: mask pixels with a ground-truth normal
+    stats: dict  # error_stats over the scored pixels
+
+    def picture(self, vmax: float | None = None, enlarge: int = 1) -> np.ndarray:
+        """The error map as a uint8 RGB picture with a colour bar
+        (:func:`cnnps.core.visualize.error_picture`); ``enlarge``: whole factor, nearest
+        neighbour (small captures); ``vmax``: the scale's top (default: from the errors)."""
+        from cnnps.core.visualize import error_picture
+
+        err, scored = self.errors, self.scored
+        if enlarge > 1:
+            err = np.repeat(np.repeat(err, enlarge, axis=0), enlarge, axis=1)
+            scored = np.repeat(np.repeat(scored, enlarge, axis=0), enlarge, axis=1)
+        return error_picture(err, scored, vmax=vmax)
+
+
+def score_normals(normal: np.ndarray, gt: np.ndarray, mask: np.ndarray, source: str | Path | None = None) -> GroundTruthScore:
+    """Angular errors of ``normal`` (H, W, 3) against ``gt`` (H, W, 3) on the ``mask``
+    pixels that have a ground-truth normal (norm > :data:`GT_MIN_NORM`), and their stats.
+
+    Raises :class:`InputError` naming ``source`` (the capture) when no mask pixel has one.
+    """
+    gt = np.asarray(gt)
+    scored = np.asarray(mask, dtype=bool) & (np.linalg.norm(gt, axis=-1) > GT_MIN_NORM)
+    if not scored.any():
+        raise InputError(source, "ground truth is zero at every mask pixel")
+    err = angular_error_deg(normal, gt)
+    err[~scored] = 0.0
+    return GroundTruthScore(err, scored, error_stats(err, scored))

@@ -33,22 +33,22 @@ through a pyarrow filesystem. Local paths stay :class:`~pathlib.Path`, URLs stay
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Sequence
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from cnnps.core import storage
 from cnnps.core.atomic import publish_mode
 from cnnps.core.errors import InputError
-from cnnps.core import storage
+from cnnps.core.hashing import file_sha256
 
 MANIFEST = "manifest.json"
 MAP_DTYPE = np.dtype("<f2")
@@ -110,14 +110,6 @@ def make_batch(
         pa.array(np.asarray(angle_deg, np.float32)),
     ]
     return pa.RecordBatch.from_arrays(cols_, schema=schema)
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 @dataclass
@@ -211,7 +203,7 @@ class SceneShardWriter:
         infos = []
         for tmp, final in zip(self._tmp, finals):
             meta = pq.read_metadata(tmp)
-            infos.append(ShardInfo(final.name, meta.num_rows, meta.num_row_groups, tmp.stat().st_size, sha256_file(tmp)))
+            infos.append(ShardInfo(final.name, meta.num_rows, meta.num_row_groups, tmp.stat().st_size, file_sha256(tmp)))
         if self.remote:
             for tmp, final in zip(self._tmp, finals):
                 with open(tmp, "rb") as src, storage.open_output(storage.join(self.url, final.name)) as dst:

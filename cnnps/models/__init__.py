@@ -1,1 +1,12 @@
-"""The CNN-PS network, checkpoint I/O and the shipped weights (``cnnps/models/weights``)."""
+"""The network layer: CNN-PS and everything that runs it (imports only ``cnnps.core``).
+
+- ``network``: the CNN-PS model and its inference-only folded forms;
+- ``checkpoint``: safe save/load of model files; ``shipped``: the model in
+  ``cnnps/models/weights/`` and its provenance;
+- ``devices``: the one device rule; ``inference``: batched prediction with test-time
+  rotations (``predict_normals``, ``MapPredictor``);
+- training, as the train stage (``cnnps.stages.train``) runs it: ``training`` (the
+  loop), ``optimiser`` (model and Adam, learning rate, one step), ``train_state``
+  (resumable checkpoints, RNG states), ``validation``, ``distributed`` (torchrun) and
+  ``openmp`` (OpenMP's wait policy, set before torch loads; torch-free, like this file).
+"""

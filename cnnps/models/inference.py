@@ -10,9 +10,11 @@ Speed (see ``benchmarks/bench_inference.py``): a CNNPS model is never run as tra
 On CPU in fp32 it runs as ``cnnps.models.network.FastCNNPS`` (linear layers folded: ~20 % fewer
 operations; no dropout; no concatenations; ReLU and partial sums fused into oneDNN
 convolutions), elsewhere (bf16 autocast, CUDA) as ``FoldedCNNPS``; always channels_last,
-under ``torch.inference_mode``, CPU batches small enough to stay in the caches. Outputs
-equal the trained network's up to float32 rounding. Any other ``nn.Module`` mapping
-(B, 1, w, w) maps to (B, 3) normals is run as given.
+under ``torch.inference_mode``, CPU batches small enough to stay in the caches
+(``DEFAULT_BATCH_CPU`` = 256 maps). Outputs equal the trained network's up to float32
+rounding. Any other ``nn.Module`` mapping (B, 1, w, w) maps to (B, 3) normals is run as
+given. :class:`MapPredictor` is also what the train stage validates with
+(:mod:`cnnps.models.validation`).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from torch import nn
 from cnnps.core.errors import CnnpsError
 from cnnps.core.obsmap import observation_maps
 from cnnps.core.rotation import average_rotated_predictions, rotate_z, rotation_angles
-from cnnps.models.devices import resolve_device  # noqa: F401 (part of this module's API)
+from cnnps.models.devices import resolve_device  # also part of this module's API
 from cnnps.models.network import CNNPS, fast_cpu_model, fold_for_inference
 
 PRECISIONS = ("fp32", "bf16")
@@ -49,10 +51,11 @@ def check_precision(precision: str) -> str:
 
 
 class MapPredictor:
-    """Callable (B, w, w) float32 numpy maps -> (B, 3) float32 numpy normals.
+    """Callable (B, w, w) numpy maps (float16 or float32) -> (B, 3) float32 numpy normals.
 
-    Holds the prepared (folded, moved, channels_last) copy of the model; the caller's
-    model is not modified.
+    Holds the prepared (folded, moved, channels_last, eval mode) copy of the model; the
+    caller's model is not modified (nor its train/eval mode), and building the copy draws
+    nothing from the global torch RNG.
     """
 
     def __init__(self, model: nn.Module, device: str | torch.device = "auto", precision: str = "fp32",
@@ -115,7 +118,8 @@ def predict_normals(
     lights: (m, 3) unit light directions (camera frame: x right, y up, z to the camera).
     rotations: K test-time rotations (K = 1: none; the paper uses 10).
     device: 'auto' | 'cpu' | 'cuda[:N]'. precision: 'fp32' | 'bf16' (autocast).
-    batch_size: maps per network call (default 64 on CPU, 4096 on CUDA).
+    batch_size: maps per network call (default ``DEFAULT_BATCH_CPU`` = 256 on CPU,
+    ``DEFAULT_BATCH_CUDA`` = 4096 on CUDA).
     """
     intensities = np.asarray(intensities, dtype=np.float32)
     lights = np.asarray(lights, dtype=np.float64)

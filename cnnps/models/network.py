@@ -115,10 +115,10 @@ class FoldedCNNPS(nn.Module):
             a_b = src.final_conv.bias.detach().double()
             w_fold = torch.einsum("ocs,ci->ois", w1, a_w).reshape(128, c * h)
             b_fold = src.fc1.bias.detach().double() + torch.einsum("ocs,c->o", w1, a_b)
-        self.fc1 = nn.Linear(c * h, 128)
+        self.fc1 = _uninitialised(nn.Linear, c * h, 128)
         self.fc1.weight.data.copy_(w_fold.float())
         self.fc1.bias.data.copy_(b_fold.float())
-        self.fc2 = nn.Linear(128, 3)
+        self.fc2 = _uninitialised(nn.Linear, 128, 3)
         self.fc2.load_state_dict(src.fc2.state_dict())
         self.eval()
 
@@ -137,8 +137,15 @@ class FoldedCNNPS(nn.Module):
         return F.normalize(self.fc2(x).float(), dim=1)
 
 
+def _uninitialised(cls, *args, **kwargs) -> nn.Module:
+    """A layer whose weights are about to be overwritten: not initialised, so building
+    an inference copy draws nothing from the global torch RNG (validating during
+    training must not shift the dropout masks of the steps after it)."""
+    return torch.nn.utils.skip_init(cls, *args, **kwargs)
+
+
 def _copy_conv(conv: nn.Conv2d) -> nn.Conv2d:
-    new = nn.Conv2d(conv.in_channels, conv.out_channels, conv.kernel_size, padding=conv.padding)
+    new = _uninitialised(nn.Conv2d, conv.in_channels, conv.out_channels, conv.kernel_size, padding=conv.padding)
     new.load_state_dict({k: v.detach().float().clone() for k, v in conv.state_dict().items()})
     return new
 

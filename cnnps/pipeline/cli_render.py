@@ -1,4 +1,9 @@
-"""The `cnnps render` command: one synthetic capture folder rendered with Blender Cycles."""
+"""The `cnnps render` command: one synthetic capture folder rendered with Blender Cycles.
+
+The library side is :func:`cnnps.synth.capture_render.render_capture`; Blender (bpy, the
+``cnnps[render]`` extra) is imported only when there are images to render, so `--help`,
+option checks and an already complete folder work without it.
+"""
 
 from __future__ import annotations
 
@@ -27,7 +32,7 @@ def render(
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
 ) -> None:
     """Render MESH under N lights into a capture folder that `cnnps predict` reads."""
-    from cnnps.stages.render import MATERIAL_KINDS, render_capture
+    from cnnps.synth.capture_render import MATERIAL_KINDS, render_capture
 
     if material not in MATERIAL_KINDS:
         raise ConfigError(f"--material must be one of {', '.join(MATERIAL_KINDS)}, got {material!r}")

@@ -156,7 +156,7 @@ def demo_cmd(
     report_path = conf.data_dir / "eval" / "report.md"
     if not metrics_path.is_file():
         raise CnnpsError(f"{metrics_path}: the eval stage wrote no metrics")
-    from cnnps.stages.evaluate import format_table
+    from cnnps.core.eval_report import format_table
 
     typer.echo(format_table(json.loads(metrics_path.read_text())))
     typer.echo(f"\nreport: {report_path}")

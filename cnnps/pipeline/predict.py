@@ -93,22 +93,24 @@ def _resolve_model(model) -> Path:
     return verify_shipped(path)  # checks the SHA-256 recorded next to it
 
 
-def _check_torch(device: str):
+def _torch_device(device: str) -> str:
+    """The torch device ``--device`` names (:func:`cnnps.models.devices.resolve_device`:
+    ``auto`` = CUDA when available); a ConfigError naming the option when it cannot be had."""
     try:
-        import torch
+        from cnnps.models.devices import resolve_device
     except ImportError as exc:  # pragma: no cover - torch is a dependency
         raise ConfigError(f"--method cnn needs PyTorch, which failed to import ({exc})") from exc
-    if device == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("--device cuda: no CUDA device is available (use --device cpu or auto)")
-    return torch
+    try:
+        return str(resolve_device(device))
+    except CnnpsError as exc:
+        raise ConfigError(f"--device {device}: {exc}") from None
 
 
 def _cnn_normals(model_path, I, L, rotations, device, precision, batch_size, progress) -> np.ndarray:
-    torch = _check_torch(device)
     from cnnps.models.checkpoint import load_checkpoint
     from cnnps.models.inference import predict_normals
 
-    torch_device = device if device != "auto" else ("cuda" if torch.cuda.is_available() else "cpu")
+    torch_device = _torch_device(device)
     net, _config, _meta = load_checkpoint(model_path, torch_device)  # InputError naming the file
     return np.asarray(
         predict_normals(
@@ -116,7 +118,7 @@ def _cnn_normals(model_path, I, L, rotations, device, precision, batch_size, pro
             I,
             L,
             rotations=rotations,
-            device=device,
+            device=torch_device,
             precision=precision,
             batch_size=batch_size,
             progress=progress,
@@ -149,9 +151,9 @@ def predict_capture(
     from cnnps.core.capture import load_capture
     from cnnps.core.images import write_png
     from cnnps.core.lambertian import least_squares
-    from cnnps.core.metrics import angular_error_deg, error_stats
+    from cnnps.core.metrics import score_normals
     from cnnps.core.rotation import normalize
-    from cnnps.core.visualize import error_picture, normal_to_rgb
+    from cnnps.core.visualize import normal_to_rgb
 
     t0 = time.perf_counter()
     capture_dir, out_dir = Path(capture_dir), Path(out_dir)
@@ -159,7 +161,7 @@ def predict_capture(
     model_path = None
     if method == "cnn":
         model_path = _resolve_model(model)
-        _check_torch(device)
+        _torch_device(device)  # before the capture is read
     if not capture_dir.is_dir():
         raise InputError(capture_dir, "capture folder not found" if not capture_dir.exists() else "not a folder")
     _check_out_dir(out_dir, capture_dir)
@@ -194,23 +196,18 @@ def predict_capture(
         "pixels": capture.n_pixels,
         "image_size": list(capture.shape),
     }
-    metrics = None
-    err = scored = None
+    metrics = score = None
     if capture.normal_gt is not None:
-        gt = capture.normal_gt
-        scored = capture.mask & (np.linalg.norm(gt, axis=-1) > 0.5)  # GT defined there
-        if not scored.any():
-            raise InputError(capture_dir, "ground truth is zero at every mask pixel")
-        err = angular_error_deg(normal, gt)
-        metrics = error_stats(err, scored)
-        if scored.sum() < capture.n_pixels:
-            capture.notes.append(f"{capture.n_pixels - int(scored.sum())} mask pixels have no ground truth; not scored")
+        score = score_normals(normal, capture.normal_gt, capture.mask, capture_dir)
+        metrics = score.stats
+        if score.scored.sum() < capture.n_pixels:
+            capture.notes.append(f"{capture.n_pixels - int(score.scored.sum())} mask pixels have no ground truth; not scored")
 
     with atomic_dir(out_dir) as tmp:
         np.save(tmp / "normal.npy", normal)
         write_png(tmp / "normal.png", normal_to_rgb(normal, capture.mask))
         if metrics is not None:
-            write_png(tmp / "error.png", error_picture(err, scored))
+            write_png(tmp / "error.png", score.picture())
             (tmp / "metrics.json").write_text(json.dumps({**metrics, **summary}, indent=2) + "\n")
         summary["seconds"] = round(time.perf_counter() - t0, 3)
         summary["load_seconds"] = round(t_load, 3)

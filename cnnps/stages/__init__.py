@@ -1,1 +1,7 @@
-"""One module per pipeline stage; each exposes ``run(config)`` taking its typed params section."""
+"""One module per pipeline stage; each exposes a frozen ``Params`` dataclass (its params.yaml
+section) and ``run(params, data_dir)`` (stages with per-scene jobs also take ``executor=``).
+
+A stage module holds only its parameters, its plan (what to write, with content keys),
+the per-scene job and ``run``; the library it calls lives in :mod:`cnnps.synth` and
+:mod:`cnnps.core`. Importing a stage module never imports bpy.
+"""

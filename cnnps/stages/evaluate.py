@@ -3,12 +3,16 @@
 The test set follows the spirit of CyclesPSTest: a sphere and two strongly non-convex
 procedural shapes that training never sees (their own seeds), covered with
 ``superpixels`` superpixels of the Specular and the Metallic material categories, lit by
-17 and by 305 uniform (not jittered) lights. It is built with the stages' own library
-code (meshes -> materials -> render) under ``data_dir/eval/testset/`` and cached there
-like any stage output (unchanged scenes are not re-rendered).
+17 and by 305 uniform (not jittered) lights. It is built with the synthesis library
+(:mod:`cnnps.synth`: meshes, superpixel materials, :func:`cnnps.synth.capture_render.render_capture`)
+under ``data_dir/eval/testset/`` and cached there like any stage output (unchanged
+captures are not re-rendered). Blender (bpy, the ``cnnps[render]`` extra) is needed only
+to render captures that are not cached yet; without it that is one line (ConfigError),
+and a stage with only ``real_captures`` never needs it.
 
 Every capture (synthetic ones and the optional ``real_captures``, DiLiGenT layout) is
-scored on the same pixels (mask pixels with a ground-truth normal) by:
+scored on the same pixels (mask pixels with a ground-truth normal,
+:func:`cnnps.core.metrics.score_normals`) by:
 
 - CNN-PS with each ``rotations`` K (default K=1 and K=10),
 - the least-squares Lambertian baseline (:func:`cnnps.core.lambertian.least_squares`).
@@ -23,7 +27,6 @@ Outputs (the report and pictures are replaced together at the end):
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,15 +34,18 @@ from pathlib import Path
 import numpy as np
 
 from cnnps.core.errors import ConfigError, InputError
+from cnnps.core.eval_report import (  # noqa: F401 (format_table: part of this stage's API)
+    LAMBERTIAN,
+    PICTURE_MIN_SIZE,
+    input_picture,
+    summarize,
+    format_table,
+    method_name,
+    write_report,
+)
 
 TEST_SEED_OFFSET = 1_000_003  # test shapes' seeds never coincide with the training shapes'
 SPHERE = "sphere"
-LAMBERTIAN = "lambertian"
-PICTURE_MIN_SIZE = 192  # report pictures of smaller captures are enlarged (nearest neighbour)
-
-
-def method_name(k: int) -> str:
-    return f"cnn_k{k}"
 
 
 @dataclass(frozen=True)
@@ -127,25 +133,18 @@ def _model_path(params: Params, data_dir: Path) -> Path:
     return path
 
 
-def _device(name: str) -> str:
-    if name != "auto":
-        return name
-    import torch
-
-    return "cuda" if torch.cuda.is_available() else "cpu"
-
-
 def evaluate_capture(capture_dir: Path, predict, params: Params) -> dict:
     """Normals by every method for one capture; errors where there is ground truth.
 
     ``predict(I (P, m), L (m, 3), k) -> (P, 3)``: the CNN with k rotations.
 
     Returns ``{"capture", "n_images", "pixels", "scored_pixels", "normals": {method: (H,W,3)},
-    "errors": {method: (H,W)}, "methods": {method: stats}, "mask", "gt", "input"}``.
+    "errors": {method: (H,W)}, "scores": {method: GroundTruthScore}, "methods": {method: stats},
+    "mask", "gt", "scored", "input"}`` (scores, errors, stats and scored only with ground truth).
     """
     from cnnps.core.capture import load_capture
     from cnnps.core.lambertian import least_squares
-    from cnnps.core.metrics import angular_error_deg, error_stats
+    from cnnps.core.metrics import score_normals
     from cnnps.core.rotation import normalize
 
     cap = load_capture(capture_dir)
@@ -164,150 +163,21 @@ def evaluate_capture(capture_dir: Path, predict, params: Params) -> dict:
         "pixels": cap.n_pixels,
         "normals": normals,
         "errors": {},
+        "scores": {},
         "methods": {},
         "mask": cap.mask,
         "gt": cap.normal_gt,
-        "input": _input_picture(cap),
+        "input": input_picture(cap),
     }
     if cap.normal_gt is not None:
-        scored = cap.mask & (np.linalg.norm(cap.normal_gt, axis=-1) > 0.5)
-        if not scored.any():
-            raise InputError(capture_dir, "ground truth is zero at every mask pixel")
-        out["scored"] = scored
-        out["scored_pixels"] = int(scored.sum())
         for m, n in normals.items():
-            err = angular_error_deg(n, cap.normal_gt)
-            err[~scored] = 0.0
-            out["errors"][m] = err
-            out["methods"][m] = error_stats(err, scored)
+            score = score_normals(n, cap.normal_gt, cap.mask, capture_dir)
+            out["scores"][m] = score
+            out["errors"][m] = score.errors
+            out["methods"][m] = score.stats
+        out["scored"] = score.scored
+        out["scored_pixels"] = int(score.scored.sum())
     return out
-
-
-def _input_picture(cap) -> np.ndarray:
-    """The image lit most frontally, exposed to its 99th percentile, sRGB-ish gamma, uint8."""
-    j = int(np.argmax(cap.lights[:, 2]))
-    img = cap.images[j]
-    vals = img[cap.mask]
-    scale = float(np.percentile(vals, 99)) if vals.size else 1.0
-    scale = scale if scale > 0 else 1.0
-    g = np.clip(img / scale, 0.0, 1.0) ** (1 / 2.2)
-    return np.round(g * 255).astype(np.uint8)
-
-
-def _summary(results: dict[str, dict]) -> dict:
-    """Mean of per-capture mean / median errors per method (captures with ground truth)."""
-    per_method: dict[str, list[dict]] = {}
-    for r in results.values():
-        for m, s in r["methods"].items():
-            per_method.setdefault(m, []).append(s)
-    return {
-        m: {
-            "mean_deg": float(np.mean([s["mean_deg"] for s in stats])),
-            "median_deg": float(np.mean([s["median_deg"] for s in stats])),
-            "captures": len(stats),
-        }
-        for m, stats in per_method.items()
-    }
-
-
-def format_table(metrics: dict) -> str:
-    """The evaluation table (plain text): mean / median angular error in degrees."""
-    captures = metrics.get("captures", {})
-    methods = metrics.get("methods") or sorted({m for c in captures.values() for m in c.get("methods", {})})
-    if not captures:
-        return "(no captures evaluated)"
-    head = ["capture", "lights"] + [_label(m) for m in methods]
-    rows = []
-    for name, c in captures.items():
-        row = [name, str(c.get("n_images", ""))]
-        for m in methods:
-            s = c.get("methods", {}).get(m)
-            row.append(f"{s['mean_deg']:6.2f} / {s['median_deg']:6.2f}" if s else "no GT")
-        rows.append(row)
-    summary = metrics.get("summary", {})
-    if summary:
-        row = ["mean over captures", ""]
-        for m in methods:
-            s = summary.get(m)
-            row.append(f"{s['mean_deg']:6.2f} / {s['median_deg']:6.2f}" if s else "")
-        rows.append(row)
-    widths = [max(len(r[i]) for r in [head] + rows) for i in range(len(head))]
-    fmt = lambda r: "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths)))  # noqa: E731
-    lines = ["angular error in degrees: mean / median", fmt(head), "  ".join("-" * w for w in widths)]
-    lines += [fmt(r) for r in rows]
-    return "\n".join(lines)
-
-
-def _label(method: str) -> str:
-    if method.startswith("cnn_k"):
-        return f"CNN-PS K={method[5:]}"
-    if method == LAMBERTIAN:
-        return "Lambertian LS"
-    return method
-
-
-def write_report(out_dir: Path, results: dict[str, dict], metrics: dict) -> Path:
-    """Pictures (``pictures/``), ``metrics.json`` and ``report.md`` under ``out_dir``."""
-    from cnnps.core.atomic import atomic_dir, write_text
-    from cnnps.core.images import write_png
-    from cnnps.core.visualize import error_picture, normal_to_rgb
-
-    out_dir = Path(out_dir)
-    methods = metrics["methods"]
-    best_cnn = method_name(max(int(m[5:]) for m in methods if m.startswith("cnn_k")))
-    lines = [
-        "# CNN-PS evaluation",
-        "",
-        f"Model: `{metrics['model']}`. Angular error in degrees (mean / median) on mask pixels "
-        "with ground truth; every method is scored on the same pixels.",
-        "",
-        "```",
-        format_table(metrics),
-        "```",
-        "",
-    ]
-    with atomic_dir(out_dir / "pictures") as tmp:
-        for name, r in results.items():
-            f = max(1, PICTURE_MIN_SIZE // max(r["mask"].shape))  # small renders: enlarge (nearest)
-            up = (lambda a: a) if f == 1 else (lambda a: np.repeat(np.repeat(a, f, axis=0), f, axis=1))
-            mask = up(r["mask"])
-            files = {"input": f"{name}_input.png"}
-            write_png(tmp / files["input"], up(r["input"]))
-            for m in (best_cnn, LAMBERTIAN):
-                files[f"normal_{m}"] = f"{name}_normal_{m}.png"
-                write_png(tmp / files[f"normal_{m}"], normal_to_rgb(up(r["normals"][m]), mask))
-            if r["gt"] is not None:
-                files["gt"] = f"{name}_normal_gt.png"
-                write_png(tmp / files["gt"], normal_to_rgb(up(r["gt"]), mask))
-                vmax = None
-                errs = [r["errors"][m] for m in (best_cnn, LAMBERTIAN)]
-                vmax_src = np.concatenate([e[r["scored"]] for e in errs])
-                if vmax_src.size:
-                    from cnnps.core.visualize import _nice_ceiling
-
-                    vmax = _nice_ceiling(float(np.percentile(vmax_src, 99)))
-                for m in (best_cnn, LAMBERTIAN):
-                    files[f"error_{m}"] = f"{name}_error_{m}.png"
-                    write_png(tmp / files[f"error_{m}"], error_picture(up(r["errors"][m]), up(r["scored"]), vmax=vmax))
-            c = metrics["captures"][name]
-            lines += [f"## {name}", "", f"`{c['capture']}`: {c['n_images']} images, {c['pixels']} mask pixels.", ""]
-            if r["gt"] is not None:
-                lines += ["| method | mean | median | < 10° |", "| --- | ---: | ---: | ---: |"]
-                for m in methods:
-                    s = c["methods"][m]
-                    lines.append(f"| {_label(m)} | {s['mean_deg']:.2f}° | {s['median_deg']:.2f}° | {100 * s['under_10_deg']:.0f} % |")
-                lines.append("")
-            cols = [("input", "input"), (f"normal_{best_cnn}", f"{_label(best_cnn)}"), (f"normal_{LAMBERTIAN}", "Lambertian LS")]
-            if r["gt"] is not None:
-                cols += [("gt", "ground truth"), (f"error_{best_cnn}", f"error {_label(best_cnn)}"), (f"error_{LAMBERTIAN}", "error Lambertian")]
-            lines.append("| " + " | ".join(t for _, t in cols) + " |")
-            lines.append("|" + " --- |" * len(cols))
-            lines.append("| " + " | ".join(f"![{t}](pictures/{files[k]})" for k, t in cols) + " |")
-            lines.append("")
-    write_text(out_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
-    report = out_dir / "report.md"
-    write_text(report, "\n".join(lines))
-    return report
 
 
 # --------------------------------------------------------------------------- the test set
@@ -315,6 +185,8 @@ def write_report(out_dir: Path, results: dict[str, dict], metrics: dict) -> Path
 
 def testset_plan(params: Params) -> list[dict]:
     """The synthetic test captures: shape x category x light set (names and seeds)."""
+    from cnnps.core.hashing import entropy_seed
+
     base = params.seed + TEST_SEED_OFFSET
     plan = []
     for i, shape in enumerate(params.test_shapes):
@@ -327,7 +199,7 @@ def testset_plan(params: Params) -> list[dict]:
                     "category": cat,
                     "lights": int(n),
                     # the same material maps under every light set of a shape/category
-                    "seed": int(np.random.SeedSequence([base, i, sum(map(ord, cat))]).generate_state(1)[0]) % (2**31 - 1),
+                    "seed": entropy_seed(base, i, sum(map(ord, cat))) % (2**31 - 1),
                 })
     return plan
 
@@ -336,7 +208,7 @@ def test_mesh(shape: str, shape_seed: int):
     """A test shape in the camera frame: a sphere, or a procedural kind in a seeded pose."""
     import trimesh
 
-    from cnnps.stages.meshes import RADIUS, pose_mesh, random_rotation
+    from cnnps.synth.meshes import RADIUS, pose_mesh, random_rotation
 
     if shape == SPHERE:
         return trimesh.creation.icosphere(subdivisions=5, radius=RADIUS)
@@ -349,17 +221,12 @@ def test_mesh(shape: str, shape_seed: int):
 def build_testset(params: Params, data_dir: Path) -> list[Path]:
     """Render (or reuse: each capture carries a content key) the synthetic test captures
     under ``data_dir/eval/testset/<shape>-<category>-<lights>/``; return their folders."""
-    import shutil
-
-    from cnnps.stages.render import render_capture
+    from cnnps.core.cache import prune_stale
+    from cnnps.synth.capture_render import render_capture
 
     root = Path(data_dir) / "eval" / "testset"
     plan = testset_plan(params)
-    wanted = {c["name"] for c in plan}
-    if root.is_dir():  # captures of an older plan
-        for d in root.iterdir():
-            if d.is_dir() and d.name not in wanted and ((d / "scene.json").exists() or (d / ".pending.json").exists()):
-                shutil.rmtree(d)
+    prune_stale(root, {c["name"] for c in plan}, ["scene.json", ".pending.json"])  # captures of an older plan
     meshes: dict[str, object] = {}
     out = []
     for c in plan:
@@ -390,8 +257,8 @@ def evaluate_all(captures, predict, params: Params, out_dir: Path, model_label: 
     metrics = {
         "model": model_label,
         "methods": methods,
-        "summary": _summary({n: r for n, r in results.items() if r["kind"] == "synthetic"}),
-        "summary_real": _summary({n: r for n, r in results.items() if r["kind"] == "real"}),
+        "summary": summarize({n: r for n, r in results.items() if r["kind"] == "synthetic"}),
+        "summary_real": summarize({n: r for n, r in results.items() if r["kind"] == "real"}),
         "captures": {
             n: {
                 "capture": r["capture"],
@@ -434,7 +301,9 @@ def run(params: Params, data_dir: Path) -> None:
 
     from cnnps.models.checkpoint import load_checkpoint
 
-    device = _device(params.device)
+    from cnnps.models.devices import resolve_device
+
+    device = str(resolve_device(params.device))  # CnnpsError: cuda asked for, none here
     net, _config, _meta = load_checkpoint(model_path, device)  # InputError naming the file
     net.eval()
     from cnnps.models.inference import predict_normals

@@ -18,14 +18,15 @@ For every foreground pixel (with a valid ground-truth normal) of every scene in
 
 4. ``ambient_max`` > 0 (augmentation): before the maps are built, every light of a pixel
    gets the same offset ``a * max`` (``a ~ U(0, ambient_max)`` per pixel, ``max`` its
-   brightest chosen light; :func:`add_ambient`), so the network learns that shadowed
+   brightest chosen light; :func:`cnnps.synth.training_samples.add_ambient`), so the network learns that shadowed
    cells of real captures hold small non-zero values (ambient light, black level).
 
 Pixels whose chosen lights are all dark (an all-zero map: nothing to learn from) are
 dropped and counted in the manifest.
 
-Randomness: scene ``s`` uses ``numpy.random.default_rng([seed, h(s.key)])`` and chunk
-``c`` of it the child stream ``[seed, h(key), c]`` (pixel order, cones, subsets), so a
+Randomness: scene ``s`` draws from NumPy generators seeded with
+``h = cnnps.core.hashing.derive_seed64(seed, s.key)``: ``[h, 0]`` (pixel order) and, for
+chunk ``c``, ``[h, 1, c]`` (cones, subsets, row order) and ``[h, 2, c]`` (ambient), so a
 scene's rows depend only on its own key and the params, never on the other scenes.
 
 Output in ``data_dir/extract/`` (or at ``output``: a path or an fsspec URL such as
@@ -50,7 +51,6 @@ changing it does not re-extract anything.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from dataclasses import asdict, dataclass, replace
@@ -61,11 +61,12 @@ import numpy as np
 from tqdm import tqdm
 
 from cnnps.core.errors import ConfigError, InputError
-from cnnps.core.obsmap import observation_maps_multi
-from cnnps.core.rotation import rotate_z, rotation_angles
+from cnnps.core.rotation import rotation_angles
 from cnnps.core import storage
-from cnnps.core.executor import ExecutorParams
+from cnnps.core.executor import ExecutorParams, runs_in_process, stage_executor
+from cnnps.core.hashing import bytes_sha256, derive_seed64, stable_hash
 from cnnps.core.shards import MANIFEST, SceneShardWriter, file_size, make_batch, shard_path, shard_schema
+from cnnps.synth.training_samples import add_ambient, build_rows, sample_light_masks
 
 FORMAT_VERSION = 1  # bump when the rows written for the same inputs change
 
@@ -140,83 +141,13 @@ class Params:
         return d
 
 
-def _hash_int(*parts) -> int:
-    h = hashlib.sha256(json.dumps([str(p) for p in parts]).encode()).digest()
-    return int.from_bytes(h[:8], "little")
-
-
 def scene_cache_key(scene_key: str, params: Params) -> str:
-    blob = json.dumps({"scene": scene_key, "params": params.row_key()}, sort_keys=True)
-    return hashlib.sha256(blob.encode()).hexdigest()[:32]
+    """Cache key of a scene's rows: its render key and the row params (json's default
+    spacing, 32 hex digits: the keys of format 1)."""
+    return stable_hash({"scene": scene_key, "params": params.row_key()}, compact=False)[:32]
 
 
 # -- sampling (vectorised over pixels) ------------------------------------------------
-
-
-def sample_light_masks(
-    rng: np.random.Generator,
-    lights: np.ndarray,
-    n_pixels: int,
-    min_lights: int,
-    max_lights: int,
-    cone_min_deg: float,
-    cone_max_deg: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Draw per-pixel light subsets restricted to cones about +z.
-
-    Returns (mask (P, m) bool, cone_deg (P,) float64 half-angle actually used, k (P,)
-    lights used). See the module docstring for the rules.
-    """
-    lights = np.asarray(lights, dtype=np.float64)
-    m = lights.shape[0]
-    P = n_pixels
-    z = np.clip(lights[:, 2], -1.0, 1.0)
-    lo = min(min_lights, m)
-    hi = min(max_lights, m)
-    half = rng.uniform(cone_min_deg, cone_max_deg, size=P)
-    cos_half = np.cos(np.radians(half))
-    # widen cones holding fewer than `lo` lights to the lo-th nearest light to the axis
-    z_lo = np.sort(z)[::-1][lo - 1]
-    cos_used = np.minimum(cos_half, z_lo)
-    in_cone = z[None, :] >= cos_used[:, None]  # (P, m)
-    n_in = in_cone.sum(axis=1)
-    k = np.minimum(rng.integers(lo, hi + 1, size=P), n_in)
-    keys = rng.random((P, m))
-    keys[~in_cone] = 2.0  # never chosen
-    kth = np.take_along_axis(np.sort(keys, axis=1), (k - 1)[:, None], axis=1)
-    mask = keys <= kth
-    cone_deg = np.degrees(np.arccos(cos_used))
-    return mask, cone_deg, mask.sum(axis=1)
-
-
-def add_ambient(rng: np.random.Generator, I: np.ndarray, mask: np.ndarray, ambient_max: float) -> np.ndarray:
-    """``I + a * max(I over the pixel's chosen lights)`` with one ``a ~ U(0, ambient_max)``
-    per pixel (row), added to every light: real attached shadows are not black (DiLiGenT
-    BALL: ~3 % of the pixel's brightest value from ambient light and the black level),
-    while rendered ones are exactly 0. I: (P, m); mask: (P, m) chosen lights."""
-    a = rng.uniform(0.0, ambient_max, size=(I.shape[0], 1))
-    top = np.where(mask, I, 0.0).max(axis=1, keepdims=True)
-    return I + (a * top).astype(I.dtype)
-
-
-def build_rows(
-    intensities: np.ndarray,
-    normals: np.ndarray,
-    lights: np.ndarray,
-    light_mask: np.ndarray,
-    angles: np.ndarray,
-    w: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Maps (R, P, w, w) float16 and normals (R, P, 3) float32 for every rotation angle:
-    rotation r uses lights and normals rotated about z by ``angles[r]``."""
-
-    # one call for all angles: the masked values are shared, only the cells move
-    rot_lights = np.stack([rotate_z(lights, a) for a in angles])
-    maps = observation_maps_multi(intensities, rot_lights, w, light_mask=light_mask, dtype=np.float16)
-    rot_normals = np.empty((len(angles), len(normals), 3), np.float32)
-    for r, a in enumerate(angles):
-        rot_normals[r] = rotate_z(normals, a)
-    return maps, rot_normals
 
 
 # -- one scene --------------------------------------------------------------------------
@@ -271,7 +202,7 @@ def extract_scene(job: SceneJob) -> dict:
     norm = np.linalg.norm(normals, axis=1)
     valid = np.isfinite(norm) & (norm > 0.5)
     I_all = cap.pixel_intensities()  # (P, m), mask pixels row-major, like rr, cc
-    scene_seed = _hash_int(p.seed, job.scene_key)
+    scene_seed = derive_seed64(p.seed, job.scene_key)
     rng = np.random.default_rng([scene_seed, 0])
     pix = np.flatnonzero(valid)
     pix = pix[rng.permutation(len(pix))]
@@ -375,7 +306,7 @@ def split_scenes(scenes: list[tuple[str, Path, dict]], params: Params) -> dict[s
         n_val = int(round(params.val_fraction * len(groups)))
         if params.val_fraction > 0 and len(groups) >= 2:
             n_val = min(max(n_val, 1), len(groups) - 1)
-        ranked = sorted(groups, key=lambda g: hashlib.sha256(f"{params.seed}:{g}".encode()).hexdigest())
+        ranked = sorted(groups, key=lambda g: bytes_sha256(f"{params.seed}:{g}".encode()))
         val = set(ranked[:n_val])
     return {sid: ("val" if group_of[sid] in val else "train") for sid, _, _ in scenes}
 
@@ -390,21 +321,12 @@ def output_location(params: Params, data_dir: Path) -> str | Path:
     return params.output.rstrip("/")
 
 
-def _in_process(ex, n_jobs: int) -> bool:
-    """Whether ``ex.map`` runs the jobs in this process (local executor, one worker or job)."""
-    from cnnps.core.executor import LocalExecutor
-
-    return isinstance(ex, LocalExecutor) and (ex.workers == 1 or n_jobs == 1)
-
-
 def run(params: Params, data_dir: Path, executor=None) -> None:
     """Extract every rendered scene (skipping cached ones) and write the manifest.
 
     ``executor``: runs the per-scene jobs (``cnnps.core.executor``); None = one made from
     ``params.executor`` / ``params.workers`` (default: in this process), closed at the end.
     """
-    from cnnps.core.executor import get_executor
-
     data_dir = Path(data_dir)
     out_dir = output_location(params, data_dir)
     scenes = list_scenes(data_dir / "render")
@@ -418,27 +340,18 @@ def run(params: Params, data_dir: Path, executor=None) -> None:
         else:
             jobs.append(SceneJob(sid, folder, key, str(meta["key"]), out_dir, params))
     if jobs:
-        own = executor is None
-        if own:
-            ep = params.executor or ExecutorParams(workers=1)
-            if params.workers is not None:
-                ep = replace(ep, workers=params.workers)
-            executor = get_executor(ep)
-        try:
-            in_process = _in_process(executor, len(jobs))
+        with stage_executor(params, executor) as ex:
+            in_process = runs_in_process(ex, len(jobs))
             if storage.protocol(out_dir) == "memory" and not in_process:
                 raise ConfigError(
                     f"extract.output {out_dir}: memory:// exists in one process only; use workers: 1 "
                     "(executor kind local) or a shared location (a path, file://, s3://)"
                 )
-            threads = executor.threads_per_job(len(jobs))
+            threads = ex.threads_per_job(len(jobs))
             if not in_process:
                 jobs = [replace(j, threads=threads, progress=False) for j in jobs]
-            for rec in executor.map(extract_scene, jobs, desc="extract scenes", num_cpus=threads):
+            for rec in ex.map(extract_scene, jobs, desc="extract scenes", num_cpus=threads):
                 records[rec["scene"]] = rec
-        finally:
-            if own:
-                executor.close()
     shards, total = [], {"train": 0, "val": 0}
     for sid, _, _ in scenes:
         rec = records[sid]

@@ -1,27 +1,15 @@
 """The ``meshes`` stage: load source meshes and procedural shapes, pose them, write views.
 
-Library side (also used by the render stage):
-
-- :func:`load_mesh` reads OBJ, PLY, OFF, STL, glTF/GLB with trimesh (scenes merged into
-  one mesh), drops degenerate and duplicate faces and unreferenced vertices, merges
-  vertices by position (texture seams would otherwise break smooth shading), makes the
-  winding consistent and the normals point outward (``trimesh.repair``), then
-  :func:`normalize_mesh` centres it on its bounding-box centre and scales it so the
-  largest vertex norm is :data:`RADIUS` (0.95: any rotation of the mesh then projects
-  inside the orthographic camera's x, y in [-1, 1] with a 2.5 % margin).
-- :func:`random_rotation` draws a uniform random rotation (seeded generator);
-  :func:`pose_mesh` applies it (vertices ``v @ R.T``; the origin stays fixed, so the posed
-  mesh stays inside the sphere of radius :data:`RADIUS`).
-
-Stage side: :class:`Params` and :func:`run` write, for every (source mesh or procedural
-shape) × view, ``data_dir/meshes/<view_id>/mesh.ply`` (posed, camera frame: x right, y up,
-z toward the camera) and ``view.json``. A view's ``key`` is a hash of everything that
-determines its mesh (source file bytes or procedural kind and seed, view index, seed,
-radius, code version); ``view_id = <stem>-<k>-<key[:8]>``. Views whose ``view.json``
-already holds the same key are skipped, so adding a mesh only adds its views. View
-folders that are no longer in the plan are removed (``prune``, default on): the
-materials stage iterates over every view folder, and a stale view would otherwise keep
-producing stale scenes.
+:class:`Params` and :func:`run` write, for every (source mesh or procedural shape) × view,
+``data_dir/meshes/<view_id>/mesh.ply`` (loaded and normalised by
+:func:`cnnps.synth.meshes.load_mesh` or made by :func:`cnnps.synth.procedural.make_shape`,
+then posed by a seeded random rotation; camera frame: x right, y up, z toward the
+camera) and ``view.json``. A view's ``key`` is a hash of everything that determines its
+mesh (source file bytes or procedural kind and seed, view index, seed, radius, code
+version); ``view_id = <stem>-<k>-<key[:8]>``. Views whose ``view.json`` already holds
+the same key are skipped, so adding a mesh only adds its views. View folders that are no
+longer in the plan are removed (``prune``, default on): the materials stage iterates
+over every view folder, and a stale view would otherwise keep producing stale scenes.
 
 Poses are seeded per source (``seed``, the source's sha256, view index), not by position
 in the file list, so adding or removing another mesh never changes a view.
@@ -30,7 +18,6 @@ in the file list, so adding or removing another mesh never changes a view.
 from __future__ import annotations
 
 import json
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,120 +26,12 @@ import trimesh
 from tqdm import tqdm
 
 from cnnps.core.atomic import atomic_dir
-from cnnps.core.errors import ConfigError, InputError
-from cnnps.core.hashing import file_sha256, stable_hash  # noqa: F401 (re-exported for other stages)
+from cnnps.core.cache import prune_stale, read_json
+from cnnps.core.errors import ConfigError
+from cnnps.core.hashing import entropy_seed, file_sha256, key_entropy, stable_hash
+from cnnps.synth.meshes import MESH_EXTENSIONS, RADIUS, load_mesh, normalize_mesh, pose_mesh, random_rotation
 
-RADIUS = 0.95  # largest vertex norm after normalisation (unit sphere with a margin)
-MESH_EXTENSIONS = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
 VERSION = 1  # bump when the processing below changes what is written
-
-
-# --------------------------------------------------------------------------- library
-
-
-def normalize_mesh(mesh: trimesh.Trimesh, radius: float = RADIUS, path=None) -> trimesh.Trimesh:
-    """Centre ``mesh`` on its bounding-box centre and scale its largest vertex norm to ``radius``."""
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    if len(vertices) == 0 or len(mesh.faces) == 0:
-        raise InputError(path, "mesh has no faces")
-    if not np.all(np.isfinite(vertices)):
-        raise InputError(path, "mesh has non-finite vertex coordinates")
-    centre = (vertices.min(axis=0) + vertices.max(axis=0)) / 2.0
-    vertices = vertices - centre
-    r = float(np.linalg.norm(vertices, axis=1).max())
-    if not r > 0:
-        raise InputError(path, "mesh is degenerate (all vertices coincide)")
-    return trimesh.Trimesh(vertices * (radius / r), np.asarray(mesh.faces), process=False)
-
-
-def clean_mesh(mesh: trimesh.Trimesh, path=None) -> trimesh.Trimesh:
-    """Merge vertices by position, drop degenerate/duplicate faces, fix winding and normals."""
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(mesh.faces, dtype=np.int64)
-    if len(faces) == 0:
-        raise InputError(path, "mesh has no faces")
-    if not np.all(np.isfinite(vertices)):
-        raise InputError(path, "mesh has non-finite vertex coordinates")
-    # A fresh mesh without visuals: process=True merges vertices by position only.
-    m = trimesh.Trimesh(vertices, faces, process=True, validate=False)
-    m.update_faces(m.nondegenerate_faces())
-    m.update_faces(m.unique_faces())
-    m.remove_unreferenced_vertices()
-    if len(m.faces) == 0:
-        raise InputError(path, "mesh is degenerate (every face has zero area)")
-    if not m.area > 0:
-        raise InputError(path, "mesh is degenerate (zero surface area)")
-    if not m.is_winding_consistent:  # slow on large meshes (graph traversal): only when needed
-        trimesh.repair.fix_winding(m)
-    trimesh.repair.fix_normals(m, multibody=True)
-    return m
-
-
-def load_mesh(path: str | Path, radius: float = RADIUS) -> trimesh.Trimesh:
-    """Read a mesh file, clean it and normalise it into the sphere of radius ``radius``.
-
-    Raises :class:`InputError` naming ``path`` for a missing, unreadable, empty or
-    degenerate file.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "mesh file not found")
-    if path.suffix.lower() not in MESH_EXTENSIONS:
-        raise InputError(path, f"unsupported mesh format {path.suffix!r} (use {', '.join(MESH_EXTENSIONS)})")
-    if path.stat().st_size == 0:
-        raise InputError(path, "mesh file is empty")
-    try:
-        loaded = trimesh.load(str(path), force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many kinds for bad files
-        raise InputError(path, f"cannot read mesh: {type(exc).__name__}: {exc}".splitlines()[0]) from None
-    if isinstance(loaded, trimesh.Scene):  # force='mesh' may still hand back an empty scene
-        geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
-        if not geoms:
-            raise InputError(path, "mesh file holds no triangles")
-        loaded = trimesh.util.concatenate(geoms)
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise InputError(path, "mesh file holds no triangles")
-    return normalize_mesh(clean_mesh(loaded, path), radius, path)
-
-
-def random_rotation(rng: np.random.Generator) -> np.ndarray:
-    """A rotation matrix drawn uniformly from SO(3) (normalised Gaussian quaternion)."""
-    q = rng.standard_normal(4)
-    while np.linalg.norm(q) < 1e-8:  # pragma: no cover - probability ~0
-        q = rng.standard_normal(4)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def pose_mesh(mesh: trimesh.Trimesh, rotation: np.ndarray) -> trimesh.Trimesh:
-    """A copy of ``mesh`` rotated about the origin: vertices ``v @ rotation.T``."""
-    rotation = np.asarray(rotation, dtype=np.float64)
-    if rotation.shape != (3, 3):
-        raise ValueError(f"rotation must be 3x3, got {rotation.shape}")
-    return trimesh.Trimesh(np.asarray(mesh.vertices) @ rotation.T, np.asarray(mesh.faces).copy(), process=False)
-
-
-def read_view_mesh(view_dir: str | Path) -> trimesh.Trimesh:
-    """Read the posed ``mesh.ply`` of a view folder written by this stage."""
-    path = Path(view_dir) / "mesh.ply"
-    if not path.is_file():
-        raise InputError(path, "view mesh not found (run the meshes stage)")
-    try:
-        mesh = trimesh.load(str(path), force="mesh", process=False)
-    except Exception as exc:
-        raise InputError(path, f"cannot read mesh: {type(exc).__name__}: {exc}".splitlines()[0]) from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise InputError(path, "view mesh holds no triangles")
-    return mesh
-
-
-# --------------------------------------------------------------------------- stage
 
 
 def _procedural_kinds():
@@ -223,14 +102,19 @@ def _slug(text: str) -> str:
 
 
 def mesh_files(params: Params) -> list[Path]:
-    """The source mesh files of ``params.mesh_dir`` (sorted); ConfigError when it is missing."""
+    """The source mesh files of ``params.mesh_dir`` (sorted); ConfigError when it is missing.
+
+    A folder without mesh files is fine when procedural shapes are asked for: the
+    repository's ``meshes/`` folder (params.yaml's default, a DVC dependency) holds only
+    a README until meshes are dropped into it.
+    """
     if params.mesh_dir is None:
         return []
     root = Path(params.mesh_dir)
     if not root.is_dir():
         raise ConfigError(f"meshes.mesh_dir: folder not found: {root}")
     files = sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in params.extensions and not p.name.startswith("."))
-    if not files:
+    if not files and params.procedural == 0:
         raise ConfigError(f"meshes.mesh_dir: no mesh files ({', '.join(params.extensions)}) in {root}")
     return files
 
@@ -247,14 +131,14 @@ def plan_views(params: Params) -> list[ViewSpec]:
         stem = _slug(path.stem)
         stems[stem] = stems.get(stem, 0) + 1
         for k in range(params.views_per_mesh):
-            rng = np.random.default_rng([params.seed, int(sha[:15], 16), k])
+            rng = np.random.default_rng([params.seed, key_entropy(sha), k])
             rot = random_rotation(rng)
             key = stable_hash({**base, "kind": "file", "sha256": sha, "view": k})
             views.append(ViewSpec(f"{stem}-{k}-{key[:8]}", key, "file", rel, sha, None, k, tuple(map(tuple, rot.tolist()))))
     kinds = params.procedural_kinds
     for i in range(params.procedural):
         kind = kinds[i % len(kinds)]
-        shape_seed = int(np.random.SeedSequence([params.seed, 7919, i]).generate_state(1)[0])
+        shape_seed = entropy_seed(params.seed, 7919, i)
         for k in range(params.views_per_mesh):
             rng = np.random.default_rng([params.seed, shape_seed, k])
             rot = random_rotation(rng)
@@ -266,10 +150,7 @@ def plan_views(params: Params) -> list[ViewSpec]:
 
 
 def _view_is_current(view_dir: Path, key: str) -> bool:
-    try:
-        meta = json.loads((view_dir / "view.json").read_text())
-    except (OSError, ValueError):
-        return False
+    meta = read_json(view_dir / "view.json") or {}
     return meta.get("key") == key and (view_dir / "mesh.ply").is_file()
 
 
@@ -328,8 +209,5 @@ def run(params: Params, data_dir: Path) -> None:
                 cache[spec.source] = normalize_mesh(make_shape(spec.kind, spec.shape_seed), params.radius)
         write_view(out_dir, spec, cache[spec.source], params)
     if params.prune:
-        wanted = {v.view_id for v in views}
-        for p in out_dir.iterdir():
-            if p.is_dir() and p.name not in wanted and ((p / "view.json").is_file() or p.name.endswith(".tmp")):
-                shutil.rmtree(p, ignore_errors=True)
+        prune_stale(out_dir, {v.view_id for v in views}, ["view.json"], build_folders=True)
     print(f"meshes: {len(views)} views ({len(views) - len(todo)} up to date, {len(todo)} written) in {out_dir}")

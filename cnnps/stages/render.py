@@ -2,471 +2,69 @@
 
 For each ``data_dir/materials/<scene_id>/`` (written by the materials stage, naming its
 mesh view in ``material.json``) this writes ``data_dir/render/<scene_id>/``, a capture
-folder (docs/ARCHITECTURE.md): ``000.exr ...`` (float32 linear RGB, names zero-padded to
-the light count), ``filenames.txt``, ``light_directions.txt`` (unit, camera frame),
-``light_intensities.txt``, ``mask.png``, ``normal_gt.npy`` and ``scene.json``.
-
-Caching and resuming. A scene's ``key`` hashes the mesh file, the material files and the
-parameters that change the pictures (not the device, workers or threads). A folder whose
-``scene.json`` holds the current key and all its images is skipped. Otherwise the folder
-appears (built under a temporary name, then renamed) already holding ``.pending.json``
-(the key) and the three text files, so the light directions are fixed FIRST (and every
-run renders with the directions read back from the file); each image is written
-atomically (temp name, rename); ``scene.json`` is written LAST as the completion marker.
-A rerun after a kill finds ``.pending.json`` with the same key, deletes the temporary
-files the kill left, and renders only the missing images with the same lights; a
-different key empties the folder. Only folders of ours (``.pending.json`` or
-``scene.json``) are ever emptied: an existing non-empty folder without them is refused
-(InputError), an existing empty one is filled in place.
+folder rendered by :func:`cnnps.synth.capture_render.render_into` (its docstring: layout,
+resuming a killed render, mask and ground truth from Blender). A scene's ``key`` hashes
+the mesh file, the material files and the parameters that change the pictures (not the
+device, workers or threads); a folder holding the current key and all its images is
+skipped. Render folders of scenes no longer in ``materials/`` are removed (``prune``).
 
 Scaling out. Scenes are independent jobs run by an executor (:mod:`cnnps.core.executor`:
 ``local`` process pool, or ``ray`` on a cluster; params.yaml's ``executor`` section).
 Each job builds a fresh Blender scene (factory settings) in whatever worker process runs
 it, is told how many threads Cycles may use (``threads``, else the executor's
 ``threads_per_job``), asks Ray for one GPU when ``device: gpu``, and is idempotent: the
-images of a scene depend only on its key and seeds (Cycles is deterministic per seed),
-so a retried job (its worker died) resumes the folder and a duplicated one rewrites
-the same pixels.
+images of a scene depend only on its key and seeds, so a retried job (its worker died)
+resumes the folder and a duplicated one rewrites the same pixels.
 
-Mask and ground-truth normals come from Blender itself (one extra 1-sample render): the
-mask is the alpha of the camera rays through the pixel centres and ``normal_gt`` is the
-smooth shading normal at those hits, i.e. exactly the normal the BSDFs were lit with
-(agreeing with the shading by construction; for meshes of the meshes stage it matches the
-analytic/rasterised normal up to Blender's vertex-normal interpolation). The material's
-per-pixel maps are extended outward by nearest neighbour, so a silhouette pixel that
-Blender covers but the materials' rasteriser did not still gets its neighbour's material.
-
-Only :mod:`cnnps.synth.blender_renderer` imports bpy; it is imported lazily here.
+Blender (bpy, the ``cnnps[render]`` extra) is needed only when a scene has images to
+render; without it the stage stops with one line (with the local executor before any
+job starts; on Ray the first job on a node without bpy fails with it). Only
+:mod:`cnnps.synth.blender_renderer` imports bpy.
 """
 
 from __future__ import annotations
 
-import glob
-import json
-import re
-import shutil
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
-from cnnps.core.atomic import atomic_path, publish_mode, write_text
+from cnnps.core.cache import prune_stale, read_json
 from cnnps.core.errors import ConfigError, InputError
-from cnnps.core.hashing import file_sha256, files_sha256, stable_hash
-from cnnps.core.executor import ExecutorParams
-
-VERSION = 1  # bump when what is written changes
-MATERIAL_KINDS = ("lambertian", "diffuse", "specular", "metallic")
+from cnnps.core.executor import ExecutorParams, LocalExecutor, runs_in_process, stage_executor
+from cnnps.core.hashing import derive_seed, file_sha256, files_sha256, stable_hash
+from cnnps.synth.capture_render import (
+    VERSION,
+    RenderSettings,
+    extend_maps,
+    is_complete,
+    lambertian_material,
+    principled_material,
+    render_into,
+)
 
 
 @dataclass(frozen=True)
-class Params:
-    size: int = 128  # image width = height (pixels); the camera covers x, y in [-1, 1]
-    samples: int = 64  # Cycles path samples per pixel
-    lights: int = 50  # lights per scene
-    jitter_deg: float = 3.0  # random offset of each direction from the Fibonacci spiral
-    min_elevation_deg: float = 5.0  # lights stay this far above the horizon
-    light_intensity: float = 1.0  # sun irradiance: a white Lambertian patch facing it reads this
-    max_bounces: int = 8  # Cycles max bounces (all kinds): global illumination
-    device: str = "cpu"  # cpu | gpu
-    seed: int = 0
-    # how scenes are run: params.yaml's shared ``executor`` section (None = in this process);
-    # ``workers`` overrides executor.workers when set (1 = in this process, 0 = one per core)
+class Params(RenderSettings):
+    """Parameters of the render stage (``render:`` in params.yaml): the render settings of
+    :class:`cnnps.synth.capture_render.RenderSettings` (size, samples, lights, jitter_deg,
+    min_elevation_deg, light_intensity, max_bounces, device, seed, threads) and how the
+    scenes are run.
+
+    ``executor``: params.yaml's shared ``executor`` section (None = in this process);
+    ``workers`` overrides executor.workers when set (1 = in this process, 0 = one per
+    core); ``threads`` (0) = the executor's threads_per_job (cores / parallel jobs);
+    ``prune``: remove render folders of scenes no longer in materials/.
+    """
+
     executor: ExecutorParams | None = None
     workers: int | None = None
-    threads: int = 0  # Cycles threads per scene (0 = the executor's threads_per_job: cores / parallel jobs)
-    prune: bool = True  # remove render folders of scenes no longer in materials/
+    prune: bool = True
 
     def __post_init__(self):
-        def bad(msg):
-            raise ConfigError(f"render.{msg}")
-
-        for name in ("size", "samples", "lights"):
-            v = getattr(self, name)
-            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
-                bad(f"{name} must be a positive integer, got {v!r}")
-        if self.lights < 3:
-            bad(f"lights must be >= 3 (photometric stereo needs three), got {self.lights}")
-        if self.size > 8192:
-            bad(f"size must be <= 8192, got {self.size}")
-        if not 0.0 <= self.jitter_deg <= 90.0:
-            bad(f"jitter_deg must be in [0, 90], got {self.jitter_deg}")
-        if not 0.0 <= self.min_elevation_deg < 90.0:
-            bad(f"min_elevation_deg must be in [0, 90), got {self.min_elevation_deg}")
-        if not (self.light_intensity > 0 and np.isfinite(self.light_intensity)):
-            bad(f"light_intensity must be > 0, got {self.light_intensity}")
-        if not isinstance(self.max_bounces, int) or self.max_bounces < 0:
-            bad(f"max_bounces must be an integer >= 0, got {self.max_bounces!r}")
-        if self.device not in ("cpu", "gpu"):
-            bad(f"device must be 'cpu' or 'gpu', got {self.device!r}")
-        if (self.workers is not None and self.workers < 0) or self.threads < 0:
-            bad(f"workers and threads must be >= 0, got {self.workers}, {self.threads}")
-
-    def picture_params(self) -> dict:
-        """The parameters that change the rendered pictures (part of the content key)."""
-        d = asdict(self)
-        for k in ("device", "executor", "workers", "threads", "prune"):
-            d.pop(k)
-        return d
-
-
-# --------------------------------------------------------------------------- helpers
-
-
-def derive_seed(seed: int, name: str) -> int:
-    """A 31-bit seed for ``name`` from the stage seed (stable across runs and machines)."""
-    return int(stable_hash([int(seed), str(name)])[:8], 16) & 0x7FFFFFFF
-
-
-def image_names(n: int) -> list[str]:
-    width = max(3, len(str(n - 1)))
-    return [f"{i:0{width}d}.exr" for i in range(n)]
-
-
-def extend_maps(maps: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, np.ndarray]:
-    """Fill every map outside ``mask`` with its nearest mask pixel's value."""
-    from scipy.ndimage import distance_transform_edt
-
-    if not mask.any() or mask.all():
-        return maps
-    _, (ri, ci) = distance_transform_edt(~mask, return_indices=True)
-    return {k: (v[ri, ci] if np.ndim(v) >= 2 else v) for k, v in maps.items()}
-
-
-def lambertian_material(albedo=1.0) -> dict:
-    return {"bsdf": "lambertian", "Color": albedo}
-
-
-def principled_material(params: dict[str, np.ndarray]) -> dict:
-    """Renderer material (Blender Principled inputs) from paper parameter maps, through
-    :func:`cnnps.synth.bsdf.to_blender_inputs`: RGBA colours become RGB, maps that hold one
-    value everywhere become constants (no texture)."""
-    from cnnps.synth.bsdf import to_blender_inputs
-
-    out: dict[str, Any] = {"bsdf": "principled"}
-    for name, value in to_blender_inputs(params).items():
-        arr = np.asarray(value, dtype=np.float32)
-        if arr.ndim >= 1 and arr.shape[-1] == 4 and (arr.ndim == 1 or arr.ndim == 3):
-            arr = arr[..., :3]  # RGBA -> RGB (alpha 1)
-        if arr.ndim >= 2:
-            flat = arr.reshape(arr.shape[0] * arr.shape[1], -1)
-            if np.all(flat == flat[0]):
-                arr = flat[0] if flat.shape[1] > 1 else flat[0, 0]
-        out[name] = arr
-    return out
-
-
-def _write_lights(out: Path, L: np.ndarray, intensity: float, names: list[str]) -> None:
-    write_text(out / "light_directions.txt", "".join(f"{x:.9f} {y:.9f} {z:.9f}\n" for x, y, z in L))
-    write_text(out / "light_intensities.txt", "".join(f"{intensity:.9g} {intensity:.9g} {intensity:.9g}\n" for _ in L))
-    write_text(out / "filenames.txt", "".join(n + "\n" for n in names))
-
-
-def _read_json(path: Path) -> dict | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-
-
-def is_complete(out: Path, key: str) -> bool:
-    meta = _read_json(out / "scene.json")
-    if not meta or meta.get("key") != key:
-        return False
-    names = meta.get("filenames") or []
-    return bool(names) and all((out / n).is_file() for n in names) and (out / "normal_gt.npy").is_file()
-
-
-# --------------------------------------------------------------------------- one capture
-
-
-def render_into(
-    out: Path,
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    material: dict | Any,
-    *,
-    key: str,
-    lights: np.ndarray,
-    intensity: float,
-    size: int,
-    samples: int,
-    seed: int,
-    max_bounces: int = 8,
-    device: str = "cpu",
-    threads: int = 0,
-    meta: dict | None = None,
-    progress: bool = True,
-    desc: str = "render",
-) -> dict:
-    """Render one capture folder, resuming a partial one with the same ``key``.
-
-    ``material``: a renderer material dict (see :mod:`cnnps.synth.blender_renderer`), or a
-    callable ``mask -> material dict`` called with Blender's mask (for maps drawn on it).
-    Returns ``{"rendered": number of images rendered now, "skipped": bool}``.
-    """
-    out = Path(out)
-    if is_complete(out, key):
-        return {"rendered": 0, "skipped": True}
-    _check_not_foreign(out)  # before Blender starts
-    from cnnps.core.images import write_exr, write_png
-
-    _forget_inherited_blender_paths()
-    from cnnps.synth.blender_renderer import BlenderRenderer, blender_version
-
-    t0 = time.perf_counter()
-    rendered = 0
-    # the renderer first: a bad device fails before the folder is touched
-    with BlenderRenderer(size, samples, device=device, threads=threads, seed=seed, max_bounces=max_bounces) as r:
-        names = image_names(len(lights))
-        pending = _read_json(out / ".pending.json") or {}
-        done_meta = _read_json(out / "scene.json") or {}
-        resume = key in (pending.get("key"), done_meta.get("key")) and (out / "light_directions.txt").is_file()
-        if resume:
-            try:
-                L = np.loadtxt(out / "light_directions.txt", ndmin=2)
-            except ValueError:
-                L = np.zeros((0, 3))
-            resume = L.shape == np.shape(lights)
-        if resume:
-            lights = L  # the directions of the interrupted run
-            (out / "scene.json").unlink(missing_ok=True)  # not complete any more
-            remove_temp_files(out)  # half-written files of the killed run
-        else:
-            lights = _start_folder(out, key, lights, intensity, names)
-
-        r.load_scene(vertices, faces, material if isinstance(material, dict) else lambertian_material())
-        have_geometry = (out / "mask.png").is_file() and (out / "normal_gt.npy").is_file()
-        if not have_geometry or callable(material):
-            mask, normal = r.render_geometry()
-            if not mask.any():
-                raise InputError(out, "the mesh covers no pixel of the image (empty mask)")
-            if callable(material):
-                r.set_material(material(mask))
-            if not have_geometry:
-                with atomic_path(out / "normal_gt.npy") as tmp:
-                    np.save(tmp, normal)
-                write_png(out / "mask.png", mask.astype(np.uint8) * 255)
-        todo = [i for i, n in enumerate(names) if not (out / n).is_file()]
-        for i in tqdm(todo, desc=desc, unit="light", leave=False, disable=not progress or not todo):
-            write_exr(out / names[i], r.render(lights[i], intensity))
-            rendered += 1
-        gpus = getattr(r, "gpu_devices", None)
-    scene = dict(meta or {})
-    scene.update(
-        {
-            "key": key,
-            "filenames": names,
-            "n_lights": len(names),
-            "size": size,
-            "samples": samples,
-            "max_bounces": max_bounces,
-            "light_intensity": intensity,
-            "seed": seed,
-            "device": device,
-            "threads": threads,  # Cycles threads (0 = Blender's default: all cores)
-            "gpu_devices": gpus,
-            "blender_version": blender_version(),
-            "renderer": "Cycles: orthographic camera, sun lamps (angle 0), black world, "
-            "Gaussian 0.01 px filter, no denoising, no clamping",
-            "mask_normal_source": "Blender camera rays through pixel centres: alpha and smooth shading normal",
-            "render_seconds": round(time.perf_counter() - t0, 3),
-            "images_rendered_last_run": rendered,
-            "version": VERSION,
-        }
-    )
-    write_text(out / "scene.json", json.dumps(scene, indent=2) + "\n")
-    (out / ".pending.json").unlink(missing_ok=True)
-    return {"rendered": rendered, "skipped": False}
-
-
-def _forget_inherited_blender_paths() -> None:
-    """Drop Blender's script folders from ``sys.path`` in a process that has not imported bpy.
-
-    ``import bpy`` adds ``.../site-packages/bpy/<version>/scripts/modules`` (and others)
-    to ``sys.path``; that folder holds the *Python half* of bpy, also named ``bpy``. A
-    worker spawned by a process that had imported bpy (the local executor's pool after an
-    in-process render) inherits that ``sys.path``, and its ``import bpy`` then finds the
-    Python half first and fails with "No module named '_bpy'". bpy adds the folders back
-    when it is imported.
-    """
-    import os
-    import sys
-
-    if "bpy" in sys.modules:
-        return
-    marker = f"{os.sep}bpy{os.sep}"
-    sys.path[:] = [p for p in sys.path if not (marker in p and f"{os.sep}scripts" in p)]
-
-
-# the temporary names of cnnps.core.atomic: ``.{stem}.XXXXXXXX.tmp{suffix}`` (atomic_path) and
-# ``.{name}.XXXXXXXX.tmp`` (atomic_dir, and _start_folder's build folder)
-_TEMP_NAME = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
-
-
-def remove_temp_files(folder: Path) -> list[Path]:
-    """Delete the hidden temporary files (and folders) that atomic writes left in ``folder``
-    when their process was killed. Call it only while no other job writes there."""
-    removed = []
-    for p in Path(folder).iterdir():
-        if _TEMP_NAME.match(p.name):
-            if p.is_dir() and not p.is_symlink():
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                p.unlink(missing_ok=True)
-            removed.append(p)
-    return removed
-
-
-def is_render_folder(path: Path) -> bool:
-    """Whether ``path`` is a folder this stage wrote (finished or not)."""
-    return path.is_dir() and ((path / ".pending.json").is_file() or (path / "scene.json").is_file())
-
-
-def _check_not_foreign(out: Path) -> None:
-    """Refuse an existing ``out`` that holds something not of ours (never delete it)."""
-    if out.exists() and not is_render_folder(out) and (not out.is_dir() or any(out.iterdir())):
-        raise InputError(out.absolute(), "exists and is not a cnnps render folder; choose a new or empty folder")
-
-
-def _start_folder(out: Path, key: str, lights: np.ndarray, intensity: float, names: list[str]) -> np.ndarray:
-    """Make ``out`` hold ``.pending.json`` (the key) and the light files, so a folder with
-    this key always has its lights. Returns the light directions to render, as read back
-    from ``light_directions.txt`` (a resumed run reads the same numbers).
-
-    Only a folder of ours (``.pending.json`` or ``scene.json``) is emptied; any other
-    non-empty ``out`` is refused (InputError). A new folder is built under a temporary
-    name and renamed into place; if a duplicate of this job created it meanwhile (same
-    key), its lights are used. An existing empty folder (or one of ours, emptied) is
-    filled in place: marker without a key first, so a kill leaves it recognisably ours.
-    """
-    import tempfile
-
-    if is_render_folder(out):  # another key, or killed while being set up
-        write_text(out / ".pending.json", json.dumps({"key": None}) + "\n")
-        for p in out.iterdir():
-            if p.name == ".pending.json":
-                continue
-            if p.is_dir() and not p.is_symlink():
-                shutil.rmtree(p)
-            else:
-                p.unlink()
-    else:
-        _check_not_foreign(out)
-
-    if out.is_dir():  # empty (but for our key-less marker)
-        write_text(out / ".pending.json", json.dumps({"key": None}) + "\n")
-        _write_lights(out, lights, intensity, names)
-        write_text(out / ".pending.json", json.dumps({"key": key}) + "\n")
-        return np.loadtxt(out / "light_directions.txt", ndmin=2)
-
-    out.parent.mkdir(parents=True, exist_ok=True)
-    build = re.compile(rf"^\.{re.escape(out.name)}\.[A-Za-z0-9_]{{8}}\.tmp$")
-    for p in out.parent.glob(f".{glob.escape(out.name)}.*.tmp"):  # build folders of killed runs
-        if p.is_dir() and build.match(p.name):
-            shutil.rmtree(p, ignore_errors=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    try:
-        write_text(tmp / ".pending.json", json.dumps({"key": key}) + "\n")
-        _write_lights(tmp, lights, intensity, names)
-        publish_mode(tmp, is_dir=True)  # mkdtemp made it private (0700)
-        tmp.rename(out)
-    except OSError:  # out appeared meanwhile (a duplicate job): resume what it started
-        pending = _read_json(out / ".pending.json") or _read_json(out / "scene.json") or {}
-        if pending.get("key") != key or not (out / "light_directions.txt").is_file():
-            raise
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return np.loadtxt(out / "light_directions.txt", ndmin=2)
-
-
-def _load_mesh_arg(mesh) -> tuple[Any, dict]:
-    """A trimesh from a Trimesh, a file path or ``procedural:<kind>[:seed]``."""
-    import trimesh
-
-    if isinstance(mesh, trimesh.Trimesh):
-        return mesh, {"mesh": "in-memory"}
-    text = str(mesh)
-    if text.startswith("procedural:"):
-        from cnnps.synth.procedural import make_shape
-
-        parts = text.split(":")
-        kind = parts[1] if len(parts) > 1 else ""
-        try:
-            shape_seed = int(parts[2]) if len(parts) > 2 else 0
-        except ValueError:
-            raise ConfigError(f"procedural mesh seed must be an integer: {text!r}") from None
-        return make_shape(kind, shape_seed), {"mesh": text}
-    from cnnps.stages.meshes import load_mesh
-
-    path = Path(text)
-    return load_mesh(path), {"mesh": str(path), "mesh_sha256": file_sha256(path) if path.is_file() else None}
-
-
-def render_capture(
-    mesh,
-    out_dir: str | Path,
-    lights: int = 40,
-    size: int = 64,
-    samples: int = 16,
-    material: str = "lambertian",
-    superpixels: int = 20,
-    seed: int = 0,
-    device: str = "cpu",
-    jitter_deg: float = 0.0,
-    light_intensity: float = 1.0,
-    max_bounces: int = 8,
-    threads: int = 0,
-    progress: bool = True,
-) -> Path:
-    """Render one capture folder of ``mesh`` (a Trimesh in the camera frame, a mesh file,
-    normalised into the unit sphere, or ``procedural:<kind>[:seed]``) and return its path.
-
-    material: ``lambertian`` (white Lambertian, albedo 1: pixel = max(0, n.l) plus
-    interreflections) or a category of the materials stage (``diffuse``, ``specular``,
-    ``metallic``) drawn on ``superpixels`` superpixels of the mask with ``seed``.
-    """
-    if material not in MATERIAL_KINDS:
-        raise ConfigError(f"material must be one of {', '.join(MATERIAL_KINDS)}, got {material!r}")
-    if superpixels < 1:
-        raise ConfigError(f"superpixels must be >= 1, got {superpixels}")
-    p = Params(
-        size=size, samples=samples, lights=lights, jitter_deg=jitter_deg, light_intensity=light_intensity,
-        max_bounces=max_bounces, device=device, seed=seed, threads=threads,
-    )  # validation
-    from cnnps.synth.lights import hemisphere_lights
-
-    tm, info = _load_mesh_arg(mesh)
-    vertices = np.asarray(tm.vertices, dtype=np.float64)
-    faces = np.asarray(tm.faces, dtype=np.int64)
-    import hashlib
-
-    mesh_hash = hashlib.sha256(vertices.astype(np.float32).tobytes() + faces.astype(np.int64).tobytes()).hexdigest()
-    L = hemisphere_lights(p.lights, p.jitter_deg, seed=derive_seed(seed, "lights"), min_elevation_deg=p.min_elevation_deg)
-    if material == "lambertian":
-        mat: Any = lambertian_material()
-    else:
-        def mat(mask: np.ndarray) -> dict:
-            from cnnps.stages.materials import sample_material_maps
-
-            maps = sample_material_maps(mask, material, superpixels, derive_seed(seed, "material"))
-            return principled_material(extend_maps(dict(maps.params), mask))
-
-    key = stable_hash({"mesh": mesh_hash, "material": [material, superpixels], "params": p.picture_params(), "v": VERSION})
-    out = Path(out_dir)
-    meta = {"mesh_sha256": mesh_hash, "material": material, "superpixels": superpixels, **info}
-    render_into(
-        out, vertices, faces, mat, key=key, lights=L, intensity=p.light_intensity, size=p.size,
-        samples=p.samples, seed=seed, max_bounces=p.max_bounces, device=p.device, threads=p.threads,
-        meta=meta, progress=progress, desc=out.name,
-    )
-    return out
-
-
-# --------------------------------------------------------------------------- the stage
+        super().__post_init__()
+        if self.workers is not None and self.workers < 0:
+            raise ConfigError(f"render.workers must be >= 0, got {self.workers}")
 
 
 def _scene_jobs(params: Params, data_dir: Path) -> list[dict]:
@@ -476,7 +74,7 @@ def _scene_jobs(params: Params, data_dir: Path) -> list[dict]:
     jobs = []
     for sdir in sorted(p for p in mat_root.iterdir() if p.is_dir() and not p.name.startswith(".")):
         mjson = sdir / "material.json"
-        meta = _read_json(mjson)
+        meta = read_json(mjson)
         if meta is None:
             continue  # not (yet) a finished scene folder: the materials stage writes atomically
         view_id = meta.get("view_id")
@@ -490,7 +88,7 @@ def _scene_jobs(params: Params, data_dir: Path) -> list[dict]:
         mesh_sha = file_sha256(mesh_path)
         mat_sha = files_sha256([p for p in sdir.iterdir() if p.is_file() and p.suffix in (".npy", ".json", ".png")
                                  and p.name != "preview.png"])
-        view_meta = _read_json(view_dir / "view.json") or {}
+        view_meta = read_json(view_dir / "view.json") or {}
         key = stable_hash({"mesh": mesh_sha, "material": mat_sha, "params": params.picture_params(), "v": VERSION})
         jobs.append(
             {
@@ -546,14 +144,14 @@ def render_scene_job(job: dict) -> dict:
     if is_complete(out, job["key"]):
         return {"scene_id": sid, "rendered": 0, "skipped": True}
     from cnnps.synth.lights import hemisphere_lights
-    from cnnps.stages.meshes import read_view_mesh
+    from cnnps.synth.meshes import read_view_mesh
 
     sdir = Path(job["material_dir"])
     mesh = read_view_mesh(Path(job["mesh_path"]).parent)
-    material = _material_from_dir(sdir, _read_json(sdir / "material.json") or {})
+    material = _material_from_dir(sdir, read_json(sdir / "material.json") or {})
     if isinstance(material.get("Color"), np.ndarray) and material["Color"].shape[:2] != (p.size, p.size):
         raise InputError(sdir, f"material maps are {material['Color'].shape[:2]}, render size is {p.size}")
-    scene_seed = derive_seed(p.seed, sid)
+    scene_seed = derive_seed(int(p.seed), str(sid))
     L = hemisphere_lights(p.lights, p.jitter_deg, seed=scene_seed, min_elevation_deg=p.min_elevation_deg)
     res = render_into(
         out, np.asarray(mesh.vertices), np.asarray(mesh.faces), material, key=job["key"], lights=L,
@@ -564,26 +162,6 @@ def render_scene_job(job: dict) -> dict:
     return {"scene_id": sid, **res}
 
 
-def make_executor(params):
-    """The executor a stage makes for itself: ``params.executor`` (default: in this
-    process) with ``params.workers`` replacing its ``workers`` when set."""
-    import dataclasses
-
-    from cnnps.core.executor import get_executor
-
-    ep = params.executor or ExecutorParams(workers=1)
-    if params.workers is not None:
-        ep = dataclasses.replace(ep, workers=params.workers)
-    return get_executor(ep)
-
-
-def runs_in_process(executor, n_jobs: int) -> bool:
-    """Whether ``executor.map`` runs the jobs in this process (their own bars may show)."""
-    from cnnps.core.executor import LocalExecutor
-
-    return isinstance(executor, LocalExecutor) and (executor.workers == 1 or n_jobs == 1)
-
-
 def run(params: Params, data_dir: Path, executor=None) -> dict:
     """Render every scene of ``data_dir/materials`` into ``data_dir/render`` (skipping
     current ones, resuming partial ones). Returns counts.
@@ -592,32 +170,28 @@ def run(params: Params, data_dir: Path, executor=None) -> dict:
     from ``params.executor`` / ``params.workers`` (default: in this process), closed at
     the end. Progress: scenes done / total (the executor's bar).
     """
-
     data_dir = Path(data_dir)
     jobs = _scene_jobs(params, data_dir)
     out_root = data_dir / "render"
     out_root.mkdir(parents=True, exist_ok=True)
     if params.prune:
-        wanted = {j["scene_id"] for j in jobs}
-        for d in out_root.iterdir():
-            if d.is_dir() and d.name not in wanted and ((d / "scene.json").exists() or (d / ".pending.json").exists()):
-                shutil.rmtree(d)
+        prune_stale(out_root, {j["scene_id"] for j in jobs}, ["scene.json", ".pending.json"])
     todo = [j for j in jobs if not is_complete(Path(j["out"]), j["key"])]
     results = []
     if todo:
-        own = executor is None
-        executor = make_executor(params) if own else executor
-        try:
-            threads = params.threads or executor.threads_per_job(len(todo))
-            progress = runs_in_process(executor, len(todo))  # per-light bars only in this process
+        from cnnps.synth.blender_renderer import require_blender
+
+        with stage_executor(params, executor) as ex:
+            # one clear line here rather than one per job (Ray workers may have the bpy this process lacks)
+            if isinstance(ex, LocalExecutor):
+                require_blender()
+            threads = params.threads or ex.threads_per_job(len(todo))
+            progress = runs_in_process(ex, len(todo))  # per-light bars only in this process
             for j in todo:
                 j["threads"] = threads
                 j["progress"] = progress
             gpus = 1 if params.device == "gpu" else 0
-            results = executor.map(render_scene_job, todo, desc="render", num_cpus=threads, num_gpus=gpus)
-        finally:
-            if own:
-                executor.close()
+            results = ex.map(render_scene_job, todo, desc="render", num_cpus=threads, num_gpus=gpus)
     return {
         "scenes": len(jobs),
         "skipped": len(jobs) - len(todo),

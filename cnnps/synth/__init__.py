@@ -1,0 +1,12 @@
+"""The synthesis library: everything that makes training and test captures.
+
+- :mod:`cnnps.synth.meshes`: mesh loading, cleaning, normalising into the unit sphere, poses;
+- :mod:`cnnps.synth.procedural`: seeded non-convex procedural shapes;
+- :mod:`cnnps.synth.raster`: the orthographic z-buffer rasteriser (mask, normals, depth);
+- :mod:`cnnps.synth.material_maps`: SLIC superpixel material maps;
+- :mod:`cnnps.synth.bsdf`: the paper's material ranges and their Blender 5 mapping;
+- :mod:`cnnps.synth.lights`: light directions on the hemisphere;
+- :mod:`cnnps.synth.capture_render`: one capture folder rendered, cached and resumable;
+- :mod:`cnnps.synth.blender_renderer`: the in-process Cycles renderer, the only module
+  that imports bpy (an optional extra, ``cnnps[render]``).
+"""

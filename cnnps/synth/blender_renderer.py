@@ -20,8 +20,11 @@ Scene set-up (measured facts in ``shared/notes/blender5-facts.md``):
 - no denoiser, no adaptive sampling, no sample clamping, no glossy filter, caustics on:
   unbiased path tracing with ``max_bounces`` bounces of every kind (global illumination:
   interreflections and cast shadows);
-- Standard view transform, float32 linear OpenEXR (multilayer, with the Normal pass and
-  alpha, so ground-truth normals and the mask come from the very same ray hits);
+- Standard view transform; each picture is written as a float32 linear RGBA OpenEXR
+  (one layer, alpha = object coverage) and read back with :func:`cnnps.core.images.read_exr`;
+- mask and ground-truth normals: one more 1-sample render of the same camera rays with
+  an emission override showing the smooth shading normal (:meth:`BlenderRenderer.render_geometry`),
+  and its alpha;
 - persistent data: the scene is synced once, each light only moves the sun;
 - the seed is folded into Cycles' range 0 .. 2^31 - 1 (:func:`cycles_seed`);
 - Blender writes each picture into a private temp folder, locked (flock) while the
@@ -51,8 +54,11 @@ from typing import Any, Mapping
 import numpy as np
 
 from cnnps.core.errors import CnnpsError, ConfigError
+from cnnps.core.images import read_exr
 
 LAMBERTIAN = "lambertian"
+# the one line every command says when it must render and bpy is missing
+BLENDER_MISSING = "the render stage needs Blender: pip install 'cnnps[render]' (bpy 5.0.1, Python 3.11)"
 _GPU_BACKENDS = ("OPTIX", "CUDA", "HIP", "ONEAPI", "METAL")
 
 
@@ -115,10 +121,34 @@ def _remove_stale_tmpdirs(root: str | Path | None = None, min_age_s: float = 60.
     return removed
 
 
-def blender_version() -> str:
-    import bpy
+def blender_available() -> bool:
+    """Whether bpy can be found (without importing it: the import takes a while and
+    changes ``sys.path``)."""
+    import importlib.util
 
-    return bpy.app.version_string
+    try:
+        return importlib.util.find_spec("bpy") is not None
+    except (ImportError, ValueError):
+        return False
+
+
+def require_blender() -> None:
+    """Raise :class:`ConfigError` (:data:`BLENDER_MISSING`) when bpy is not installed."""
+    if not blender_available():
+        raise ConfigError(BLENDER_MISSING)
+
+
+def _import_bpy():
+    """``import bpy``, failing as one clear line (an optional extra: ``cnnps[render]``)."""
+    try:
+        import bpy
+    except ImportError as exc:
+        raise ConfigError(f"{BLENDER_MISSING}; import bpy failed: {exc}" if blender_available() else BLENDER_MISSING) from exc
+    return bpy
+
+
+def blender_version() -> str:
+    return _import_bpy().app.version_string
 
 
 @contextlib.contextmanager
@@ -141,15 +171,6 @@ def _quiet():
         os.close(devnull)
 
 
-def _read_rgba(path: Path) -> np.ndarray:
-    """A Blender RGBA OpenEXR as (S, S, 4) float32, row 0 on top."""
-    import OpenEXR
-
-    with OpenEXR.File(str(path), separate_channels=True) as f:
-        ch = f.channels()
-        return np.stack([np.asarray(ch[c].pixels, dtype=np.float32) for c in "RGBA"], axis=-1)
-
-
 class BlenderRenderer:
     """One Blender scene in this process: build once, render once per light."""
 
@@ -169,9 +190,7 @@ class BlenderRenderer:
             raise ConfigError(f"render samples must be >= 1, got {samples}")
         if device not in ("cpu", "gpu"):
             raise ConfigError(f"render device must be 'cpu' or 'gpu', got {device!r}")
-        import bpy
-
-        self._bpy = bpy
+        self._bpy = _import_bpy()
         self.size = int(size)
         self.samples = int(samples)
         self.device = device
@@ -380,7 +399,6 @@ class BlenderRenderer:
         return mat, mat.node_tree
 
     def _material(self, spec: Mapping[str, Any]):
-        bpy = self._bpy
         spec = dict(spec)
         kind = spec.pop("bsdf", "principled")
         mat, nt = self._empty_material("material")
@@ -458,7 +476,7 @@ class BlenderRenderer:
         self.scene.render.filepath = str(path)
         with _quiet():
             self._bpy.ops.render.render(write_still=True)
-        return _read_rgba(path)
+        return read_exr(path, "RGBA")
 
     def render(self, light_direction, intensity: float = 1.0) -> np.ndarray:
         """(S, S, 3) float32 linear RGB under one sun from ``light_direction`` (camera frame)."""

@@ -1,7 +1,7 @@
 """Seeded procedural shapes that are NOT convex: cast shadows and inter-reflections.
 
 ``make_shape(kind, seed)`` returns a mesh centred at the origin and scaled into the
-sphere of radius :data:`cnnps.stages.meshes.RADIUS`; the same ``(kind, seed)`` always gives the
+sphere of radius :data:`cnnps.synth.meshes.RADIUS`; the same ``(kind, seed)`` always gives the
 same mesh (only NumPy generators seeded from ``seed``; marching cubes is deterministic).
 Nothing is downloaded.
 
@@ -30,6 +30,7 @@ import trimesh
 from skimage.measure import marching_cubes
 
 from cnnps.core.errors import ConfigError
+from cnnps.synth.meshes import normalize_mesh, random_rotation
 
 PROCEDURAL_KINDS = ("blob", "bowl", "assembly", "bumpy", "holed")
 GRID = 72  # marching-cubes resolution per axis
@@ -58,12 +59,6 @@ def _mesh_from_field(field: np.ndarray, spacing: float, extent: float, level: fl
     # marching_cubes' winding depends on the gradient direction: make normals outward
     trimesh.repair.fix_normals(mesh, multibody=True)
     return mesh
-
-
-def _random_rotation(rng):
-    from cnnps.stages.meshes import random_rotation
-
-    return random_rotation(rng)
 
 
 def _smin(a, b, k):
@@ -143,7 +138,7 @@ def _assembly(rng):
         else:
             m = trimesh.creation.torus(major_radius=size * 0.7, minor_radius=size * rng.uniform(0.15, 0.3), major_sections=64, minor_sections=24)
         T = np.eye(4)
-        T[:3, :3] = _random_rotation(rng)
+        T[:3, :3] = random_rotation(rng)
         # first part at the centre; the others overlap a previous one
         if i == 0:
             T[:3, 3] = rng.uniform(-0.1, 0.1, 3)
@@ -177,7 +172,7 @@ def _holed(rng):
         b = _sd_torus(x + R, z, y, R, r)
         field = _smin(a, b, 0.08)
     else:
-        rot = _random_rotation(rng)
+        rot = random_rotation(rng)
         px, py, pz = _apply(rot, x, y, z)
         e = rng.uniform(0.5, 0.85, 3)
         if rng.random() < 0.5:  # rounded box
@@ -207,8 +202,6 @@ _MAKERS = {"blob": _blob, "bowl": _bowl, "assembly": _assembly, "bumpy": _bumpy,
 
 def make_shape(kind: str, seed: int) -> trimesh.Trimesh:
     """A seeded non-convex shape of ``kind``, centred and scaled into the unit sphere (radius 0.95)."""
-    from cnnps.stages.meshes import normalize_mesh
-
     if kind not in _MAKERS:
         raise ConfigError(f"unknown procedural kind {kind!r} (choose from {', '.join(PROCEDURAL_KINDS)})")
     rng = np.random.default_rng([int(seed), PROCEDURAL_KINDS.index(kind)])

@@ -80,6 +80,42 @@ def test_local_map_order_and_error(tmp_path, workers):
     assert ex.map(seeded_sum, []) == []
 
 
+def test_stage_executor_owns_only_the_executor_it_makes(monkeypatch):
+    """A stage given an executor uses it and leaves it open; one it makes from its params
+    (``executor`` section, ``workers`` override; default one worker) is closed, on error too."""
+    from dataclasses import dataclass
+
+    closed = []
+    monkeypatch.setattr(LocalExecutor, "close", lambda self: closed.append(self))
+
+    @dataclass(frozen=True)
+    class StageParams:
+        executor: ExecutorParams | None = None
+        workers: int | None = None
+
+    given = LocalExecutor(workers=3)
+    with ex_mod.stage_executor(StageParams(workers=5), given) as ex:
+        assert ex is given
+    assert closed == []
+    with ex_mod.stage_executor(StageParams()) as ex:
+        assert isinstance(ex, LocalExecutor) and ex.workers == 1  # default: in this process
+    assert closed == [ex]
+    with pytest.raises(RuntimeError, match="job failed"):
+        with ex_mod.stage_executor(StageParams(executor=ExecutorParams(workers=4), workers=2)) as ex:
+            assert ex.workers == 2  # the stage's own `workers` wins over the shared section
+            raise RuntimeError("job failed")
+    assert closed[-1] is ex and len(closed) == 2
+    with ex_mod.stage_executor(StageParams(executor=ExecutorParams(workers=4))) as ex:
+        assert ex.workers == 4
+
+
+def test_runs_in_process():
+    assert ex_mod.runs_in_process(LocalExecutor(workers=1), 5)
+    assert ex_mod.runs_in_process(LocalExecutor(workers=4), 1)
+    assert not ex_mod.runs_in_process(LocalExecutor(workers=4), 2)
+    assert not ex_mod.runs_in_process(object(), 1)  # e.g. Ray: always other processes
+
+
 # -- Ray -------------------------------------------------------------------------------
 
 

@@ -46,3 +46,45 @@ def test_error_stats_values_and_mask():
         error_stats(err, np.zeros_like(m))
     with pytest.raises(ValueError):
         error_stats(np.array([np.nan, 1.0]))
+
+
+def _turned(n: np.ndarray, deg: float) -> np.ndarray:
+    """Each normal turned by ``deg`` degrees about an axis perpendicular to it."""
+    t = np.cross(n, [1.0, 0.0, 0.0])
+    t /= np.linalg.norm(t, axis=-1, keepdims=True)
+    a = np.radians(deg)
+    return np.cos(a) * n + np.sin(a) * t
+
+
+def test_score_normals_scores_mask_pixels_with_ground_truth():
+    from cnnps.core.metrics import score_normals
+
+    rng = np.random.default_rng(0)
+    gt = rng.normal(size=(6, 7, 3))
+    gt[..., 2] = np.abs(gt[..., 2]) + 0.5
+    gt /= np.linalg.norm(gt, axis=-1, keepdims=True)
+    pred = _turned(gt, 12.0)
+    mask = np.ones((6, 7), bool)
+    mask[0] = False  # outside the object
+    gt[1, :3] = 0.0  # no ground truth there
+    pred[0] = [1.0, 0.0, 0.0]  # garbage outside the mask: never scored
+    s = score_normals(pred.astype(np.float32), gt, mask)
+    expected = mask.copy()
+    expected[1, :3] = False
+    np.testing.assert_array_equal(s.scored, expected)
+    assert s.stats["pixels"] == int(expected.sum()) == 32
+    np.testing.assert_allclose(s.errors[expected], 12.0, atol=1e-4)  # float32 normals
+    assert not s.errors[~expected].any()
+    assert s.stats["mean_deg"] == pytest.approx(12.0, abs=1e-4) and s.stats["under_10_deg"] == 0.0
+    pic = s.picture(vmax=20.0, enlarge=3)
+    assert pic.dtype == np.uint8 and pic.shape[0] == 64 and pic.shape[1] > 21  # 18 x 21 map, bar panel >= 64 high
+    assert not pic[:3, :21].any()  # row 0 (outside the mask) is black, enlarged 3x
+
+
+def test_score_normals_without_any_ground_truth_names_the_capture(tmp_path):
+    from cnnps.core.errors import InputError
+    from cnnps.core.metrics import score_normals
+
+    with pytest.raises(InputError, match="ground truth is zero at every mask pixel") as exc:
+        score_normals(np.ones((4, 4, 3)), np.zeros((4, 4, 3)), np.ones((4, 4), bool), tmp_path / "cap")
+    assert exc.value.path == tmp_path / "cap"

@@ -26,13 +26,29 @@ def _maps(n: int, w: int = 32, seed: int = 0) -> torch.Tensor:
 def test_parameter_count_matches_paper():
     model = CNNPS()
     n = count_parameters(model)
-    assert n == _expected_params(32) == 2_654_051
-    assert 2_650_000 < n < 2_660_000  # "about 2.65 M"
+    assert n == _expected_params(32) == 2_654_051  # the paper's "about 2.65 M"
     assert model.fc1.in_features == 80 * 16 * 16 == 20480
 
 
-def test_arch_version_is_int():
-    assert isinstance(ARCH_VERSION, int) and ARCH_VERSION >= 1
+# The state-dict layout (w = 32) each ARCH_VERSION stands for. Checkpoints are refused
+# by version, so renaming or reshaping a layer without bumping ARCH_VERSION (old files
+# would then load into the wrong layers, or fail obscurely) fails here.
+LAYOUTS = {
+    1: [("conv0.weight", (16, 1, 3, 3)), ("conv0.bias", (16,)),
+        ("block1_conv1.weight", (16, 16, 3, 3)), ("block1_conv1.bias", (16,)),
+        ("block1_conv2.weight", (16, 32, 3, 3)), ("block1_conv2.bias", (16,)),
+        ("trans_conv.weight", (48, 48, 1, 1)), ("trans_conv.bias", (48,)),
+        ("block2_conv1.weight", (16, 48, 3, 3)), ("block2_conv1.bias", (16,)),
+        ("block2_conv2.weight", (16, 64, 3, 3)), ("block2_conv2.bias", (16,)),
+        ("final_conv.weight", (80, 80, 1, 1)), ("final_conv.bias", (80,)),
+        ("fc1.weight", (128, 20480)), ("fc1.bias", (128,)),
+        ("fc2.weight", (3, 128)), ("fc2.bias", (3,))],
+}
+
+
+def test_arch_version_pins_the_layout():
+    layout = [(k, tuple(v.shape)) for k, v in CNNPS(w=32).state_dict().items()]
+    assert layout == LAYOUTS.get(ARCH_VERSION), "layout changed: bump ARCH_VERSION and add it to LAYOUTS"
 
 
 @pytest.mark.parametrize("w", [8, 16, 32, 48])
@@ -94,6 +110,18 @@ def test_folded_model_matches_original():
     assert (ref - out).abs().max() < 1e-5
     # the original is untouched
     assert model.final_conv.weight.shape == (80, 80, 1, 1)
+
+
+def test_inference_copies_draw_nothing_from_the_global_rng():
+    # the train stage validates with these copies between training steps: drawing from
+    # the global RNG there would shift the dropout masks of every later step
+    import cnnps.models.network as network
+
+    model = CNNPS(w=16)
+    state = torch.get_rng_state()
+    fold_for_inference(model)
+    network.fast_cpu_model(model)
+    assert torch.equal(torch.get_rng_state(), state)
 
 
 def test_fold_rejects_other_modules():

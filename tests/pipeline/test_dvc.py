@@ -1,11 +1,14 @@
-"""DVC drives the pipeline and re-runs only what changed (tiny settings, a temp repo).
+"""DVC drives the pipeline and re-runs only what changed, and nothing when nothing did.
 
-The temp repo holds a copy of dvc.yaml, the code files it lists as dependencies and a
-tiny params.yaml; `cnnps run-stage` itself is this checkout's installed command.
+The slow test runs `dvc repro` in a temp repo (a copy of dvc.yaml, .dvcignore, the code
+dvc.yaml lists as dependencies, a tiny params.yaml and a `meshes/` folder like the
+repository's); `cnnps run-stage` itself is this checkout's installed command. The fast
+tests check dvc.yaml itself: every stage names the code it runs.
 """
 
 from __future__ import annotations
 
+import ast
 import os
 import re
 import shutil
@@ -17,11 +20,115 @@ from pathlib import Path
 import pytest
 import yaml
 
+from cnnps.pipeline import config as cfg
 from tests.support.meshes import write_tiny_mesh
 
-pytestmark = [pytest.mark.slow, pytest.mark.blender]
-
+REPO = Path(__file__).resolve().parents[2]
 RAN = re.compile(r"Running stage '([a-z]+)'")
+UP_TO_DATE = "Data and pipelines are up to date."
+
+
+# ------------------------------------------------------------------ dvc.yaml: code deps
+
+
+def _dvc_stages() -> dict:
+    return yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
+
+
+def _module_file(name: str) -> Path | None:
+    base = REPO.joinpath(*name.split("."))
+    for f in (base.with_suffix(".py"), base / "__init__.py"):
+        if f.is_file():
+            return f
+    return None
+
+
+def _imported_modules(path: Path) -> set[str]:
+    """Every cnnps module ``path`` imports, at the top or inside functions (lazy imports)."""
+    # the package holding the module (cnnps/core/shards.py and cnnps/core/__init__.py: cnnps.core)
+    package = ".".join(path.relative_to(REPO).with_suffix("").parts).rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = package.split(".")
+                base = ".".join(parts[: len(parts) - node.level + 1])
+                mod = f"{base}.{node.module}" if node.module else base
+            else:
+                mod = node.module or ""
+            found.add(mod)
+            found.update(f"{mod}.{a.name}" for a in node.names)  # `from pkg import submodule`
+    out = set()
+    for name in found:
+        if name == "cnnps" or name.startswith("cnnps."):
+            parts = name.split(".")
+            out.update(".".join(parts[:i]) for i in range(2, len(parts) + 1))  # parent packages run too
+    return out
+
+
+def _trivial_init(path: Path) -> bool:
+    """A package __init__ holding only a docstring / constants: importing it runs nothing."""
+    if path.name != "__init__.py":
+        return False
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant):
+            continue
+        if isinstance(node, ast.ImportFrom) and node.module == "__future__":
+            continue
+        if isinstance(node, ast.Assign) and isinstance(node.value, ast.Constant):
+            continue
+        return False
+    return True
+
+
+def code_closure(*modules: str) -> set[str]:
+    """The repository-relative files run by importing ``modules`` (transitively)."""
+    todo, seen = list(modules), set()
+    files: set[str] = set()
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        f = _module_file(name)
+        if f is None:  # an attribute (`from cnnps.core.errors import ConfigError`), not a module
+            continue
+        if not _trivial_init(f):
+            files.add(f.relative_to(REPO).as_posix())
+        todo.extend(_imported_modules(f) - seen)
+    return files
+
+
+def _covered(file: str, deps: list[str]) -> bool:
+    return any(file == d or file.startswith(d.rstrip("/") + "/") for d in deps)
+
+
+@pytest.mark.parametrize("stage", cfg.STAGES)
+def test_each_stage_depends_on_the_code_it_runs(stage):
+    spec = _dvc_stages()[stage]
+    assert spec["cmd"] == f"cnnps run-stage {stage}"
+    assert not spec.get("always_changed"), "a stage that always runs breaks `dvc repro` being a no-op"
+    deps = [d for d in spec["deps"] if isinstance(d, str)]
+    for d in deps:
+        if d.startswith("cnnps"):
+            assert (REPO / d).exists(), f"{stage}: dependency {d} does not exist"
+    # `cnnps run-stage NAME`: the params file -> Params (config.py), then the stage module
+    needed = code_closure(cfg.STAGE_MODULES[stage], "cnnps.pipeline.config")
+    missing = sorted(f for f in needed if not _covered(f, deps))
+    assert not missing, f"dvc.yaml: stage {stage} runs {missing} but does not list them in its deps"
+
+
+def test_the_mesh_folder_is_a_dependency():
+    assert "${meshes.mesh_dir}" in _dvc_stages()["meshes"]["deps"]
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    mesh_dir = params["meshes"]["mesh_dir"]
+    assert isinstance(mesh_dir, str) and (REPO / mesh_dir).is_dir()  # dvc.yaml cannot name `null`
+    assert "__pycache__/" in (REPO / ".dvcignore").read_text().split()  # byte code is not a change
+
+
+# ------------------------------------------------------------------ dvc repro, for real
 
 
 def _env() -> dict:
@@ -63,14 +170,21 @@ def dvc_repo(tiny_setup, repo_root):
     repo.mkdir()
     shutil.copy(repo_root / "dvc.yaml", repo / "dvc.yaml")
     shutil.copytree(repo_root / "cnnps", repo / "cnnps", ignore=shutil.ignore_patterns("__pycache__", "weights", "*.pt"))
+    # the mesh folder, as in the repository: meshes/ with a README (not a mesh) and the tiny mesh
+    shutil.copytree(repo_root / "meshes", repo / "meshes")
+    shutil.copytree(params["meshes"]["mesh_dir"], repo / "meshes", dirs_exist_ok=True)
+    params["meshes"]["mesh_dir"] = "meshes"
     (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     _sh(["git", "init", "-q"], repo)
     dvc(repo, "init", "-q")
+    shutil.copy(repo_root / ".dvcignore", repo / ".dvcignore")
     dvc(repo, "config", "core.analytics", "false")
     dvc(repo, "config", "core.autostage", "false")
-    return repo, params, root / "meshes_in"
+    return repo, params, repo / "meshes"
 
 
+@pytest.mark.slow
+@pytest.mark.blender
 def test_dvc_reruns_only_what_changed(dvc_repo):
     repo, params, mesh_dir = dvc_repo
     data = repo / "data"
@@ -79,16 +193,29 @@ def test_dvc_reruns_only_what_changed(dvc_repo):
     assert ran == ["meshes", "materials", "render", "extract", "train", "eval"], out[-3000:]
     assert (data / "eval" / "metrics.json").is_file() and (repo / "dvc.lock").is_file()
 
-    # 1. nothing changed: only the always-changed meshes stage runs, writes nothing,
-    #    and everything downstream is skipped
+    # 1. nothing changed: no stage runs at all
     ran, out, t_noop = repro(repo)
-    assert ran == ["meshes"], out[-3000:]
-    assert "0 written" in out
-    for s in ("materials", "render", "extract", "train", "eval"):
-        assert f"Stage '{s}' didn't change, skipping" in out
+    assert ran == [], out[-3000:]
+    for s in cfg.STAGES:
+        assert f"Stage '{s}' didn't change, skipping" in out, out[-3000:]
+    assert UP_TO_DATE in out, out[-3000:]
     assert t_noop < 60, f"no-op dvc repro took {t_noop:.1f} s"
 
-    # 2. a BSDF range of one category: materials onward re-run; only that category's
+    # 2. code: editing one stage's module makes exactly that stage stale (and byte code,
+    #    written into cnnps/ by any import, is not a change: .dvcignore)
+    (repo / "cnnps" / "core" / "__pycache__").mkdir(exist_ok=True)
+    (repo / "cnnps" / "core" / "__pycache__" / "obsmap.cpython-311.pyc").write_bytes(b"\0")
+    assert UP_TO_DATE in dvc(repo, "status")
+    extract_py = repo / "cnnps" / "stages" / "extract.py"
+    source = extract_py.read_text()
+    extract_py.write_text(source + "\n# an edit\n")
+    status = dvc(repo, "status")
+    stale = [s for s in cfg.STAGES if re.search(rf"^{s}:", status, re.M)]
+    assert stale == ["extract"], status
+    extract_py.write_text(source)
+    assert UP_TO_DATE in dvc(repo, "status")
+
+    # 3. a BSDF range of one category: materials onward re-run; only that category's
     #    scenes are re-made and re-rendered; the eval test set is not re-rendered
     mats0, rend0, test0 = mtimes(data / "materials", "material.json"), mtimes(data / "render", "scene.json"), \
         mtimes(data / "eval" / "testset", "scene.json")
@@ -97,7 +224,7 @@ def test_dvc_reruns_only_what_changed(dvc_repo):
     status = dvc(repo, "status")
     assert "materials" in status and "modified:" in status and "render" not in status.split("materials")[0]
     ran, out, _ = repro(repo)
-    assert ran == ["meshes", "materials", "render", "extract", "train", "eval"], out[-3000:]
+    assert ran == ["materials", "render", "extract", "train", "eval"], out[-3000:]
     mats1, rend1 = mtimes(data / "materials", "material.json"), mtimes(data / "render", "scene.json")
     assert set(mats1) == set(mats0) and len(mats1) == 2
     for sid in mats1:
@@ -106,7 +233,7 @@ def test_dvc_reruns_only_what_changed(dvc_repo):
         assert (rend1[sid] != rend0[sid]) == changed, sid
     assert mtimes(data / "eval" / "testset", "scene.json") == test0
 
-    # 3. a new mesh: only its scenes are made and rendered
+    # 4. a new mesh in the mesh folder: DVC sees it; only its scenes are made and rendered
     rend1 = mtimes(data / "render", "scene.json")
     write_tiny_mesh(mesh_dir / "capsule.obj", kind="capsule")
     ran, out, _ = repro(repo)
@@ -115,6 +242,7 @@ def test_dvc_reruns_only_what_changed(dvc_repo):
     new = sorted(set(rend2) - set(rend1))
     assert len(new) == 2 and all(s.startswith("capsule-") for s in new), new
     assert {s: rend2[s] for s in rend1} == rend1, "an unchanged scene was re-rendered"
-    status = dvc(repo, "status")
-    assert not any(f"{s}:" in status for s in ("materials", "render", "extract", "train", "eval")), status
+    assert UP_TO_DATE in dvc(repo, "status")
+    ran, out, _ = repro(repo)
+    assert ran == [], out[-3000:]
     print(f"dvc: first repro {t_first:.1f} s, no-op repro {t_noop:.1f} s")

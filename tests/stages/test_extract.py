@@ -11,7 +11,8 @@ import pytest
 from cnnps.core.obsmap import observation_maps
 from cnnps.core.rotation import rotate_z, rotation_angles
 from cnnps.stages import extract
-from cnnps.stages.extract import Params, sample_light_masks
+from cnnps.stages.extract import Params
+from cnnps.synth.training_samples import add_ambient, build_rows, sample_light_masks
 from cnnps.core.shards import decode_maps, decode_normals, load_manifest
 
 from tests.support.renders import make_render_dir, make_scene, random_lights, sphere_normals  # noqa: F401
@@ -159,7 +160,7 @@ def test_build_rows_equals_rotated_observation_maps():
     n = rotate_z(np.tile([[0.3, 0.2, 0.93]], (50, 1)), rng.uniform(0, 6, 50))
     mask, _, _ = sample_light_masks(rng, L, 50, 20, 60, 30, 80)
     angles = rotation_angles(10)
-    maps, rn = extract.build_rows(I, n, L, mask, angles, 32)
+    maps, rn = build_rows(I, n, L, mask, angles, 32)
     for r in (0, 3, 7):
         ref = observation_maps(I, rotate_z(L, angles[r]), 32, light_mask=mask)
         assert np.array_equal(maps[r], ref.astype(np.float16))
@@ -220,7 +221,7 @@ def test_add_ambient_offsets_each_pixel_by_a_share_of_its_brightest_chosen_light
     I[:, 29] = 5.0  # a bright light that is never chosen: must not set the scale
     mask = np.ones_like(I, dtype=bool)
     mask[:, 29] = False
-    out = extract.add_ambient(np.random.default_rng(1), I, mask, 0.1)
+    out = add_ambient(np.random.default_rng(1), I, mask, 0.1)
     off = out - I
     top = np.where(mask, I, 0).max(axis=1)
     assert np.allclose(off, off[:, :1], atol=1e-6)  # one offset per pixel, every light

@@ -20,6 +20,7 @@ import pytest
 from cnnps.core.errors import ConfigError
 from cnnps.core.executor import ExecutorParams, LocalExecutor
 
+pytestmark = pytest.mark.blender  # every test renders
 pytest.importorskip("bpy")
 
 RENDER = dict(size=16, samples=2, lights=8, jitter_deg=2.0, max_bounces=2)

@@ -3,8 +3,9 @@
 - DDP with a global batch of B (B/2 rows per rank, each rank its own row groups) gives
   the same losses and weights as one process stepping on the two ranks' batches
   concatenated (dropout 0, so no RNG is involved). Only the order of float sums
-  differs: losses agree to rtol 1e-4 (measured 1e-5), the weight updates to 0.3 % of
-  their size (measured 0.04 %), every weight to within 2 Adam steps (measured 0.5);
+  differs: losses agree to rtol 1e-4 (measured 3e-7 to 1e-5), the weights to 0.3 % of
+  the update's size plus one weight flipped at every step, no weight further apart
+  than such a flip (2 lr a step), fewer than 0.1 % of them by more than 1e-4;
 - a run stopped after step 8 (checkpoint at step 5; ``KeyboardInterrupt`` as in
   tests/stages/test_train.py) and resumed from its checkpoint, in the same processes,
   ends with the same weights as the uninterrupted one;
@@ -29,6 +30,8 @@ import pytest
 import torch
 
 from cnnps.core.errors import ConfigError
+from cnnps.models.distributed import DistInfo, dist_env, rank_steps_per_epoch
+from cnnps.models.optimiser import make_model, train_step
 from cnnps.stages import extract, train
 
 REPO = Path(__file__).resolve().parents[2]
@@ -51,8 +54,8 @@ def _torchrun(args: list[str], cwd: Path = REPO) -> subprocess.CompletedProcess:
     # own session: on a timeout the launcher *and* its workers are killed (no orphans)
     proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
-    try:
-        out, err = proc.communicate(timeout=150)
+    try:  # a hang guard, not a speed test: generous for a loaded machine (a run takes ~20 s)
+        out, err = proc.communicate(timeout=600)
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
         out, err = proc.communicate()
@@ -87,14 +90,14 @@ def _reference(url: str) -> tuple[list[float], dict]:
 
     files = manifest_files(url, load_manifest(url), "train")
     streams = [ShardStream(files, W, BATCH // 2, seed=0, buffer_rows=1000, rank=r, world_size=2) for r in (0, 1)]
-    spe = train.rank_steps_per_epoch(streams[0])
-    assert spe == train.rank_steps_per_epoch(streams[1]) and spe < STEPS < 2 * spe  # one epoch boundary
+    spe = rank_steps_per_epoch(streams[0])
+    assert spe == rank_steps_per_epoch(streams[1]) and spe < STEPS < 2 * spe  # one epoch boundary
     for epoch in (0, 1):  # the ranks' row groups: disjoint, all of them
         a, b = (set(s.epoch_units(epoch)) for s in streams)
         assert not a & b and len(a | b) == len(streams[0].units)
     params = train.Params(**TRAIN)
-    model, opt = train.make_model(W, params, torch.device("cpu"))
-    losses, step = [], 0
+    model, opt = make_model(W, params, torch.device("cpu"))
+    losses = []
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as each rank; more only oversubscribes 2 busy cores
     try:
@@ -112,7 +115,7 @@ def _reference_steps(streams, spe, model, opt, losses) -> None:
             (m0, n0), (m1, n1) = next(its[0]), next(its[1])
             maps = torch.from_numpy(np.concatenate([m0, m1])).float().unsqueeze(1)
             normals = torch.from_numpy(np.concatenate([n0, n1]))
-            losses.append(float(train.train_step(model, opt, maps, normals, torch.device("cpu"), "fp32", False)))
+            losses.append(float(train_step(model, opt, maps, normals, torch.device("cpu"), "fp32", False)))
             step += 1
             if step == STEPS:
                 break
@@ -126,7 +129,7 @@ def ddp_run(shards_url, tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("ddp_a")
     # run-stage validates every stage first: the meshes stage needs something to do
     (d / "params.yaml").write_text(yaml.safe_dump({"meshes": {"procedural": 1}, "train": {**TRAIN, "shards": shards_url}}))
-    res = _torchrun(["-m", "cnnps", "run-stage", "train", "--params", str(d / "params.yaml"),
+    _torchrun(["-m", "cnnps", "run-stage", "train", "--params", str(d / "params.yaml"),
                      "--data-dir", str(d / "data")])
     return d / "data"
 
@@ -139,17 +142,40 @@ def test_ddp_matches_one_process_with_the_same_global_batch(ddp_run, shards_url)
     assert [s for s, _ in state["history"]["loss"]] == list(range(1, STEPS + 1))
     np.testing.assert_allclose(logged, losses, rtol=1e-4)
     assert logged[-1] < 0.7 * logged[0]  # it trained (the comparison is not between two constants)
-    # weights: Adam steps every element by ~lr whatever its gradient's size, so elements
-    # whose gradient is ~0 turn float-order noise into differences of a fraction of lr
-    # (measured: max 5e-4 with lr 1e-3, relative size of the update difference 4e-4)
-    init = train.make_model(W, train.Params(**TRAIN), torch.device("cpu"))[0].state_dict()
-    diff = sum(float((state["model"][k] - v).norm() ** 2) for k, v in weights.items()) ** 0.5
+    # weights: bound what the maths bounds. Adam steps every element by ~lr whatever its
+    # gradient's size, so an element whose gradient is ~0 can have its sign flipped by
+    # float-order noise (which also depends on the CPU's SIMD path) and end up to
+    # 2 * lr * STEPS away; the old bound (< 2 lr, measured max 5e-4 on one machine, 3e-5
+    # on another) was a measurement, not a bound. Such elements are rare and hardly
+    # move the loss (their gradient is ~0). Measured: update difference 2.5e-5 to 4e-4
+    # of the update's size, no element off by more than 1e-4 on an AMD EPYC.
+    lr = TRAIN["lr"]
+    init = make_model(W, train.Params(**TRAIN), torch.device("cpu"))[0].state_dict()
+    delta = {k: (state["model"][k] - v).abs() for k, v in weights.items()}
+    diff = sum(float(d.norm() ** 2) for d in delta.values()) ** 0.5
     update = sum(float((v - init[k]).norm() ** 2) for k, v in weights.items()) ** 0.5
-    assert update > 0.1 and diff < 3e-3 * update
-    assert max(float((state["model"][k] - v).abs().max()) for k, v in weights.items()) < 2 * TRAIN["lr"]
+    assert update > 0.1 and diff <= 3e-3 * update + 2 * lr * STEPS  # rounding + one fully flipped weight
+    assert max(float(d.max()) for d in delta.values()) <= 2 * lr * STEPS
+    n_off, n_all = sum(int((d > 1e-4).sum()) for d in delta.values()), sum(d.numel() for d in delta.values())
+    assert n_off <= 1e-3 * n_all, (n_off, n_all)  # DDP-vs-one-process bugs move most weights by ~lr
     metrics = json.loads((ddp_run / "train" / "metrics.json").read_text())
     assert metrics["processes"] == 2 and metrics["steps"] == STEPS and metrics["samples"] == STEPS * BATCH
-    assert metrics["val_rows"] > 0 and metrics["val_mean_deg"] < 90
+    # the reported validation is rank 0's model on the val sample: scoring the written
+    # model.pt on that sample again gives it (up to the rounding of another thread
+    # count), and the one-process reference weights score the same to within what
+    # the weight bounds above allow (measured 2.5e-5 deg)
+    from cnnps.core.shards import load_manifest, manifest_files
+    from cnnps.models.checkpoint import load_checkpoint
+    from cnnps.models.validation import load_val, val_errors
+
+    val = load_val(manifest_files(shards_url, load_manifest(shards_url), "val"), W, train.Params().val_max_rows, 0)
+    assert metrics["val_rows"] == len(val[0]) > 0
+    saved, _, _ = load_checkpoint(ddp_run / "train" / "model.pt")
+    cpu = torch.device("cpu")
+    assert val_errors(saved, *val, cpu, "fp32")["val_mean_deg"] == pytest.approx(metrics["val_mean_deg"], abs=1e-3)
+    saved.load_state_dict(weights)
+    assert val_errors(saved, *val, cpu, "fp32")["val_mean_deg"] == pytest.approx(metrics["val_mean_deg"], abs=0.05)
+    assert metrics["val_mean_deg"] < 30  # it trained: an untrained net is ~40 deg off (test_train.py)
     # only rank 0 wrote: one model, checkpoints at 5, 10, 14, no leftovers
     names = sorted(p.name for p in (ddp_run / "train" / "checkpoints").iterdir())
     assert names == ["step-00000005.pt", "step-00000010.pt", "step-00000014.pt"]
@@ -169,11 +195,11 @@ def test_ddp_resume_equals_uninterrupted(ddp_run, shards_url, tmp_path):
 
 
 def test_dist_env_and_global_batch(monkeypatch, tmp_path):
-    assert train.dist_env({}) == train.DistInfo()
-    info = train.dist_env({"WORLD_SIZE": "4", "RANK": "3", "LOCAL_RANK": "1", "LOCAL_WORLD_SIZE": "2"})
+    assert dist_env({}) == DistInfo()
+    info = dist_env({"WORLD_SIZE": "4", "RANK": "3", "LOCAL_RANK": "1", "LOCAL_WORLD_SIZE": "2"})
     assert (info.rank, info.world_size, info.local_rank, info.local_world_size, info.is_main) == (3, 4, 1, 2, False)
     with pytest.raises(ConfigError, match="torchrun"):
-        train.dist_env({"WORLD_SIZE": "2", "RANK": "5"})
+        dist_env({"WORLD_SIZE": "2", "RANK": "5"})
     monkeypatch.setenv("WORLD_SIZE", "2")
     monkeypatch.setenv("RANK", "0")
     with pytest.raises(ConfigError, match="multiple of the 2 processes"):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cnnps.core.errors import ConfigError
-from cnnps.stages.meshes import RADIUS
+from cnnps.synth.meshes import RADIUS
 from cnnps.synth.procedural import PROCEDURAL_KINDS, make_shape
 
 

@@ -1,0 +1,79 @@
+"""Training a CNN-PS: the model and its Adam optimiser, the learning-rate schedule, one step.
+
+``params`` here is the train stage's ``Params`` (:class:`cnnps.stages.train.Params`),
+read by attribute only, so this layer does not depend on the stage.
+
+None of the speed settings changes the model or the loss: ``channels_last`` (NHWC
+activations, ~1.3x on CPU), ``fused_adam`` (torch's fused kernel: the same algorithm,
+one pass per tensor), ``precision: bf16`` (autocast) and ``compile`` (torch.compile)
+change the float rounding (and, for channels_last or compile, which elements a dropout
+mask draws). Used by :mod:`cnnps.models.training` and benchmarks/bench_train.py.
+"""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+
+import torch
+import torch.nn.functional as F
+
+from cnnps.models.network import CNNPS
+
+
+def lr_at(params, step: int) -> float:
+    """The learning rate of optimiser step ``step + 1`` (``step`` steps done): ``lr``
+    times ``lr_gamma`` for every milestone already reached. A step schedule does not
+    depend on ``max_steps``, so raising ``max_steps`` still continues a finished run."""
+    return params.lr * params.lr_gamma ** sum(step >= m for m in params.lr_milestones)
+
+
+def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
+    for group in opt.param_groups:
+        group["lr"] = lr
+
+
+def autocast(device: torch.device, precision: str):
+    """bf16 autocast on ``device`` for ``precision == "bf16"``, else nothing."""
+    if precision == "bf16":
+        return torch.autocast(device.type, dtype=torch.bfloat16)
+    return nullcontext()
+
+
+def make_model(w: int, params, device: torch.device) -> tuple[CNNPS, torch.optim.Adam]:
+    """A fresh CNN-PS (weights drawn after ``torch.manual_seed(params.seed)``) on
+    ``device``, channels_last if asked, and its Adam optimiser."""
+    torch.manual_seed(params.seed)
+    model = CNNPS(w=w, dropout=params.dropout).to(device)
+    if params.channels_last:
+        model = model.to(memory_format=torch.channels_last)
+    opt = torch.optim.Adam(model.parameters(), lr=params.lr, weight_decay=params.weight_decay,
+                           fused=True if params.fused_adam else None)
+    return model, opt
+
+
+def compile_model(model, params):
+    """``torch.compile(model)`` when ``params.compile``, else ``model``.
+
+    Compilation happens lazily on the first call; :mod:`cnnps.models.training` falls back
+    to the eager model (with a warning) when that first compiled step fails.
+    """
+    if not params.compile:
+        return model
+    return torch.compile(model)
+
+
+def train_step(model, opt, maps: torch.Tensor, normals: torch.Tensor, device: torch.device, precision: str,
+               channels_last: bool) -> torch.Tensor:
+    """One Adam step on a batch (maps (B,1,w,w), unit normals (B,3)); the MSE loss, detached
+    (a tensor on ``device``: reading it out is left to the caller, it waits for the step)."""
+    maps = maps.to(device, non_blocking=True)
+    normals = normals.to(device, non_blocking=True)
+    if channels_last:
+        maps = maps.contiguous(memory_format=torch.channels_last)
+    with autocast(device, precision):
+        pred = model(maps)
+    loss = F.mse_loss(pred.float(), normals)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return loss.detach()

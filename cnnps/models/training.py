@@ -1,0 +1,391 @@
+"""The training loop of the train stage (:mod:`cnnps.stages.train`), in small pieces.
+
+:func:`cnnps.stages.train.run` does::
+
+    with training_processes(params) as (info, device):    # torchrun env, threads, device, process group
+        data = open_training_data(extract_dir)            # manifest, its hash, the shard lists
+        init_state, init_sha = load_init_weights(params.init, data.w)
+        return train(params, data, out_dir, run_key(...), info, device, init_state, init_sha)
+
+and :func:`train` runs a :class:`Trainer`: build (model, optimiser, DDP, the rank's
+shard stream), :meth:`~Trainer.resume` (newest checkpoint of this run key),
+:meth:`~Trainer.load_validation`, :meth:`~Trainer.run_steps` (the step loop: logging,
+validation, checkpoints), :meth:`~Trainer.finish` (last validation, model file, metrics).
+
+``params`` is the stage's ``Params`` dataclass, read by attribute (this layer does not
+import the stage). The stage's module docstring describes the behaviour: batch order,
+resuming, several processes, outputs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from cnnps.core import storage
+from cnnps.core.atomic import write_text
+from cnnps.core.errors import ConfigError, InputError
+from cnnps.core.hashing import bytes_sha256
+from cnnps.core.shards import (
+    MANIFEST,
+    ShardDataset,
+    ShardStream,
+    load_manifest,
+    manifest_files,
+    shard_path,
+)
+from cnnps.models.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
+from cnnps.models.distributed import (
+    DistInfo,
+    all_gather,
+    barrier,
+    broadcast,
+    dist_env,
+    mean_over_ranks,
+    process_device,
+    process_group,
+    rank_steps_per_epoch,
+    set_threads,
+)
+from cnnps.models.optimiser import compile_model, lr_at, make_model, set_lr, train_step
+from cnnps.models.train_state import (
+    CKPT_FORMAT,
+    checkpoint_path,
+    list_checkpoints,
+    load_training_state,
+    read_training_state,
+    rng_states,
+    save_training_state,
+    set_rng_states,
+)
+from cnnps.models.validation import load_val, no_val, val_errors
+
+# -- set-up -----------------------------------------------------------------------------
+
+
+@contextmanager
+def training_processes(params) -> Iterator[tuple[DistInfo, torch.device]]:
+    """(this process's place in a torchrun job, its device), with torch's threads set and,
+    under torchrun, the process group up for the duration (see :mod:`cnnps.models.distributed`)."""
+    info = dist_env()
+    if info.enabled and params.batch_size % info.world_size:
+        raise ConfigError(
+            f"train.batch_size {params.batch_size} (the global batch) must be a multiple of the "
+            f"{info.world_size} processes"
+        )
+    set_threads(params.threads, info)
+    device = process_device(params.device, info)
+    with process_group(info, device):
+        yield info, device
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainingData:
+    """The extract stage's output as training reads it."""
+
+    manifest: dict
+    manifest_url: Path | str
+    manifest_sha256: str  # of the manifest file's bytes: part of the run key
+    w: int
+    train_files: list
+    val_files: list
+
+
+def open_training_data(extract_dir: str | Path) -> TrainingData:
+    """Read the manifest at ``extract_dir`` (a folder or an fsspec URL) and check that it
+    lists training shards and that every shard it lists exists."""
+    if isinstance(extract_dir, str):
+        extract_dir = extract_dir.rstrip("/")
+    manifest = load_manifest(extract_dir)
+    manifest_url = shard_path(extract_dir, MANIFEST)
+    manifest_sha256 = bytes_sha256(storage.read_bytes(manifest_url))
+    w = int(manifest["w"])
+    train_files = manifest_files(extract_dir, manifest, "train")
+    val_files = manifest_files(extract_dir, manifest, "val")
+    if not train_files:
+        raise InputError(str(manifest_url), "lists no training shards")
+    for f in train_files + val_files:
+        if not storage.exists(f):
+            raise InputError(str(f), "shard listed in the manifest is missing (rerun extract)")
+    return TrainingData(manifest, manifest_url, manifest_sha256, w, train_files, val_files)
+
+
+def load_init_weights(init: str | None, w: int) -> tuple[dict | None, str | None]:
+    """(state_dict, weights SHA-256) of the cnnps checkpoint ``init`` (``train.init``),
+    or (None, None). The SHA-256, not the path, enters the run key."""
+    if init is None:
+        return None, None
+    model, config, _ = load_checkpoint(init)
+    if int(config["w"]) != w:
+        raise InputError(init, f"train.init is a w={config['w']} model, the shards hold w={w} maps")
+    return model.state_dict(), read_checkpoint(init)["weights_sha256"]
+
+
+def write_plots(out_dir: Path, history: dict) -> None:
+    """``plots/loss.csv`` (step, loss) and ``plots/val.csv`` (step, mean, median) for ``dvc plots``."""
+    plots = out_dir / "plots"
+    write_text(plots / "loss.csv", "step,loss\n" + "".join(f"{s},{l:.6g}\n" for s, l in history["loss"]))
+    write_text(
+        plots / "val.csv",
+        "step,val_mean_deg,val_median_deg\n" + "".join(f"{s},{a:.4f},{b:.4f}\n" for s, a, b in history["val"]),
+    )
+
+
+# -- the loop ---------------------------------------------------------------------------
+
+
+def train(params, data: TrainingData, out_dir: Path, run_key: str, info: DistInfo, device: torch.device,
+          init_state: dict | None = None, init_sha: str | None = None, *,
+          stop_after_step: int | None = None) -> dict:
+    """Train (resuming the newest checkpoint of ``run_key``); returns the final metrics.
+    ``stop_after_step`` (tests only) raises ``KeyboardInterrupt`` after that step, like a
+    killed run."""
+    trainer = Trainer(params, data, out_dir, run_key, info, device, init_state, init_sha)
+    trainer.resume()
+    trainer.load_validation()
+    trainer.run_steps(stop_after_step)
+    return trainer.finish()
+
+
+class Trainer:
+    """One training run of this process: model, optimiser, data stream, step and history."""
+
+    def __init__(self, params, data: TrainingData, out_dir: Path, run_key: str, info: DistInfo,
+                 device: torch.device, init_state: dict | None = None, init_sha: str | None = None):
+        self.params, self.data, self.run_key, self.info, self.device = params, data, run_key, info, device
+        self.out_dir = Path(out_dir)
+        self.ckpt_dir = self.out_dir / "checkpoints"
+        self.init_sha = init_sha
+        self.main = info.is_main
+        self._build_model(init_state)
+        self._build_stream()
+        self.step = 0
+        self.history: dict = {"loss": [], "val": []}
+        self.val_maps, self.val_normals = no_val(data.w)
+        self.step0, self.seconds = 0, 0.0  # where this call started, and the step loop's time
+
+    def _build_model(self, init_state: dict | None) -> None:
+        """``raw`` (the CNN-PS) and ``opt`` (Adam); ``model``, what a step runs: ``raw``,
+        or under torchrun its DDP wrapper (then each rank reseeds: its own dropout masks)."""
+        params, info, device = self.params, self.info, self.device
+        self.raw, self.opt = make_model(self.data.w, params, device)
+        if init_state is not None:  # every rank loads the same file: replicas start equal
+            self.raw.load_state_dict(init_state)
+        self.model = self.raw
+        if info.enabled:
+            from torch.nn.parallel import DistributedDataParallel as DDP
+
+            self.model = DDP(self.raw, device_ids=[device.index] if device.type == "cuda" else None)
+            torch.manual_seed(params.seed + 1_000_003 * info.rank)  # each rank its own dropout masks
+
+    def _build_stream(self) -> None:
+        """This rank's share of the training shards, its steps per epoch and the run's total."""
+        params, info, data = self.params, self.info, self.data
+        self.stream = ShardStream(data.train_files, data.w, params.batch_size // info.world_size, seed=params.seed,
+                                  buffer_rows=params.shuffle_buffer, rank=info.rank, world_size=info.world_size)
+        self.steps_per_epoch = rank_steps_per_epoch(self.stream)
+        if self.steps_per_epoch == 0:
+            if info.enabled and len(self.stream.units) < info.world_size:
+                raise ConfigError(
+                    f"train: {len(self.stream.units)} training row groups for {info.world_size} processes; "
+                    "use fewer processes or a smaller extract.rows_per_group"
+                )
+            raise ConfigError(f"train.batch_size {params.batch_size} is larger than the {self.stream.rows()} "
+                              "training rows" + (" of a rank's share" if info.enabled else ""))
+        self.total_steps = params.epochs * self.steps_per_epoch
+        if params.max_steps:
+            self.total_steps = min(self.total_steps, params.max_steps)
+
+    # -- resume ------------------------------------------------------------------------
+
+    def resume(self) -> None:
+        """Continue from the newest checkpoint of this run key, if any: weights, optimiser,
+        RNG states (this rank's), step and history. Under torchrun rank 0 chooses (and
+        keeps) the checkpoint and the others read the same file."""
+        info, params = self.info, self.params
+        state = None
+        if self.main:
+            state = load_training_state(self.ckpt_dir, self.run_key) if self.ckpt_dir.is_dir() else None
+        if info.enabled:
+            resume_step = broadcast(None if state is None else int(state["step"]), info)
+            if not self.main and resume_step is not None:
+                state = read_training_state(checkpoint_path(self.ckpt_dir, resume_step))
+        if state is not None:
+            self.raw.load_state_dict(state["model"])
+            self.opt.load_state_dict(state["optim"])
+            rngs = state.get("rank_rng")
+            if info.enabled and rngs is not None and len(rngs) == info.world_size:
+                cpu_rng, cuda_rng = rngs[info.rank]
+            elif info.enabled:  # saved by another number of processes: fresh per-rank streams
+                cpu_rng, cuda_rng = None, None
+                torch.manual_seed(params.seed + 1_000_003 * info.rank + 7919 * int(state["step"]))
+            else:
+                cpu_rng, cuda_rng = state["torch_rng"], state.get("cuda_rng")
+            set_rng_states(cpu_rng, cuda_rng, self.device)
+            self.step, self.history = int(state["step"]), state["history"]
+            if info.enabled and self.main and state.get("world_size", 1) != info.world_size:
+                tqdm.write(f"train: resuming a checkpoint of {state.get('world_size', 1)} process(es) with "
+                           f"{info.world_size}: the data order differs from here on")
+        self.model.train()
+
+    # -- validation and checkpoints ----------------------------------------------------
+
+    def load_validation(self) -> None:
+        """The validation sample (rank 0 only: it alone validates)."""
+        if self.main:
+            self.val_maps, self.val_normals = load_val(self.data.val_files, self.data.w, self.params.val_max_rows,
+                                                       self.params.seed)
+
+    def validate(self) -> dict:
+        return val_errors(self.raw, self.val_maps, self.val_normals, self.device, self.params.precision)
+
+    def checkpoint(self) -> None:
+        """Save the training state (rank 0 writes; every rank's RNG state is in it, so
+        under torchrun this is a collective: every rank checkpoints at the same steps)."""
+        rank_rng = all_gather(rng_states(self.device), self.info)
+        if not self.main:
+            return
+        cpu_rng, cuda_rng = rng_states(self.device)
+        save_training_state(
+            self.ckpt_dir,
+            {
+                "format": CKPT_FORMAT,
+                "run_key": self.run_key,
+                "step": self.step,
+                "model": self.raw.state_dict(),
+                "optim": self.opt.state_dict(),
+                "torch_rng": cpu_rng,
+                "cuda_rng": cuda_rng,
+                "world_size": self.info.world_size,
+                "rank_rng": rank_rng,
+                "history": self.history,
+            },
+            self.params.keep_checkpoints,
+        )
+        write_plots(self.out_dir, self.history)
+
+    # -- the step loop -----------------------------------------------------------------
+
+    def _loader(self, ds):
+        if not self.params.num_workers:
+            return ds  # main-process loading: no DataLoader machinery needed
+        # its own generator: creating a DataLoader iterator must not draw from the global
+        # torch RNG (that would shift the dropout masks of a resumed run)
+        return torch.utils.data.DataLoader(
+            ds, batch_size=None, num_workers=self.params.num_workers, pin_memory=self.device.type == "cuda",
+            generator=torch.Generator().manual_seed(self.params.seed),
+        )
+
+    def _train_step(self, step_model, maps, normals):
+        """(loss, the model to step next): a compiled model's first step compiles; when
+        that fails, this step is redone eagerly (RNG restored) and training stays eager."""
+        p = self.params
+        if step_model is self.model:
+            return train_step(self.model, self.opt, maps, normals, self.device, p.precision, p.channels_last), step_model
+        rng = rng_states(self.device)
+        try:
+            return train_step(step_model, self.opt, maps, normals, self.device, p.precision, p.channels_last), step_model
+        except Exception as exc:  # noqa: BLE001 - any compiler failure: train eagerly
+            tqdm.write(f"train: torch.compile failed ({type(exc).__name__}: {str(exc)[:200]}); "
+                       "training eagerly", file=sys.stderr)
+            set_rng_states(*rng, self.device)
+            self.opt.zero_grad(set_to_none=True)
+            loss = train_step(self.model, self.opt, maps, normals, self.device, p.precision, p.channels_last)
+            return loss, self.model
+
+    def _mean_loss(self, total: torch.Tensor, n: int) -> float:
+        return mean_over_ranks(float(total) / n, self.info, self.device)
+
+    def run_steps(self, stop_after_step: int | None = None) -> None:
+        """Step until ``total_steps``: log the loss every ``log_every`` steps, validate
+        every ``val_every``, checkpoint every ``checkpoint_every`` and at the end."""
+        p, info = self.params, self.info
+        ds = ShardDataset(self.stream)
+        loader = self._loader(ds)
+        bar = tqdm(total=self.total_steps * p.batch_size, initial=self.step * p.batch_size, unit="sample",
+                   unit_scale=True, desc="train" if not info.enabled else f"train ({info.world_size} processes)",
+                   disable=not p.progress or not self.main)
+        step_model = compile_model(self.model, p)
+        t0, self.step0 = time.perf_counter(), self.step
+        loss_acc, loss_n = torch.zeros(()), 0
+        while self.step < self.total_steps:
+            set_lr(self.opt, lr_at(p, self.step))
+            epoch, skip = divmod(self.step, self.steps_per_epoch)
+            ds.set_epoch(epoch)
+            ds.set_skip(skip)
+            for maps, normals in loader:
+                loss, step_model = self._train_step(step_model, maps, normals)
+                self.step += 1
+                step = self.step
+                if step in p.lr_milestones:
+                    set_lr(self.opt, lr_at(p, step))
+                loss_acc += loss.float().cpu()
+                loss_n += 1
+                bar.update(p.batch_size)
+                if step % p.log_every == 0 or step == self.total_steps:
+                    self.history["loss"].append([step, self._mean_loss(loss_acc, loss_n)])
+                    bar.set_postfix(loss=f"{self.history['loss'][-1][1]:.4f}")
+                    loss_acc, loss_n = torch.zeros(()), 0
+                if p.val_every and step % p.val_every == 0 and step != self.total_steps and self.main:
+                    v = self.validate()
+                    if v:
+                        self.history["val"].append([step, v["val_mean_deg"], v["val_median_deg"]])
+                if step % p.checkpoint_every == 0 or step == self.total_steps:
+                    self.checkpoint()
+                if stop_after_step is not None and step >= stop_after_step:
+                    bar.close()
+                    raise KeyboardInterrupt(f"stopped after step {step} (test)")
+                if step >= self.total_steps or step % self.steps_per_epoch == 0:
+                    break  # the end, or this epoch's steps (ranks may hold a few more batches)
+        bar.close()
+        self.seconds = time.perf_counter() - t0
+
+    # -- the end -----------------------------------------------------------------------
+
+    def finish(self) -> dict:
+        """Last validation, a checkpoint if none was written, plots, ``model.pt`` and
+        ``metrics.json`` (rank 0); the metrics (rank 0's, on every rank)."""
+        p, info, step = self.params, self.info, self.step
+        v = self.validate() if self.main else {}
+        if v and (not self.history["val"] or self.history["val"][-1][0] != step):
+            self.history["val"].append([step, v["val_mean_deg"], v["val_median_deg"]])
+        if broadcast(step > 0 and self.main and not list_checkpoints(self.ckpt_dir), info):
+            self.checkpoint()
+        if self.main:
+            write_plots(self.out_dir, self.history)
+        ran = step - self.step0
+        metrics = {
+            "steps": step,
+            "epochs": round(step / self.steps_per_epoch, 3),
+            "samples": step * p.batch_size,
+            "train_loss": self.history["loss"][-1][1] if self.history["loss"] else None,
+            **v,
+            "val_rows": len(self.val_maps),
+            "train_rows": int(sum(u[2] for u in self.stream.units)),  # all ranks together
+            "samples_per_s": round(ran * p.batch_size / self.seconds, 1) if ran > 0 and self.seconds > 0 else None,
+            "device": str(self.device),
+            "precision": p.precision,
+            "processes": info.world_size,
+        }
+        if self.main:
+            save_checkpoint(
+                self.out_dir / "model.pt",
+                self.raw.cpu().to(memory_format=torch.contiguous_format),  # the file holds plain NCHW weights
+                config={"w": self.data.w, "dropout": p.dropout},
+                meta={"steps": step, "val_mean_deg": v.get("val_mean_deg"), "val_median_deg": v.get("val_median_deg"),
+                      "data_manifest_sha256": self.data.manifest_sha256, "params": dataclasses.asdict(p),
+                      **({"init_weights_sha256": self.init_sha} if self.init_sha else {})},
+            )
+            write_text(self.out_dir / "metrics.json", json.dumps(metrics, indent=1))
+        if info.enabled:
+            metrics = broadcast(metrics, info)  # rank 0's (with validation) everywhere
+            barrier(info)  # every rank returns once rank 0's files are written
+        return metrics

@@ -1,0 +1,447 @@
+"""Rendering one capture folder with Blender Cycles: the library of the render stage,
+``cnnps render`` and the eval stage's test set.
+
+:func:`render_into` renders a mesh and a material under given lights into a capture
+folder (docs/ARCHITECTURE.md): ``000.exr ...`` (float32 linear RGB, names zero-padded to
+the light count), ``filenames.txt``, ``light_directions.txt`` (unit, camera frame),
+``light_intensities.txt``, ``mask.png``, ``normal_gt.npy`` and ``scene.json``.
+:func:`render_capture` does it for one mesh (a Trimesh, a mesh file or
+``procedural:<kind>[:seed]``) and a material kind, with its own content key.
+
+Caching and resuming. A folder whose ``scene.json`` holds the current key and all its
+images is skipped (:func:`is_complete`). Otherwise the folder appears (built under a
+temporary name, then renamed) already holding ``.pending.json`` (the key) and the three
+text files, so the light directions are fixed FIRST (and every run renders with the
+directions read back from the file); each image is written atomically (temp name,
+rename); ``scene.json`` is written LAST as the completion marker. A rerun after a kill
+finds ``.pending.json`` with the same key, deletes the temporary files the kill left
+(:func:`remove_temp_files`), and renders only the missing images with the same lights;
+a different key empties the folder. Only folders of ours (``.pending.json`` or
+``scene.json``: :func:`is_render_folder`) are ever emptied: an existing non-empty folder
+without them is refused (InputError), an existing empty one is filled in place. The
+images of a folder depend only on its key and seeds (Cycles is deterministic per seed),
+so a retried or duplicated job resumes or rewrites the same pixels.
+
+Mask and ground-truth normals come from Blender itself (one extra 1-sample render): the
+mask is the alpha of the camera rays through the pixel centres and ``normal_gt`` is the
+smooth shading normal at those hits, i.e. exactly the normal the BSDFs were lit with
+(agreeing with the shading by construction; for meshes of the meshes stage it matches the
+analytic/rasterised normal up to Blender's vertex-normal interpolation). Material maps
+are extended outward by nearest neighbour (:func:`extend_maps`), so a silhouette pixel
+that Blender covers but the materials' rasteriser did not still gets its neighbour's
+material.
+
+Blender (bpy) is needed only to render: :mod:`cnnps.synth.blender_renderer`, the one
+module that imports it, is imported when a folder actually has images to render, and
+without bpy that is one clear :class:`cnnps.core.errors.ConfigError`
+(:func:`cnnps.synth.blender_renderer.require_blender`). A complete folder is recognised
+without Blender.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import re
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from cnnps.core.atomic import atomic_path, publish_mode, write_text
+from cnnps.core.cache import read_json
+from cnnps.core.errors import ConfigError, InputError
+from cnnps.core.hashing import bytes_sha256, derive_seed, file_sha256, stable_hash
+
+VERSION = 1  # bump when what is written for the same inputs changes (part of every render key)
+MATERIAL_KINDS = ("lambertian", "diffuse", "specular", "metallic")
+# the settings that change the pictures (part of the content key); not device or threads
+PICTURE_FIELDS = ("size", "samples", "lights", "jitter_deg", "min_elevation_deg", "light_intensity", "max_bounces", "seed")
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How captures are rendered (the render stage's ``Params`` extend it); validated."""
+
+    size: int = 128  # image width = height (pixels); the camera covers x, y in [-1, 1]
+    samples: int = 64  # Cycles path samples per pixel
+    lights: int = 50  # lights per scene
+    jitter_deg: float = 3.0  # random offset of each direction from the Fibonacci spiral
+    min_elevation_deg: float = 5.0  # lights stay this far above the horizon
+    light_intensity: float = 1.0  # sun irradiance: a white Lambertian patch facing it reads this
+    max_bounces: int = 8  # Cycles max bounces (all kinds): global illumination
+    device: str = "cpu"  # cpu | gpu
+    seed: int = 0
+    threads: int = 0  # Cycles threads per scene (0 = all cores; the stage: the executor's threads_per_job)
+
+    def __post_init__(self):
+        def bad(msg):
+            raise ConfigError(f"render.{msg}")
+
+        for name in ("size", "samples", "lights"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
+                bad(f"{name} must be a positive integer, got {v!r}")
+        if self.lights < 3:
+            bad(f"lights must be >= 3 (photometric stereo needs three), got {self.lights}")
+        if self.size > 8192:
+            bad(f"size must be <= 8192, got {self.size}")
+        if not 0.0 <= self.jitter_deg <= 90.0:
+            bad(f"jitter_deg must be in [0, 90], got {self.jitter_deg}")
+        if not 0.0 <= self.min_elevation_deg < 90.0:
+            bad(f"min_elevation_deg must be in [0, 90), got {self.min_elevation_deg}")
+        if not (self.light_intensity > 0 and np.isfinite(self.light_intensity)):
+            bad(f"light_intensity must be > 0, got {self.light_intensity}")
+        if not isinstance(self.max_bounces, int) or self.max_bounces < 0:
+            bad(f"max_bounces must be an integer >= 0, got {self.max_bounces!r}")
+        if self.device not in ("cpu", "gpu"):
+            bad(f"device must be 'cpu' or 'gpu', got {self.device!r}")
+        if self.threads < 0:
+            bad(f"threads must be >= 0, got {self.threads}")
+
+    def picture_params(self) -> dict:
+        """The settings that change the rendered pictures (part of the content key)."""
+        return {k: getattr(self, k) for k in PICTURE_FIELDS}
+
+
+def image_names(n: int) -> list[str]:
+    """``000.exr`` ... for ``n`` lights (zero-padded to at least three digits)."""
+    width = max(3, len(str(n - 1)))
+    return [f"{i:0{width}d}.exr" for i in range(n)]
+
+
+def extend_maps(maps: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, np.ndarray]:
+    """Fill every map outside ``mask`` with its nearest mask pixel's value."""
+    from scipy.ndimage import distance_transform_edt
+
+    if not mask.any() or mask.all():
+        return maps
+    _, (ri, ci) = distance_transform_edt(~mask, return_indices=True)
+    return {k: (v[ri, ci] if np.ndim(v) >= 2 else v) for k, v in maps.items()}
+
+
+def lambertian_material(albedo=1.0) -> dict:
+    """Renderer material: a Lambertian (Diffuse BSDF, roughness 0) of ``albedo`` (scalar, RGB or map)."""
+    return {"bsdf": "lambertian", "Color": albedo}
+
+
+def principled_material(params: dict[str, np.ndarray]) -> dict:
+    """Renderer material (Blender Principled inputs) from paper parameter maps, through
+    :func:`cnnps.synth.bsdf.to_blender_inputs`: RGBA colours become RGB, maps that hold one
+    value everywhere become constants (no texture)."""
+    from cnnps.synth.bsdf import to_blender_inputs
+
+    out: dict[str, Any] = {"bsdf": "principled"}
+    for name, value in to_blender_inputs(params).items():
+        arr = np.asarray(value, dtype=np.float32)
+        if arr.ndim >= 1 and arr.shape[-1] == 4 and (arr.ndim == 1 or arr.ndim == 3):
+            arr = arr[..., :3]  # RGBA -> RGB (alpha 1)
+        if arr.ndim >= 2:
+            flat = arr.reshape(arr.shape[0] * arr.shape[1], -1)
+            if np.all(flat == flat[0]):
+                arr = flat[0] if flat.shape[1] > 1 else flat[0, 0]
+        out[name] = arr
+    return out
+
+
+def _write_lights(out: Path, L: np.ndarray, intensity: float, names: list[str]) -> None:
+    write_text(out / "light_directions.txt", "".join(f"{x:.9f} {y:.9f} {z:.9f}\n" for x, y, z in L))
+    write_text(out / "light_intensities.txt", "".join(f"{intensity:.9g} {intensity:.9g} {intensity:.9g}\n" for _ in L))
+    write_text(out / "filenames.txt", "".join(n + "\n" for n in names))
+
+
+def is_complete(out: Path, key: str) -> bool:
+    """Whether ``out`` is a finished capture of ``key``: its ``scene.json`` holds the key
+    and every image it lists exists (no Blender needed to tell)."""
+    meta = read_json(out / "scene.json")
+    if not meta or meta.get("key") != key:
+        return False
+    names = meta.get("filenames") or []
+    return bool(names) and all((out / n).is_file() for n in names) and (out / "normal_gt.npy").is_file()
+
+
+def render_into(
+    out: Path,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    material: dict | Any,
+    *,
+    key: str,
+    lights: np.ndarray,
+    intensity: float,
+    size: int,
+    samples: int,
+    seed: int,
+    max_bounces: int = 8,
+    device: str = "cpu",
+    threads: int = 0,
+    meta: dict | None = None,
+    progress: bool = True,
+    desc: str = "render",
+) -> dict:
+    """Render one capture folder, resuming a partial one with the same ``key``.
+
+    ``material``: a renderer material dict (see :mod:`cnnps.synth.blender_renderer`), or a
+    callable ``mask -> material dict`` called with Blender's mask (for maps drawn on it).
+    Returns ``{"rendered": number of images rendered now, "skipped": bool}``.
+    """
+    out = Path(out)
+    if is_complete(out, key):
+        return {"rendered": 0, "skipped": True}
+    _check_not_foreign(out)  # before Blender starts
+    from cnnps.core.images import write_exr, write_png
+
+    _forget_inherited_blender_paths()
+    from cnnps.synth.blender_renderer import BlenderRenderer, blender_version, require_blender
+
+    require_blender()  # one clear line without bpy, before the folder is touched
+
+    t0 = time.perf_counter()
+    rendered = 0
+    # the renderer first: a bad device fails before the folder is touched
+    with BlenderRenderer(size, samples, device=device, threads=threads, seed=seed, max_bounces=max_bounces) as r:
+        names = image_names(len(lights))
+        pending = read_json(out / ".pending.json") or {}
+        done_meta = read_json(out / "scene.json") or {}
+        resume = key in (pending.get("key"), done_meta.get("key")) and (out / "light_directions.txt").is_file()
+        if resume:
+            try:
+                L = np.loadtxt(out / "light_directions.txt", ndmin=2)
+            except ValueError:
+                L = np.zeros((0, 3))
+            resume = L.shape == np.shape(lights)
+        if resume:
+            lights = L  # the directions of the interrupted run
+            (out / "scene.json").unlink(missing_ok=True)  # not complete any more
+            remove_temp_files(out)  # half-written files of the killed run
+        else:
+            lights = _start_folder(out, key, lights, intensity, names)
+
+        r.load_scene(vertices, faces, material if isinstance(material, dict) else lambertian_material())
+        have_geometry = (out / "mask.png").is_file() and (out / "normal_gt.npy").is_file()
+        if not have_geometry or callable(material):
+            mask, normal = r.render_geometry()
+            if not mask.any():
+                raise InputError(out, "the mesh covers no pixel of the image (empty mask)")
+            if callable(material):
+                r.set_material(material(mask))
+            if not have_geometry:
+                with atomic_path(out / "normal_gt.npy") as tmp:
+                    np.save(tmp, normal)
+                write_png(out / "mask.png", mask.astype(np.uint8) * 255)
+        todo = [i for i, n in enumerate(names) if not (out / n).is_file()]
+        for i in tqdm(todo, desc=desc, unit="light", leave=False, disable=not progress or not todo):
+            write_exr(out / names[i], r.render(lights[i], intensity))
+            rendered += 1
+        gpus = getattr(r, "gpu_devices", None)
+    scene = dict(meta or {})
+    scene.update(
+        {
+            "key": key,
+            "filenames": names,
+            "n_lights": len(names),
+            "size": size,
+            "samples": samples,
+            "max_bounces": max_bounces,
+            "light_intensity": intensity,
+            "seed": seed,
+            "device": device,
+            "threads": threads,  # Cycles threads (0 = Blender's default: all cores)
+            "gpu_devices": gpus,
+            "blender_version": blender_version(),
+            "renderer": "Cycles: orthographic camera, sun lamps (angle 0), black world, "
+            "Gaussian 0.01 px filter, no denoising, no clamping",
+            "mask_normal_source": "Blender camera rays through pixel centres: alpha and smooth shading normal",
+            "render_seconds": round(time.perf_counter() - t0, 3),
+            "images_rendered_last_run": rendered,
+            "version": VERSION,
+        }
+    )
+    write_text(out / "scene.json", json.dumps(scene, indent=2) + "\n")
+    (out / ".pending.json").unlink(missing_ok=True)
+    return {"rendered": rendered, "skipped": False}
+
+
+def _forget_inherited_blender_paths() -> None:
+    """Drop Blender's script folders from ``sys.path`` in a process that has not imported bpy.
+
+    ``import bpy`` adds ``.../site-packages/bpy/<version>/scripts/modules`` (and others)
+    to ``sys.path``; that folder holds the *Python half* of bpy, also named ``bpy``. A
+    worker spawned by a process that had imported bpy (the local executor's pool after an
+    in-process render) inherits that ``sys.path``, and its ``import bpy`` then finds the
+    Python half first and fails with "No module named '_bpy'". bpy adds the folders back
+    when it is imported.
+    """
+    import os
+    import sys
+
+    if "bpy" in sys.modules:
+        return
+    marker = f"{os.sep}bpy{os.sep}"
+    sys.path[:] = [p for p in sys.path if not (marker in p and f"{os.sep}scripts" in p)]
+
+
+# the temporary names of cnnps.core.atomic: ``.{stem}.XXXXXXXX.tmp{suffix}`` (atomic_path) and
+# ``.{name}.XXXXXXXX.tmp`` (atomic_dir, and _start_folder's build folder)
+_TEMP_NAME = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
+
+
+def remove_temp_files(folder: Path) -> list[Path]:
+    """Delete the hidden temporary files (and folders) that atomic writes left in ``folder``
+    when their process was killed. Call it only while no other job writes there."""
+    removed = []
+    for p in Path(folder).iterdir():
+        if _TEMP_NAME.match(p.name):
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
+            removed.append(p)
+    return removed
+
+
+def is_render_folder(path: Path) -> bool:
+    """Whether ``path`` is a capture folder :func:`render_into` wrote (finished or not)."""
+    return path.is_dir() and ((path / ".pending.json").is_file() or (path / "scene.json").is_file())
+
+
+def _check_not_foreign(out: Path) -> None:
+    """Refuse an existing ``out`` that holds something not of ours (never delete it)."""
+    if out.exists() and not is_render_folder(out) and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(out.absolute(), "exists and is not a cnnps render folder; choose a new or empty folder")
+
+
+def _start_folder(out: Path, key: str, lights: np.ndarray, intensity: float, names: list[str]) -> np.ndarray:
+    """Make ``out`` hold ``.pending.json`` (the key) and the light files, so a folder with
+    this key always has its lights. Returns the light directions to render, as read back
+    from ``light_directions.txt`` (a resumed run reads the same numbers).
+
+    Only a folder of ours (``.pending.json`` or ``scene.json``) is emptied; any other
+    non-empty ``out`` is refused (InputError). A new folder is built under a temporary
+    name and renamed into place; if a duplicate of this job created it meanwhile (same
+    key), its lights are used. An existing empty folder (or one of ours, emptied) is
+    filled in place: marker without a key first, so a kill leaves it recognisably ours.
+    """
+    import tempfile
+
+    if is_render_folder(out):  # another key, or killed while being set up
+        write_text(out / ".pending.json", json.dumps({"key": None}) + "\n")
+        for p in out.iterdir():
+            if p.name == ".pending.json":
+                continue
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
+    else:
+        _check_not_foreign(out)
+
+    if out.is_dir():  # empty (but for our key-less marker)
+        write_text(out / ".pending.json", json.dumps({"key": None}) + "\n")
+        _write_lights(out, lights, intensity, names)
+        write_text(out / ".pending.json", json.dumps({"key": key}) + "\n")
+        return np.loadtxt(out / "light_directions.txt", ndmin=2)
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    build = re.compile(rf"^\.{re.escape(out.name)}\.[A-Za-z0-9_]{{8}}\.tmp$")
+    for p in out.parent.glob(f".{glob.escape(out.name)}.*.tmp"):  # build folders of killed runs
+        if p.is_dir() and build.match(p.name):
+            shutil.rmtree(p, ignore_errors=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    try:
+        write_text(tmp / ".pending.json", json.dumps({"key": key}) + "\n")
+        _write_lights(tmp, lights, intensity, names)
+        publish_mode(tmp, is_dir=True)  # mkdtemp made it private (0700)
+        tmp.rename(out)
+    except OSError:  # out appeared meanwhile (a duplicate job): resume what it started
+        pending = read_json(out / ".pending.json") or read_json(out / "scene.json") or {}
+        if pending.get("key") != key or not (out / "light_directions.txt").is_file():
+            raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return np.loadtxt(out / "light_directions.txt", ndmin=2)
+
+
+def load_mesh_arg(mesh) -> tuple[Any, dict]:
+    """A trimesh from a Trimesh, a file path or ``procedural:<kind>[:seed]``."""
+    import trimesh
+
+    if isinstance(mesh, trimesh.Trimesh):
+        return mesh, {"mesh": "in-memory"}
+    text = str(mesh)
+    if text.startswith("procedural:"):
+        from cnnps.synth.procedural import make_shape
+
+        parts = text.split(":")
+        kind = parts[1] if len(parts) > 1 else ""
+        try:
+            shape_seed = int(parts[2]) if len(parts) > 2 else 0
+        except ValueError:
+            raise ConfigError(f"procedural mesh seed must be an integer: {text!r}") from None
+        return make_shape(kind, shape_seed), {"mesh": text}
+    from cnnps.synth.meshes import load_mesh
+
+    path = Path(text)
+    return load_mesh(path), {"mesh": str(path), "mesh_sha256": file_sha256(path) if path.is_file() else None}
+
+
+def render_capture(
+    mesh,
+    out_dir: str | Path,
+    lights: int = 40,
+    size: int = 64,
+    samples: int = 16,
+    material: str = "lambertian",
+    superpixels: int = 20,
+    seed: int = 0,
+    device: str = "cpu",
+    jitter_deg: float = 0.0,
+    light_intensity: float = 1.0,
+    max_bounces: int = 8,
+    threads: int = 0,
+    progress: bool = True,
+) -> Path:
+    """Render one capture folder of ``mesh`` (a Trimesh in the camera frame, a mesh file,
+    normalised into the unit sphere, or ``procedural:<kind>[:seed]``) and return its path.
+
+    material: ``lambertian`` (white Lambertian, albedo 1: pixel = max(0, n.l) plus
+    interreflections) or a category of the materials stage (``diffuse``, ``specular``,
+    ``metallic``) drawn on ``superpixels`` superpixels of the mask with ``seed``.
+    """
+    if material not in MATERIAL_KINDS:
+        raise ConfigError(f"material must be one of {', '.join(MATERIAL_KINDS)}, got {material!r}")
+    if superpixels < 1:
+        raise ConfigError(f"superpixels must be >= 1, got {superpixels}")
+    p = RenderSettings(
+        size=size, samples=samples, lights=lights, jitter_deg=jitter_deg, light_intensity=light_intensity,
+        max_bounces=max_bounces, device=device, seed=seed, threads=threads,
+    )  # validation
+    from cnnps.synth.lights import hemisphere_lights
+
+    tm, info = load_mesh_arg(mesh)
+    vertices = np.asarray(tm.vertices, dtype=np.float64)
+    faces = np.asarray(tm.faces, dtype=np.int64)
+    mesh_hash = bytes_sha256(vertices.astype(np.float32).tobytes(), faces.astype(np.int64).tobytes())
+    L = hemisphere_lights(p.lights, p.jitter_deg, seed=derive_seed(int(seed), "lights"), min_elevation_deg=p.min_elevation_deg)
+    if material == "lambertian":
+        mat: Any = lambertian_material()
+    else:
+        def mat(mask: np.ndarray) -> dict:
+            from cnnps.synth.material_maps import sample_material_maps
+
+            maps = sample_material_maps(mask, material, superpixels, derive_seed(int(seed), "material"))
+            return principled_material(extend_maps(dict(maps.params), mask))
+
+    key = stable_hash({"mesh": mesh_hash, "material": [material, superpixels], "params": p.picture_params(), "v": VERSION})
+    out = Path(out_dir)
+    meta = {"mesh_sha256": mesh_hash, "material": material, "superpixels": superpixels, **info}
+    render_into(
+        out, vertices, faces, mat, key=key, lights=L, intensity=p.light_intensity, size=p.size,
+        samples=p.samples, seed=seed, max_bounces=p.max_bounces, device=p.device, threads=p.threads,
+        meta=meta, progress=progress, desc=out.name,
+    )
+    return out
