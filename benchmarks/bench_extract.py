@@ -1,10 +1,15 @@
 """Extract throughput (maps/s) and the error of storing maps as float16.
 
-    .venv/bin/python benchmarks/bench_extract.py [--pixels 8192] [--repeat 3] [--out benchmarks/results/extract.json]
+    .venv/bin/python benchmarks/bench_extract.py [--pixels 8192] [--repeat 3] [--augment] [--out benchmarks/results/extract.json]
 
 Synthetic Lambertian pixels (random normals, albedo, lights on the upper hemisphere),
 no file reading: measures light sampling + observation maps for 10 rotations
 (``build_rows``) and the Parquet encoding + zstd writing, for several light counts m.
+
+``--augment`` turns on every sensor and capture augmentation and sparse pixels
+(``AUGMENT``: typical values) and times them as a phase of their own (``augment``: the
+scene's draws, once a pass, and their application to every chunk); the sparse draws are
+part of ``sample``. Without it the timed work is the stage's default path.
 
 Each phase is timed ``--repeat`` times on the same work and the best (least disturbed)
 time is kept: the machine is shared. ``maps_per_s_*`` use wall time; ``cpu_maps_per_s_*``
@@ -26,8 +31,21 @@ import numpy as np
 from cnnps.core.obsmap import observation_maps
 from cnnps.core.rotation import rotation_angles
 from cnnps.stages.extract import Params
-from cnnps.synth.training_samples import build_rows, sample_light_masks
+from cnnps.synth.training_samples import (
+    STREAM_SPARSE,
+    apply_capture_effects,
+    build_rows,
+    draw_capture_effects,
+    sample_light_masks,
+    stream,
+)
 from cnnps.core.shards import SceneShardWriter, make_batch, shard_schema
+
+
+AUGMENT = dict(
+    ambient_max=0.05, intensity_error=0.05, direction_error_deg=2.0, black_level_max=0.02, noise_max=0.05,
+    saturated_fraction_max=0.2, quantize_bits=(8, 16), sparse_fraction=0.3,
+)
 
 
 def lambertian(rng, P, m):
@@ -58,16 +76,35 @@ def _one_pass(I, n, L, angles, p: Params, seed: int) -> tuple[_Clock, int]:
     schema = shard_schema(p.w)
     clock = _Clock()
     P = I.shape[0]
+    augment = p.sparse_fraction or p.ambient_max or p.noise_max or p.intensity_error or p.direction_error_deg \
+        or p.black_level_max or p.saturated_fraction_max or p.quantize_bits
+    if augment:
+        w0, c0 = time.perf_counter(), time.process_time()
+        fx = draw_capture_effects(
+            seed, I, np.arange(P), L, ambient_max=p.ambient_max, noise_max=p.noise_max,
+            intensity_error=p.intensity_error, direction_error_deg=p.direction_error_deg,
+            black_level_max=p.black_level_max, saturated_fraction_max=p.saturated_fraction_max,
+            quantize_bits=p.quantize_bits,
+        )
+        clock.add("augment", w0, c0)
+    map_lights = fx.lights if augment and fx.lights is not None else L
     with tempfile.TemporaryDirectory() as d:
         with SceneShardWriter(Path(d), "shard-bench", schema, p.rows_per_group, p.rows_per_shard) as wr:
-            for s in range(0, P, p.chunk_pixels):
+            for c, s in enumerate(range(0, P, p.chunk_pixels)):
                 sl = slice(s, s + p.chunk_pixels)
                 k = I[sl].shape[0]
                 w0, c0 = time.perf_counter(), time.process_time()
-                mask, cone, nl = sample_light_masks(rng, L, k, p.min_lights, p.max_lights, p.cone_min_deg, p.cone_max_deg)
+                sparse = dict(sparse_fraction=p.sparse_fraction, sparse_min_lights=p.sparse_min_lights,
+                              sparse_rng=stream(seed, STREAM_SPARSE, c)) if p.sparse_fraction else {}
+                mask, cone, nl = sample_light_masks(rng, L, k, p.min_lights, p.max_lights, p.cone_min_deg, p.cone_max_deg, **sparse)
                 clock.add("sample", w0, c0)
+                Ic = I[sl]
+                if augment:
+                    w0, c0 = time.perf_counter(), time.process_time()
+                    Ic = apply_capture_effects(Ic, mask, fx, seed, c)
+                    clock.add("augment", w0, c0)
                 w0, c0 = time.perf_counter(), time.process_time()
-                maps, rn = build_rows(I[sl], n[sl], L, mask, angles, p.w)
+                maps, rn = build_rows(Ic, n[sl], map_lights, mask, angles, p.w)
                 clock.add("maps", w0, c0)
                 w0, c0 = time.perf_counter(), time.process_time()
                 R = len(angles)
@@ -88,12 +125,15 @@ def bench(m: int, P: int, p: Params, repeat: int = 3) -> dict:
     cpu = dict(wall)
     for _ in range(repeat):
         clock, size = _one_pass(I, n, L, angles, p, seed=1)
-        for k in wall:
-            wall[k] = min(wall[k], clock.wall[k])
-            cpu[k] = min(cpu[k], clock.cpu[k])
+        for k in clock.wall:
+            wall[k] = min(wall.get(k, np.inf), clock.wall[k])
+            cpu[k] = min(cpu.get(k, np.inf), clock.cpu[k])
+    phases = [k for k in ("sample", "augment", "maps") if k in wall]
     rows = P * len(angles)
     # float16 storage error on this data
-    mask, _, _ = sample_light_masks(np.random.default_rng(1), L, 2000, p.min_lights, p.max_lights, p.cone_min_deg, p.cone_max_deg)
+    sparse = dict(sparse_fraction=p.sparse_fraction, sparse_min_lights=p.sparse_min_lights,
+                  sparse_rng=np.random.default_rng(2)) if p.sparse_fraction else {}
+    mask, _, _ = sample_light_masks(np.random.default_rng(1), L, 2000, p.min_lights, p.max_lights, p.cone_min_deg, p.cone_max_deg, **sparse)
     m32 = observation_maps(I[:2000], L, p.w, light_mask=mask)
     err = np.abs(m32.astype(np.float16).astype(np.float32) - m32)
 
@@ -105,14 +145,16 @@ def bench(m: int, P: int, p: Params, repeat: int = 3) -> dict:
         "pixels": P,
         "rows": rows,
         "mean_lights_per_map": round(float(mask.sum(1).mean()), 1),
-        "maps_per_s_total": rate(wall, "sample", "maps", "write"),
-        "maps_per_s_sampling_and_maps": rate(wall, "sample", "maps"),
+        "maps_per_s_total": rate(wall, *phases, "write"),
+        "maps_per_s_sampling_and_maps": rate(wall, *phases),
         "maps_per_s_build_rows": rate(wall, "maps"),
         "maps_per_s_writing": rate(wall, "write"),
-        "cpu_maps_per_s_total": rate(cpu, "sample", "maps", "write"),
-        "cpu_maps_per_s_sampling_and_maps": rate(cpu, "sample", "maps"),
+        "cpu_maps_per_s_total": rate(cpu, *phases, "write"),
+        "cpu_maps_per_s_sampling_and_maps": rate(cpu, *phases),
         "cpu_maps_per_s_build_rows": rate(cpu, "maps"),
         "cpu_maps_per_s_writing": rate(cpu, "write"),
+        **({"maps_per_s_augment": rate(wall, "augment"), "cpu_maps_per_s_augment": rate(cpu, "augment")}
+           if "augment" in wall else {}),
         "seconds": {k: round(v, 3) for k, v in wall.items()},
         "cpu_seconds": {k: round(v, 3) for k, v in cpu.items()},
         "bytes_per_row": round(size / rows, 1),
@@ -125,9 +167,10 @@ def main():
     ap.add_argument("--pixels", type=int, default=8192)
     ap.add_argument("--lights", type=int, nargs="+", default=[96, 300, 1300])
     ap.add_argument("--repeat", type=int, default=3, help="timed passes per light count; the best is kept")
+    ap.add_argument("--augment", action="store_true", help="every capture augmentation and sparse pixels on (AUGMENT)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/extract.json"))
     a = ap.parse_args()
-    p = Params()
+    p = Params(**AUGMENT) if a.augment else Params()
     results = []
     for m in a.lights:
         results.append(bench(m, a.pixels, p, a.repeat))
@@ -135,11 +178,12 @@ def main():
     a.out.parent.mkdir(parents=True, exist_ok=True)
     lights = " ".join(str(m) for m in a.lights)
     a.out.write_text(json.dumps({
-        "command": f"benchmarks/bench_extract.py --pixels {a.pixels} --lights {lights} --repeat {a.repeat}",
+        "command": f"benchmarks/bench_extract.py --pixels {a.pixels} --lights {lights} --repeat {a.repeat}"
+                   + (" --augment" if a.augment else ""),
         "machine": f"{platform.processor() or platform.machine()}, 2 cores shared with other jobs (noisy)",
         "timing": "best of --repeat passes per phase; cpu_* rates use process CPU time",
         "params": {"w": p.w, "rotations": p.rotations, "min_lights": p.min_lights, "max_lights": p.max_lights,
-                   "chunk_pixels": p.chunk_pixels},
+                   "chunk_pixels": p.chunk_pixels} | ({"augment": p.manifest_params()} if a.augment else {}),
         "results": results,
     }, indent=1) + "\n")
 

@@ -9,7 +9,11 @@ Measures, with `cnnps predict` (images read included):
   * the whole-object time for BALL;
   * the fossil capture (../shared/data/captures/fossil, no ground truth; K=1: 307,000 pixels): writes the predicted
     normal picture to docs/images/fossil_normals.png (shown in the README);
-  * time for a 45,000-pixel object (96 lights) at K=1 and K=10, fp32 and bf16.
+  * time for a 45,000-pixel object (96 lights) at K=1 and K=10, fp32 and bf16;
+  * with ``--subsets 20 10 6``: BALL from n of its 96 images (the lists in
+    benchmarks/image_lists/, drawn by benchmarks/image_subsets.py's seeded rule), CNN K=1
+    and K=10 against least squares on the same images and pixels. ``--only-subsets``
+    measures just that (results under ``ball_subsets``, merged into an existing --out file).
 Skips the parts whose data is absent. Published on BALL: least squares 4.10°, PS-FCN 2.82°,
 CNN-PS 2.7° (K=1) / 2.2° (K=10).
 """
@@ -45,6 +49,29 @@ def _metric(result: dict) -> dict:
     return {"mean_deg": result.get("mean_deg"), "median_deg": result.get("median_deg")}
 
 
+def _ball_subsets(args, tmp: Path) -> dict:
+    """BALL from each of the image lists benchmarks/image_lists/ballPNG-<n>.txt."""
+    from benchmarks.image_subsets import drop_for, list_path, read_list
+
+    ball = args.shared / "data" / "diligent" / "ballPNG"
+    out = {}
+    if not ball.is_dir():
+        return out
+    for n in args.subsets:
+        names = read_list(list_path(ball.name, n))
+        drop = drop_for(ball, names)
+        rows = {"images": names}
+        r, t, _ = _predict(ball, tmp, method="lambertian", drop=drop)
+        rows["lambertian"] = {**_metric(r), "seconds": round(t, 2)}
+        for k in (1, 10):
+            r, t, _ = _predict(ball, tmp, method="cnn", model=args.model, rotations=k, drop=drop)
+            rows[f"cnn_k{k}_fp32"] = {**_metric(r), "seconds": round(t, 2)}
+        print(f"BALL {n} images: LS {rows['lambertian']['mean_deg']:.2f}, CNN K=1 {rows['cnn_k1_fp32']['mean_deg']:.2f}, "
+              f"K=10 {rows['cnn_k10_fp32']['mean_deg']:.2f}", flush=True)
+        out[str(n)] = rows
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--model", type=Path, default=None, help="checkpoint (default: the shipped model)")
@@ -52,10 +79,25 @@ def main() -> None:
     ap.add_argument("--pixels", type=int, default=45000)
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "model.json")
     ap.add_argument("--picture", type=Path, default=REPO / "docs" / "images" / "fossil_normals.png")
+    ap.add_argument("--subsets", type=int, nargs="*", default=[], help="BALL image counts to measure (lists in benchmarks/image_lists/)")
+    ap.add_argument("--only-subsets", action="store_true", help="measure only --subsets; merge into --out")
     args = ap.parse_args()
+    if args.only_subsets:
+        result = json.loads(args.out.read_text()) if args.out.is_file() else {}
+        from benchmarks.bench_inference import _cpu_info
+
+        with tempfile.TemporaryDirectory() as tmp_name:
+            result["ball_subsets"] = {"cpu": _cpu_info(), "load_average_before": list(os.getloadavg()),
+                                      **_ball_subsets(args, Path(tmp_name))}
+        write_text(args.out, json.dumps(result, indent=2) + "\n")
+        print(json.dumps(result["ball_subsets"], indent=2))
+        return
 
     result: dict = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                     "model": str(args.model or "shipped"), "load_average_before": list(os.getloadavg())}
+    from benchmarks.bench_inference import _cpu_info
+
+    result["cpu"] = _cpu_info()
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         ball = args.shared / "data" / "diligent" / "ballPNG"
@@ -71,6 +113,8 @@ def main() -> None:
             rows["bf16_minus_fp32_k10_deg"] = rows["cnn_k10_bf16"]["mean_deg"] - rows["cnn_k10_fp32"]["mean_deg"]
             rows["bf16_minus_fp32_k1_deg"] = rows["cnn_k1_bf16"]["mean_deg"] - rows["cnn_k1_fp32"]["mean_deg"]
             result["ball"] = rows
+        if args.subsets:
+            result["ball_subsets"] = _ball_subsets(args, tmp)
         fossil = args.shared / "data" / "captures" / "fossil"
         if fossil.is_dir():
             r, t, out = _predict(fossil, tmp, method="cnn", model=args.model, rotations=1)

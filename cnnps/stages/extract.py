@@ -11,23 +11,109 @@ For every foreground pixel (with a valid ground-truth normal) of every scene in
 2. A subset size k drawn uniformly from [min(min_lights, m), min(max_lights, m)],
    capped at the number of lights in the cone; k lights are drawn from the cone without
    replacement (all of them when the cone holds no more than k).
+
+   **Sparse pixels** (``sparse_fraction`` p > 0, default 0 = off): with probability p a
+   pixel is sparse and draws k log-uniformly from the integers [a, b], a =
+   ``sparse_min_lights`` (default 6), b = min(min_lights, m) - 1:
+   ``k = floor(exp(U(ln a, ln(b + 1))))``, P(k) = ln((k+1)/k) / ln((b+1)/a), so few-light
+   maps are well represented (for [6, 49]: k = 6 7.3 %, 6-11 33 %, 6-20 59 % of the sparse
+   pixels). The cone rule is unchanged (same cone, still widened to hold
+   min(min_lights, m) > k lights), so a sparse pixel gets exactly k lights, spread at
+   random over a cone of >= min_lights lights rather than the k nearest to the axis. The
+   other 1 - p pixels follow the dense rule above, so dense maps stay the majority and
+   one model serves 6 to 1,300 images. The row's ``n_lights`` column holds k. k for
+   p = 0.3, min_lights 50, max_lights 1300, sparse_min_lights 6 (quantiles; "nominal":
+   the cone never binds, exact; "hemisphere": m equal-area lights above 5 degrees of
+   elevation and cones of 20-90 degrees, 1e5-2e5 pixels, where narrow cones cap the
+   dense k; ``tests/synth/test_training_samples.py`` checks both):
+
+   ====================  ====  ====  ====  ====  ====  ====  ========  ========  ======
+   m, lights             5 %   10 %  25 %  50 %  75 %  90 %  k <= 10   k <= 20   mean
+   ====================  ====  ====  ====  ====  ====  ====  ========  ========  ======
+   200, nominal          8     12    35    93    147   179   8.6 %     17.7 %    93.6
+   200, hemisphere       8     12    34    51    93    134   8.6 %     17.8 %    66.2
+   1300, nominal         8     12    35    407   854   1122  8.6 %     17.7 %    478.6
+   1300, hemisphere      8     12    35    218   514   812   8.6 %     17.8 %    318.7
+   ====================  ====  ====  ====  ====  ====  ====  ========  ========  ======
+
+   (30 % of the maps have k < 50; without sparse pixels none do.)
 3. ``rotations`` copies: lights and ground-truth normal rotated together about z by the
    angles ``cnnps.core.rotation.rotation_angles(rotations)`` (the paper's 10 x 36 degrees);
    each map is built by ``cnnps.core.obsmap.observation_maps`` with the pixel's light mask,
    the same code prediction uses. A pixel yields ``rotations`` rows.
 
-4. ``ambient_max`` > 0 (augmentation): before the maps are built, every light of a pixel
-   gets the same offset ``a * max`` (``a ~ U(0, ambient_max)`` per pixel, ``max`` its
-   brightest chosen light; :func:`cnnps.synth.training_samples.add_ambient`), so the network learns that shadowed
-   cells of real captures hold small non-zero values (ambient light, black level).
+4. Sensor and capture realism (augmentations, each off at its default; functions in
+   :mod:`cnnps.synth.training_samples`). They are applied to a pixel's rendered values
+   (already divided by the light intensity) before the maps are built, in capture order:
 
-Pixels whose chosen lights are all dark (an all-zero map: nothing to learn from) are
-dropped and counted in the manifest.
+   rendered value -> (a) mis-calibration -> (b) ambient -> (c) black level -> (d) noise
+   -> (e) saturation -> (f) quantisation -> map;  (g) the directions written into the
+   maps are perturbed once per scene, before any map is built.
+
+   Scene quantities: the **full scale** E of a scene is the value its sensor maps to the
+   top code: the largest of its valid pixels' brightest values (over all m lights, after
+   (a)), or with saturation the ``1 - f`` quantile of them (below). It is computed only
+   when (c), (e) or (f) is on. Rendered values that are finite and >= 0 stay so.
+
+   a. ``intensity_error`` (per scene and light): each light's values are multiplied by
+      ``max(1 + e, 0)``, ``e ~ N(0, intensity_error)``: the light's true intensity was not
+      the calibrated one (``light_intensities.txt``), so dividing by it leaves that factor.
+   b. ``ambient_max`` (per pixel): every light of a pixel gets the same offset ``a * max``,
+      ``a ~ U(0, ambient_max)``, ``max`` its brightest chosen light
+      (:func:`~cnnps.synth.training_samples.add_ambient`), so the network learns that
+      shadowed cells of real captures hold small non-zero values.
+   c. ``black_level_max`` (per scene): every value of the scene gets the offset ``b * E``,
+      ``b ~ U(0, black_level_max)``: the camera's black level (or its residual after
+      subtraction). Same physics as (b) in that both add a constant to every image; what
+      differs is the scale: ambient light reflects off the surface, so it is proportional
+      to each pixel's brightness, while the black level is one absolute value of the
+      sensor, a fraction of its full scale, the same in dark and bright pixels (so dark,
+      low-albedo pixels get a relatively larger offset).
+   d. ``noise_max`` (per pixel): read and shot noise relative to the pixel's range:
+      ``s_read, s_shot ~ U(0, noise_max)`` per pixel, ``peak`` its brightest chosen value
+      after (a)-(c); each value v (each light independently) gets Gaussian noise of
+      variance ``(s_read * peak)**2 + s_shot**2 * peak * v`` (read noise, constant; shot
+      noise, variance proportional to the value), then is clipped at 0
+      (:func:`~cnnps.synth.training_samples.add_noise`). Relative to the pixel because
+      each map is scaled to its own maximum: this draws the map's signal-to-noise ratio
+      directly, the same for dark and bright pixels.
+   e. ``saturated_fraction_max`` (per scene): ``f ~ U(0, saturated_fraction_max)``; E is
+      the ``1 - f`` quantile of the scene's pixel peaks, and every value above E is
+      clipped to E: the brightest fraction f of the pixels (specular highlights first)
+      saturate, the others keep their values, as in a real exposure.
+   f. ``quantize_bits`` (per scene): a bit depth b drawn uniformly from the list (e.g.
+      ``[8, 16]``); values are clipped to [0, E] (a fixed-point image holds nothing above
+      its full scale; without (e) E is the scene's largest value) and rounded to the
+      nearest of ``k * E / (2**b - 1)``: dark pixels get few levels, as in a real 8-bit
+      capture.
+   g. ``direction_error_deg`` (per scene and light): the direction written into the maps
+      (the cell a light's value lands in) is turned by ``theta ~ |N(0, direction_error_deg)|``
+      (half-normal: mean 0.80, median 0.67 x the parameter) about a random axis
+      perpendicular to the light (so the angle between written and rendered direction is
+      exactly theta), while the image stays as rendered. The cones and subsets (steps 1,
+      2) use the rendered directions, so turning this on moves cells and nothing else.
+
+Pixels whose chosen lights are all dark in the render (an all-zero map: nothing to learn
+from) are dropped and counted in the manifest; the test is made on the rendered values,
+before step 4, so every augmentation keeps the same pixels and light subsets. (A sparse
+pixel whose few lights are all dark is dropped too, so among the rows the share of sparse
+maps is a little below p.)
 
 Randomness: scene ``s`` draws from NumPy generators seeded with
 ``h = cnnps.core.hashing.derive_seed64(seed, s.key)``: ``[h, 0]`` (pixel order) and, for
-chunk ``c``, ``[h, 1, c]`` (cones, subsets, row order) and ``[h, 2, c]`` (ambient), so a
-scene's rows depend only on its own key and the params, never on the other scenes.
+chunk ``c``, ``[h, 1, c]`` (cones, dense subsets, row order) and ``[h, 2, c]`` (ambient),
+so a scene's rows depend only on its own key and the params, never on the other scenes.
+Each augmentation has its own stream (``cnnps.synth.training_samples.STREAM_*``), so
+turning one on changes no other one's draws (their values do interact, as in a camera:
+e.g. the gains move E and every pixel's peak): per scene ``[h, 3]`` mis-calibration, ``[h, 4]``
+direction error, ``[h, 5]`` black level, ``[h, 7]`` saturation, ``[h, 8]`` bit depth;
+per chunk ``[h, 6, c]`` noise and ``[h, 9, c]`` sparse pixels and their k.
+
+Cache keys: each parameter added after format 1 (``ADDED_LATER``: ``ambient_max`` and
+all of the above) is left out of ``manifest_params()`` and ``row_key()`` while it has
+its default (off) value, so the keys, caches and manifests of a Params that does not use
+it are byte-identical to those made before it existed (``sparse_min_lights`` also while
+``sparse_fraction`` is 0, when it has no effect).
 
 Output in ``data_dir/extract/`` (or at ``output``: a path or an fsspec URL such as
 ``s3://bucket/run/extract``, ``file:///shared/run/extract`` or, for one process only,
@@ -66,7 +152,14 @@ from cnnps.core import storage
 from cnnps.core.executor import ExecutorParams, runs_in_process, stage_executor
 from cnnps.core.hashing import bytes_sha256, derive_seed64, stable_hash
 from cnnps.core.shards import MANIFEST, SceneShardWriter, file_size, make_batch, shard_path, shard_schema
-from cnnps.synth.training_samples import add_ambient, build_rows, sample_light_masks
+from cnnps.synth.training_samples import (
+    STREAM_SPARSE,
+    apply_capture_effects,
+    build_rows,
+    draw_capture_effects,
+    sample_light_masks,
+    stream,
+)
 
 FORMAT_VERSION = 1  # bump when the rows written for the same inputs change
 
@@ -80,6 +173,16 @@ class Params:
     cone_max_deg: float = 90.0
     rotations: int = 10
     ambient_max: float = 0.0  # per-pixel ambient offset a ~ U(0, ambient_max), times the pixel's brightest light
+    # sensor and capture realism (module docstring, step 4; each 0 / empty = off)
+    intensity_error: float = 0.0  # per scene and light: intensity factor 1 + e, e ~ N(0, intensity_error)
+    direction_error_deg: float = 0.0  # per scene and light: written direction turned by |N(0, this)| degrees
+    black_level_max: float = 0.0  # per scene: offset b * E, b ~ U(0, black_level_max), E the scene's full scale
+    noise_max: float = 0.0  # per pixel: read and shot noise levels ~ U(0, noise_max) x the pixel's brightest value
+    saturated_fraction_max: float = 0.0  # per scene: clip at the (1 - f) quantile of pixel peaks, f ~ U(0, this)
+    quantize_bits: tuple[int, ...] = ()  # per scene: a bit depth drawn from these, grid E / (2^bits - 1)
+    # sparse light subsets (module docstring, step 2): a pixel is sparse with this probability
+    sparse_fraction: float = 0.0
+    sparse_min_lights: int = 6  # sparse k is log-uniform in [sparse_min_lights, min_lights)
     pixels_per_scene: int = 0  # 0 = every foreground pixel
     val_fraction: float = 0.1
     val_scenes: tuple[str, ...] = ()  # explicit validation scenes (or view ids); overrides val_fraction
@@ -110,6 +213,21 @@ class Params:
             raise ConfigError(f"extract.rotations must be in [1, 127], got {self.rotations}")
         if not 0.0 <= self.ambient_max <= 1.0:
             raise ConfigError(f"extract.ambient_max must be in [0, 1], got {self.ambient_max}")
+        for name, hi in (("intensity_error", 1.0), ("black_level_max", 1.0), ("noise_max", 1.0),
+                         ("saturated_fraction_max", 1.0), ("sparse_fraction", 1.0), ("direction_error_deg", 90.0)):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0.0 <= v <= hi):
+                raise ConfigError(f"extract.{name} must be in [0, {hi:g}], got {v!r}")
+        bits = tuple(self.quantize_bits)
+        if not all(isinstance(b, (int, np.integer)) and not isinstance(b, bool) and 1 <= b <= 16 for b in bits):
+            raise ConfigError(f"extract.quantize_bits must be bit depths in [1, 16], got {list(bits)}")
+        object.__setattr__(self, "quantize_bits", tuple(sorted({int(b) for b in bits})))
+        if self.sparse_min_lights < 1:
+            raise ConfigError(f"extract.sparse_min_lights must be >= 1, got {self.sparse_min_lights}")
+        if self.sparse_fraction and self.sparse_min_lights >= self.min_lights:
+            raise ConfigError(
+                f"extract: need sparse_min_lights < min_lights, got {self.sparse_min_lights} and {self.min_lights}"
+            )
         if self.pixels_per_scene < 0:
             raise ConfigError(f"extract.pixels_per_scene must be >= 0, got {self.pixels_per_scene}")
         if not 0.0 <= self.val_fraction < 1.0:
@@ -136,9 +254,28 @@ class Params:
         d = asdict(self)
         for k in ("executor", "workers", "output"):
             d.pop(k)
-        if not self.ambient_max:  # added later: absent = 0, so earlier keys, caches and manifests stay valid
-            d.pop("ambient_max")
+        for k, default in ADDED_LATER.items():  # absent = default: earlier keys, caches and manifests stay valid
+            if d[k] == default:
+                d.pop(k)
+        if not self.sparse_fraction:  # no sparse pixels: their size has no effect on the rows
+            d.pop("sparse_min_lights", None)
         return d
+
+
+# Params added after format 1's keys were fixed: left out of manifest_params() and
+# row_key() at these (their "off") values, so a Params that leaves them alone has the
+# same cache keys and manifest as before they existed.
+ADDED_LATER = {
+    "ambient_max": 0.0,
+    "intensity_error": 0.0,
+    "direction_error_deg": 0.0,
+    "black_level_max": 0.0,
+    "noise_max": 0.0,
+    "saturated_fraction_max": 0.0,
+    "quantize_bits": (),
+    "sparse_fraction": 0.0,
+    "sparse_min_lights": 6,
+}
 
 
 def scene_cache_key(scene_key: str, params: Params) -> str:
@@ -212,6 +349,13 @@ def extract_scene(job: SceneJob) -> dict:
     angles_deg = np.degrees(angles).astype(np.float32)
     schema = shard_schema(p.w)
     m = cap.lights.shape[0]
+    fx = draw_capture_effects(
+        scene_seed, I_all, np.flatnonzero(valid), cap.lights,
+        ambient_max=p.ambient_max, noise_max=p.noise_max, intensity_error=p.intensity_error,
+        direction_error_deg=p.direction_error_deg, black_level_max=p.black_level_max,
+        saturated_fraction_max=p.saturated_fraction_max, quantize_bits=p.quantize_bits,
+    )
+    map_lights = cap.lights if fx.lights is None else fx.lights  # the directions written into the maps
     dropped_dark = 0
     rows_written = 0
     bar = tqdm(total=len(pix), desc=f"extract {job.scene_id}", unit="px", disable=not job.progress, leave=False)
@@ -220,16 +364,17 @@ def extract_scene(job: SceneJob) -> dict:
             sel = pix[start : start + p.chunk_pixels]
             crng = np.random.default_rng([scene_seed, 1, c])
             mask, cone_deg, k = sample_light_masks(
-                crng, cap.lights, len(sel), p.min_lights, p.max_lights, p.cone_min_deg, p.cone_max_deg
+                crng, cap.lights, len(sel), p.min_lights, p.max_lights, p.cone_min_deg, p.cone_max_deg,
+                sparse_fraction=p.sparse_fraction, sparse_min_lights=p.sparse_min_lights,
+                sparse_rng=stream(scene_seed, STREAM_SPARSE, c) if p.sparse_fraction else None,
             )
             I = I_all[sel]
             lit = (np.where(mask, I, 0.0) > 0).any(axis=1)
             dropped_dark += int((~lit).sum())
             sel, mask, cone_deg, k, I = sel[lit], mask[lit], cone_deg[lit], k[lit], I[lit]
-            if p.ambient_max:
-                I = add_ambient(np.random.default_rng([scene_seed, 2, c]), I, mask, p.ambient_max)
+            I = apply_capture_effects(I, mask, fx, scene_seed, c)
             n = normals[sel] / norm[sel, None]
-            maps, rot_n = build_rows(I, n, cap.lights, mask, angles, p.w)
+            maps, rot_n = build_rows(I, n, map_lights, mask, angles, p.w)
             R, P = len(angles), len(sel)
             order = crng.permutation(R * P)  # interleave rotations and pixels inside the chunk
             r_idx, p_idx = np.divmod(order, P)

@@ -257,6 +257,162 @@ def test_ambient_max_changes_rows_only_when_set(tmp_path):
         Params(ambient_max=1.5)
 
 
+# -- model v3: sensor and capture realism, sparse lights ---------------------------------
+
+# Pinned before these params existed (format 1): a Params that leaves them at their
+# defaults must keep these keys, and its rows these bytes.
+PINNED_KEYS = {
+    "default": "2a26fa8f7da471668ba8beb00b1f97d5",
+    "small": "f1ab64577dc8e7f1b1ca0302e0656647",
+    "ambient_0.05": "750158431d84045f2c0aba7f30b491f3",
+}
+PINNED_ROWS = {  # _rows_digest of make_render_dir(n_scenes=1), Params(pixels_per_scene=120, **SMALL)
+    "plain": "06586bcbe2b26397fe15d2a76e62a43034b3cae6aed8d3f76f25fca2be3bc54e",
+    "ambient_0.2": "e13ef235e4ad8b304d8e78853af8eb67e26de30f8d3a5179170f1277319ab117",
+}
+OLD_MANIFEST_PARAMS = [
+    "w", "min_lights", "max_lights", "cone_min_deg", "cone_max_deg", "rotations", "pixels_per_scene",
+    "val_fraction", "val_scenes", "seed", "rows_per_group", "rows_per_shard", "chunk_pixels",
+]
+AUGMENTATIONS = {  # each on by itself
+    "intensity_error": 0.1,
+    "direction_error_deg": 3.0,
+    "black_level_max": 0.05,
+    "noise_max": 0.05,
+    "saturated_fraction_max": 0.5,
+    "quantize_bits": (8,),
+    "sparse_fraction": 0.5,
+}
+OFF = {k: (() if k == "quantize_bits" else 0.0) for k in AUGMENTATIONS} | {"sparse_min_lights": 6}
+
+
+def _rows_digest(table) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    for c in ("map", "normal", "row", "col", "n_lights", "cone_deg", "rotation", "angle_deg"):
+        col = table.column(c).combine_chunks()
+        if c == "normal":
+            h.update(np.asarray(col.flatten()).tobytes())
+        elif c == "map":
+            h.update(b"".join(col.to_pylist()))
+        else:
+            h.update(col.to_numpy().tobytes())
+    return h.hexdigest()
+
+
+@pytest.fixture(scope="module")
+def one_scene(tmp_path_factory):
+    return make_render_dir(tmp_path_factory.mktemp("one"), n_scenes=1)
+
+
+def _extract_table(data: Path, out: Path, params: Params):
+    import pyarrow as pa
+
+    params = Params(**{**params.__dict__, "output": str(out)})
+    extract.run(params, data)
+    man = load_manifest(out)
+    return man, pa.concat_tables([pq.read_table(out / s["file"]) for s in man["shards"]])
+
+
+def test_keys_of_params_without_the_new_augmentations_are_pinned():
+    assert extract.scene_cache_key("render-key-0123", Params()) == PINNED_KEYS["default"]
+    assert extract.scene_cache_key("render-key-0123", Params(**SMALL)) == PINNED_KEYS["small"]
+    assert extract.scene_cache_key("render-key-0123", Params(ambient_max=0.05)) == PINNED_KEYS["ambient_0.05"]
+    assert extract.scene_cache_key("render-key-0123", Params(**OFF)) == PINNED_KEYS["default"]
+    assert list(Params().manifest_params()) == OLD_MANIFEST_PARAMS
+    assert list(Params(**OFF).manifest_params()) == OLD_MANIFEST_PARAMS
+    # sparse_min_lights has no effect without sparse pixels: not in the key then
+    assert extract.scene_cache_key("render-key-0123", Params(sparse_min_lights=8)) == PINNED_KEYS["default"]
+    assert Params(sparse_fraction=0.3, sparse_min_lights=8).row_key()["sparse_min_lights"] == 8
+    assert "sparse_min_lights" not in Params(sparse_fraction=0.3).row_key()  # its default: absent
+
+
+def test_rows_without_the_new_augmentations_are_pinned(one_scene, tmp_path):
+    base = dict(pixels_per_scene=120, **SMALL)
+    _, t = _extract_table(one_scene, tmp_path / "a", Params(**base))
+    assert _rows_digest(t) == PINNED_ROWS["plain"]
+    _, t = _extract_table(one_scene, tmp_path / "b", Params(**base, **OFF))
+    assert _rows_digest(t) == PINNED_ROWS["plain"]
+    _, t = _extract_table(one_scene, tmp_path / "c", Params(ambient_max=0.2, **base))
+    assert _rows_digest(t) == PINNED_ROWS["ambient_0.2"]
+
+
+@pytest.mark.parametrize("name", list(AUGMENTATIONS))
+def test_each_augmentation_changes_rows_deterministically(one_scene, tmp_path, name):
+    base = dict(pixels_per_scene=120, **SMALL)
+    value = AUGMENTATIONS[name]
+    params = Params(**base, **{name: value})
+    key = params.row_key()
+    assert key[name] == value and extract.scene_cache_key("k", params) != extract.scene_cache_key("k", Params(**base))
+    man, t = _extract_table(one_scene, tmp_path / "a", params)
+    assert man["params"][name] == (list(value) if isinstance(value, tuple) else value)
+    d = _rows_digest(t)
+    assert d != PINNED_ROWS["plain"]
+    _, t2 = _extract_table(one_scene, tmp_path / "b", params)
+    assert _rows_digest(t2) == d  # deterministic for a seed
+    _, t3 = _extract_table(one_scene, tmp_path / "c", Params(**{**params.__dict__, "seed": 1}))
+    assert _rows_digest(t3) != d
+    # same pixels, rotations and normals as without it; maps finite, in [0, 1]
+    _, t0 = _extract_table(one_scene, tmp_path / "plain", Params(**base))
+
+    def ordered(tab):
+        import pyarrow.compute as pc
+
+        idx = pc.sort_indices(tab, [("row", "ascending"), ("col", "ascending"), ("rotation", "ascending")])
+        return tab.take(idx)
+
+    t, t0 = ordered(t), ordered(t0)
+    maps = decode_maps(t.column("map"), params.w).astype(np.float32)
+    assert np.all(np.isfinite(maps)) and maps.min() >= 0 and maps.max() <= 1
+    if name == "sparse_fraction":
+        # a sparse pixel whose few lights are all dark is dropped: compare the pixels kept
+        key, key0 = (tab.column("row").to_numpy() * 1000 + tab.column("col").to_numpy() for tab in (t, t0))
+        assert np.isin(key, key0).all()
+        t0 = t0.filter(np.isin(key0, key))
+    for c in ("row", "col", "rotation", "cone_deg"):
+        assert np.array_equal(t.column(c).to_numpy(), t0.column(c).to_numpy()), c
+    assert np.array_equal(decode_normals(t.column("normal")), decode_normals(t0.column("normal")))
+    k, k0 = t.column("n_lights").to_numpy(), t0.column("n_lights").to_numpy()
+    if name == "sparse_fraction":  # sparse pixels: k in [6, min_lights); the others keep theirs
+        sparse = k < SMALL["min_lights"]
+        assert sparse.any() and k.min() >= 6 and np.array_equal(k[~sparse], k0[~sparse])
+        assert 0.3 < sparse.mean() < 0.7  # p = 0.5 over 120 pixels (sd 0.046)
+    else:  # value augmentations and direction error keep the pixels and light subsets
+        assert np.array_equal(k, k0)
+
+
+def test_all_augmentations_together(one_scene, tmp_path):
+    params = Params(pixels_per_scene=120, ambient_max=0.03, **AUGMENTATIONS, **SMALL)
+    man, t = _extract_table(one_scene, tmp_path / "a", params)
+    maps = decode_maps(t.column("map"), params.w).astype(np.float32)
+    assert np.all(np.isfinite(maps)) and maps.min() >= 0
+    assert np.allclose(maps.reshape(len(maps), -1).max(1), 1.0)
+    assert man["total_rows"] == 120 * params.rotations - man["scenes"]["s00"]["dropped_dark_pixels"] * params.rotations
+    _, t2 = _extract_table(one_scene, tmp_path / "b", params)
+    assert _rows_digest(t) == _rows_digest(t2)
+
+
+def test_new_params_are_validated_and_normalised():
+    from cnnps.core.errors import ConfigError
+
+    assert Params(quantize_bits=[16, 8, 8]).quantize_bits == (8, 16)
+    assert Params(quantize_bits=[16, 8]).row_key() == Params(quantize_bits=(8, 16)).row_key()
+    for bad in (dict(noise_max=-0.1), dict(noise_max=1.5), dict(intensity_error=2.0), dict(black_level_max=-1),
+                dict(saturated_fraction_max=1.1), dict(direction_error_deg=120.0), dict(sparse_fraction=1.5),
+                dict(quantize_bits=(0,)), dict(quantize_bits=(32,)), dict(quantize_bits=(8.5,)),
+                dict(sparse_min_lights=0), dict(sparse_fraction=0.2, sparse_min_lights=50)):
+        with pytest.raises(ConfigError):
+            Params(**bad)
+
+
+def test_new_params_from_a_params_file():
+    from cnnps.pipeline.config import build_dataclass
+
+    p = build_dataclass(Params, {"quantize_bits": [8, 16], "noise_max": 0.02, "sparse_fraction": 0.3}, "extract")
+    assert p.quantize_bits == (8, 16) and p.noise_max == 0.02 and p.sparse_fraction == 0.3
+
+
 def test_split_groups_views():
     scenes = [(f"v{v}_m{k}", Path("."), {"key": "x", "view_id": f"v{v}"}) for v in range(5) for k in range(3)]
     split = extract.split_scenes(scenes, Params(val_fraction=0.4))

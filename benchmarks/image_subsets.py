@@ -1,0 +1,81 @@
+"""Sparse-light subsets of a capture: which n of its m images, by one seeded rule.
+
+    .venv/bin/python benchmarks/image_subsets.py CAPTURE_DIR [--n 20 10 6] [--seed 0]
+
+The rule (the same for every capture, so held-back objects get subsets drawn the same
+way): the images are those of ``filenames.txt`` after the capture's benchmark drops
+(``bearPNG``: the first 20); n of those m are drawn uniformly without replacement by
+``numpy.random.default_rng([seed, m, n]).choice(m, n, replace=False)`` and kept in
+filenames.txt order. Writes ``benchmarks/image_lists/<capture>-<n>.txt``, one image name
+a line. ``bench_model.py --subsets`` predicts with each list (the other images dropped).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+LISTS = REPO / "benchmarks" / "image_lists"
+sys.path.insert(0, str(REPO))
+
+
+def usable_images(capture: Path) -> list[str]:
+    """Image names in light order, after the benchmark's default drops."""
+    from cnnps.core.capture import DEFAULT_DROPS
+
+    names = [n.strip() for n in (capture / "filenames.txt").read_text().splitlines() if n.strip()]
+    drop = set(DEFAULT_DROPS.get(capture.name, ()))
+    return [n for i, n in enumerate(names) if i not in drop]
+
+
+def draw(m: int, n: int, seed: int = 0) -> list[int]:
+    """n of range(m), sorted: the seeded rule."""
+    if not 1 <= n <= m:
+        raise ValueError(f"need 1 <= n <= m, got n={n}, m={m}")
+    return sorted(int(i) for i in np.random.default_rng([seed, m, n]).choice(m, n, replace=False))
+
+
+def subset_names(capture: Path, n: int, seed: int = 0) -> list[str]:
+    names = usable_images(capture)
+    return [names[i] for i in draw(len(names), n, seed)]
+
+
+def list_path(capture_name: str, n: int) -> Path:
+    return LISTS / f"{capture_name}-{n}.txt"
+
+
+def drop_for(capture: Path, keep: list[str]) -> list[int]:
+    """0-based indices (filenames.txt order) of every image not in ``keep``."""
+    names = [n.strip() for n in (capture / "filenames.txt").read_text().splitlines() if n.strip()]
+    missing = set(keep) - set(names)
+    if missing:
+        raise ValueError(f"{capture}: images not in filenames.txt: {sorted(missing)}")
+    keep_set = set(keep)
+    return [i for i, name in enumerate(names) if name not in keep_set]
+
+
+def read_list(path: Path) -> list[str]:
+    return [n.strip() for n in path.read_text().splitlines() if n.strip() and not n.startswith("#")]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("capture", type=Path)
+    ap.add_argument("--n", type=int, nargs="+", default=[20, 10, 6])
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    LISTS.mkdir(parents=True, exist_ok=True)
+    for n in args.n:
+        names = subset_names(args.capture, n, args.seed)
+        path = list_path(args.capture.name, n)
+        path.write_text(f"# {n} of {len(usable_images(args.capture))} images of {args.capture.name}, "
+                        f"benchmarks/image_subsets.py rule, seed {args.seed}\n" + "\n".join(names) + "\n")
+        print(path.relative_to(REPO), " ".join(names))
+
+
+if __name__ == "__main__":
+    main()
