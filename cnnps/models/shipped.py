@@ -63,6 +63,18 @@ def shipped_model_path(name: str = DEFAULT_NAME) -> Path:
     return verify_shipped(weights_path(name))
 
 
+def trained_min_lights(model_path: str | Path, meta: dict) -> int | None:
+    """The fewest lights the model's training maps had: the checkpoint's ``meta``, else, for
+    shipped weights trained before checkpoints recorded it, their provenance record."""
+    if meta.get("min_lights") is not None:
+        return int(meta["min_lights"])
+    path = Path(model_path)
+    if path.with_suffix(".json").is_file():
+        value = read_provenance(path).get("min_lights")
+        return None if value is None else int(value)
+    return None
+
+
 def _git_commit(repo: Path) -> str | None:
     try:
         out = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)

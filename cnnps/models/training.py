@@ -99,6 +99,19 @@ class TrainingData:
     val_files: list
 
 
+def fewest_lights(manifest: dict) -> int | None:
+    """The fewest lights any training map was built from, read from the extract params the
+    manifest records (dense maps: ``min_lights``; with sparse pixels: ``sparse_min_lights``).
+    Prediction warns when a capture has fewer images than this."""
+    params = manifest.get("params") or {}
+    lo = params.get("min_lights")
+    if lo is None:
+        return None
+    if params.get("sparse_fraction"):
+        lo = min(int(lo), int(params.get("sparse_min_lights", lo)))
+    return int(lo)
+
+
 def open_training_data(extract_dir: str | Path) -> TrainingData:
     """Read the manifest at ``extract_dir`` (a folder or an fsspec URL) and check that it
     lists training shards and that every shard it lists exists."""
@@ -382,6 +395,7 @@ class Trainer:
                 config={"w": self.data.w, "dropout": p.dropout},
                 meta={"steps": step, "val_mean_deg": v.get("val_mean_deg"), "val_median_deg": v.get("val_median_deg"),
                       "data_manifest_sha256": self.data.manifest_sha256, "params": dataclasses.asdict(p),
+                      "min_lights": fewest_lights(self.data.manifest),
                       **({"init_weights_sha256": self.init_sha} if self.init_sha else {})},
             )
             write_text(self.out_dir / "metrics.json", json.dumps(metrics, indent=1))

@@ -87,6 +87,8 @@ def predict(
     )
     for note in result.get("notes", []):
         typer.echo(f"note: {note}")
+    for warning in result.get("warnings", []):
+        typer.echo(f"cnnps: warning: {warning}", err=True)
     how = method if method == "lambertian" else f"cnn, K={k}"
     line = f"{Path(capture_dir).name} ({how}, {result['n_images']} images, {result['pixels']} pixels)"
     if "mean_deg" in result:

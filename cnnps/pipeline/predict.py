@@ -111,8 +111,8 @@ def _cnn_normals(model_path, I, L, rotations, device, precision, batch_size, pro
     from cnnps.models.inference import predict_normals
 
     torch_device = _torch_device(device)
-    net, _config, _meta = load_checkpoint(model_path, torch_device)  # InputError naming the file
-    return np.asarray(
+    net, _config, meta = load_checkpoint(model_path, torch_device)  # InputError naming the file
+    return meta, np.asarray(
         predict_normals(
             net,
             I,
@@ -125,6 +125,17 @@ def _cnn_normals(model_path, I, L, rotations, device, precision, batch_size, pro
         ),
         dtype=np.float64,
     )
+
+
+def _sparse_warning(model_path, meta: dict, n_images: int) -> list[str]:
+    """One line when the capture has fewer images than the model's sparsest training maps."""
+    from cnnps.models.shipped import trained_min_lights
+
+    fewest = trained_min_lights(model_path, meta)
+    if fewest is None or n_images >= fewest:
+        return []
+    return [f"{n_images} images, but this model was trained on maps of {fewest} or more lights: "
+            f"expect larger errors (try --method lambertian, or a model trained with sparse lights)"]
 
 
 def predict_capture(
@@ -144,7 +155,7 @@ def predict_capture(
     """Predict normals for the capture in ``capture_dir``; write results into ``out_dir``.
 
     Returns a dict with ``method``, ``rotations`` (None for lambertian), ``n_images``,
-    ``dropped``, ``pixels``, ``seconds``, ``notes``, ``out_dir`` and, when the capture
+    ``dropped``, ``pixels``, ``seconds``, ``notes``, ``warnings``, ``out_dir`` and, when the capture
     has ground truth, the error statistics (``mean_deg``, ``median_deg``, ...).
     """
     from cnnps.core.atomic import atomic_dir
@@ -168,6 +179,7 @@ def predict_capture(
 
     capture = load_capture(capture_dir, drop=drop, grey=grey, progress=progress)
     I = capture.pixel_intensities()
+    warnings: list[str] = []
     t_load = time.perf_counter() - t0
 
     if method == "lambertian":
@@ -178,7 +190,8 @@ def predict_capture(
                 "they use all lights"
             )
     else:
-        N = _cnn_normals(model_path, I, capture.lights, int(rotations), device, precision, None if batch_size is None else int(batch_size), progress)
+        meta, N = _cnn_normals(model_path, I, capture.lights, int(rotations), device, precision, None if batch_size is None else int(batch_size), progress)
+        warnings += _sparse_warning(model_path, meta, capture.n_images)
         if N.shape != (I.shape[0], 3) or not np.all(np.isfinite(N)):
             raise CnnpsError(f"the model returned invalid normals (shape {N.shape} or NaN values)")
     N = normalize(N).astype(np.float32)
@@ -212,6 +225,7 @@ def predict_capture(
         summary["seconds"] = round(time.perf_counter() - t0, 3)
         summary["load_seconds"] = round(t_load, 3)
         summary["notes"] = list(capture.notes)
+        summary["warnings"] = warnings
         (tmp / "prediction.json").write_text(json.dumps(summary, indent=2) + "\n")
 
     result = dict(summary)

@@ -8,7 +8,9 @@ renderer samples) and SLIC superpixel material maps drawn on its normal map
 :func:`cnnps.synth.material_maps.write_material_maps`.
 
 A scene's key hashes the view key, size, superpixels, compactness, the category's ranges
-and the seed, so changing one category's ranges redoes only that category's scenes.
+and the seed, so changing one category's ranges redoes only that category's scenes, and
+adding a category (``narrow`` is opt-in: the default list is the paper's three) adds
+scenes without touching the others.
 Scene folders no longer planned are removed (``prune``, default on).
 """
 
@@ -22,7 +24,7 @@ from cnnps.core.cache import prune_stale, read_json
 from cnnps.core.errors import ConfigError, InputError
 from cnnps.core.executor import ExecutorParams, stage_executor
 from cnnps.core.hashing import entropy_seed, key_entropy, stable_hash
-from cnnps.synth.bsdf import CATEGORIES, CategoryRanges, MaterialRanges
+from cnnps.synth.bsdf import CATEGORIES, DEFAULT_CATEGORIES, CategoryRanges, MaterialRanges
 from cnnps.synth.material_maps import sample_material_maps, write_material_maps
 from cnnps.synth.meshes import read_view_mesh
 from cnnps.synth.raster import rasterize
@@ -36,8 +38,9 @@ class Params:
     """Parameters of the materials stage (``materials:`` in params.yaml).
 
     ``size``: image side S (pixels); ``superpixels``: SLIC segments per scene (paper:
-    5000 train / 100 test); ``categories``: subset of diffuse, specular, metallic;
-    ``ranges``: a :class:`MaterialRanges` or a dict of per-category overrides
+    5000 train / 100 test); ``categories``: subset of diffuse, specular, metallic
+    (the paper's, the default) and narrow (opt-in narrow-lobe glossy dielectrics:
+    :mod:`cnnps.synth.bsdf`); ``ranges``: a :class:`MaterialRanges` or a dict of per-category overrides
     (``{"specular": {"specular": [0, 4]}}``); ``seed``; ``compactness``: SLIC
     compactness on the normal map; ``executor``: how scenes are run (params.yaml's shared
     ``executor`` section; ``None`` = in this process); ``workers``: overrides
@@ -46,7 +49,7 @@ class Params:
 
     size: int = 128
     superpixels: int = 5000
-    categories: tuple[str, ...] = CATEGORIES
+    categories: tuple[str, ...] = DEFAULT_CATEGORIES
     ranges: MaterialRanges = field(default_factory=MaterialRanges)
     seed: int = 0
     compactness: float = 0.1

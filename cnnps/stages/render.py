@@ -5,8 +5,16 @@ mesh view in ``material.json``) this writes ``data_dir/render/<scene_id>/``, a c
 folder rendered by :func:`cnnps.synth.capture_render.render_into` (its docstring: layout,
 resuming a killed render, mask and ground truth from Blender). A scene's ``key`` hashes
 the mesh file, the material files and the parameters that change the pictures (not the
-device, workers or threads); a folder holding the current key and all its images is
-skipped. Render folders of scenes no longer in ``materials/`` are removed (``prune``).
+device, workers or threads), plus the scene's environment strength when it has one; a
+folder holding the current key and all its images is skipped. Render folders of scenes
+no longer in ``materials/`` are removed (``prune``).
+
+Environment light (``env_fraction``, ``env_max``; off by default, and then every key and
+image is what it was before the option existed): a drawn share of the scenes is also lit
+by a dim uniform white world (:func:`environment_strength`), so their attached shadows are
+not black, as in a real capture. It adds its term to *every* image of the scene; the light
+directions and intensities written are still the sun's, and ``scene.json`` records the
+strength (``environment_strength``, relative to the sun's irradiance; 0 = none).
 
 Scaling out. Scenes are independent jobs run by an executor (:mod:`cnnps.core.executor`:
 ``local`` process pool, or ``ray`` on a cluster; params.yaml's ``executor`` section).
@@ -32,10 +40,11 @@ import numpy as np
 from cnnps.core.cache import prune_stale, read_json
 from cnnps.core.errors import ConfigError, InputError
 from cnnps.core.executor import ExecutorParams, LocalExecutor, runs_in_process, stage_executor
-from cnnps.core.hashing import derive_seed, file_sha256, files_sha256, stable_hash
+from cnnps.core.hashing import derive_seed, file_sha256, files_sha256
 from cnnps.synth.capture_render import (
     VERSION,
     RenderSettings,
+    capture_key,
     extend_maps,
     is_complete,
     lambertian_material,
@@ -55,16 +64,45 @@ class Params(RenderSettings):
     ``workers`` overrides executor.workers when set (1 = in this process, 0 = one per
     core); ``threads`` (0) = the executor's threads_per_job (cores / parallel jobs);
     ``prune``: remove render folders of scenes no longer in materials/.
+
+    Environment light (off by default): a share ``env_fraction`` of the scenes (drawn per
+    scene, :func:`environment_strength`) is also lit by a dim uniform white world of
+    strength U(0, ``env_max``) relative to the sun's irradiance (0.05: a white Lambertian
+    patch out of the sun reads up to 5 % of what it reads facing the sun; DiLiGenT's BALL
+    reads 3–6 % of a pixel's brightest value in its attached shadows).
     """
 
     executor: ExecutorParams | None = None
     workers: int | None = None
     prune: bool = True
+    env_fraction: float = 0.0  # share of scenes with an environment light (0 = none: the paper's black world)
+    env_max: float = 0.05  # their strength ~ U(0, env_max), relative to the sun's irradiance
 
     def __post_init__(self):
         super().__post_init__()
         if self.workers is not None and self.workers < 0:
             raise ConfigError(f"render.workers must be >= 0, got {self.workers}")
+        for name in ("env_fraction", "env_max"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not 0.0 <= v <= 1.0:
+                raise ConfigError(f"render.{name} must be a number in [0, 1], got {v!r}")
+
+
+def environment_strength(params: Params, scene_id: str) -> float:
+    """Strength of scene ``scene_id``'s environment light relative to the sun's irradiance
+    (0.0 = none), drawn from ``derive_seed(seed, scene_id, "environment")``: whether the
+    scene gets one (u1 < env_fraction) and how strong (u2 * env_max).
+
+    Seeded by the scene (not by its content key) so that it is deterministic, does not
+    move when the scene's material is redrawn, and raising env_fraction keeps the scenes
+    that already had one (and their u2); a larger env_max scales their strengths.
+    """
+    if params.env_fraction <= 0 or params.env_max <= 0:
+        return 0.0
+    u = np.random.default_rng(derive_seed(int(params.seed), str(scene_id), "environment")).random(2)
+    if u[0] >= params.env_fraction:
+        return 0.0
+    return float(f"{u[1] * params.env_max:.6g}")  # as written to scene.json and hashed into the key
 
 
 def _scene_jobs(params: Params, data_dir: Path) -> list[dict]:
@@ -89,7 +127,9 @@ def _scene_jobs(params: Params, data_dir: Path) -> list[dict]:
         mat_sha = files_sha256([p for p in sdir.iterdir() if p.is_file() and p.suffix in (".npy", ".json", ".png")
                                  and p.name != "preview.png"])
         view_meta = read_json(view_dir / "view.json") or {}
-        key = stable_hash({"mesh": mesh_sha, "material": mat_sha, "params": params.picture_params(), "v": VERSION})
+        env = environment_strength(params, sdir.name)
+        # the key of a scene without an environment light is the one it had before the option existed
+        key = capture_key({"mesh": mesh_sha, "material": mat_sha, "params": params.picture_params(), "v": VERSION}, env)
         jobs.append(
             {
                 "scene_id": sdir.name,
@@ -97,6 +137,7 @@ def _scene_jobs(params: Params, data_dir: Path) -> list[dict]:
                 "mesh_path": str(mesh_path),
                 "out": str(data_dir / "render" / sdir.name),
                 "key": key,
+                "environment": env,
                 "params": {k: v for k, v in asdict(params).items() if k != "executor"},
                 "meta": {
                     "scene_id": sdir.name,
@@ -157,7 +198,7 @@ def render_scene_job(job: dict) -> dict:
         out, np.asarray(mesh.vertices), np.asarray(mesh.faces), material, key=job["key"], lights=L,
         intensity=p.light_intensity, size=p.size, samples=p.samples, seed=scene_seed, max_bounces=p.max_bounces,
         device=p.device, threads=job.get("threads", p.threads), meta=job["meta"], desc=sid,
-        progress=job.get("progress", True),
+        progress=job.get("progress", True), environment=job.get("environment", 0.0),
     )
     return {"scene_id": sid, **res}
 

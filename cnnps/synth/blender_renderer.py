@@ -2,7 +2,7 @@
 
 The rest of the code sees :class:`BlenderRenderer` only (kubric-style)::
 
-    r = BlenderRenderer(size=64, samples=16, device="cpu", threads=2, seed=0)
+    r = BlenderRenderer(size=64, samples=16, device="cpu", threads=2, seed=0)  # environment=0.0
     r.load_scene(vertices, faces, material={"bsdf": "lambertian", "Color": 1.0})
     mask, normal = r.render_geometry()          # (S,S) bool, (S,S,3) float32
     img = r.render((0.3, 0.2, 0.93), 1.0)       # (S,S,3) float32 linear RGB
@@ -10,7 +10,10 @@ The rest of the code sees :class:`BlenderRenderer` only (kubric-style)::
 
 Scene set-up (measured facts in ``shared/notes/blender5-facts.md``):
 
-- factory settings, empty scene; Cycles; black world (Background strength 0);
+- factory settings, empty scene; Cycles; black world (Background strength 0), or with
+  ``environment`` E > 0 a uniform white world of radiance E (Background colour white,
+  strength E: an unoccluded Lambertian surface of albedo a reads a·E from it, measured
+  exactly at 1 spp, since a constant world and cosine sampling give every sample a·E);
 - orthographic camera at (0, 0, 5) looking down -Z, ``ortho_scale`` 2: the image covers
   x, y in [-1, 1]; world x, y, z = image right, up, toward the camera; row 0 on top;
 - one sun lamp of zero angular size, strength ``pi * intensity`` (a white Lambertian patch
@@ -183,6 +186,7 @@ class BlenderRenderer:
         seed: int = 0,
         max_bounces: int = 8,
         persistent: bool = True,
+        environment: float = 0.0,
     ):
         if size < 1:
             raise ConfigError(f"render size must be >= 1, got {size}")
@@ -190,6 +194,8 @@ class BlenderRenderer:
             raise ConfigError(f"render samples must be >= 1, got {samples}")
         if device not in ("cpu", "gpu"):
             raise ConfigError(f"render device must be 'cpu' or 'gpu', got {device!r}")
+        if not (math.isfinite(environment) and environment >= 0):
+            raise ConfigError(f"render environment must be a finite number >= 0, got {environment!r}")
         self._bpy = _import_bpy()
         self.size = int(size)
         self.samples = int(samples)
@@ -198,6 +204,7 @@ class BlenderRenderer:
         self.seed = cycles_seed(seed)
         self.max_bounces = int(max_bounces)
         self.persistent = bool(persistent)
+        self.environment = float(environment)  # world radiance (0 = black world)
         self.renders = 0  # number of light renders done (for tests / benchmarks)
         self._tmpdir, self._lock_fd = _make_tmpdir()
         self._images: list[Any] = []
@@ -257,13 +264,17 @@ class BlenderRenderer:
         c.caustics_refractive = True
         self._set_device()
 
-        world = bpy.data.worlds.new("black")
+        world = bpy.data.worlds.new("black" if self.environment == 0 else "environment")
         if world.node_tree is None:  # Blender 5 makes the tree already (use_nodes is deprecated)
             world.use_nodes = True
         for bg in world.node_tree.nodes:  # the default tree emits grey light: switch it off
             if bg.type == "BACKGROUND":
-                bg.inputs["Strength"].default_value = 0.0
-                bg.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
+                if self.environment == 0:
+                    bg.inputs["Strength"].default_value = 0.0
+                    bg.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
+                else:  # a uniform white world of radiance `environment`
+                    bg.inputs["Strength"].default_value = self.environment
+                    bg.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
         world.color = (0.0, 0.0, 0.0)
         scene.world = world
 

@@ -31,6 +31,13 @@ are extended outward by nearest neighbour (:func:`extend_maps`), so a silhouette
 that Blender covers but the materials' rasteriser did not still gets its neighbour's
 material.
 
+Lighting: one sun lamp per image (direction and intensity as written) and, optionally,
+a dim uniform white environment (``environment``: strength relative to the sun's
+irradiance, the same in every image of the capture, recorded in ``scene.json`` as
+``environment_strength``; 0 = black world, the paper's set-up). The environment is the
+ambient light a real capture has in its attached shadows; it is not in the lights files,
+so every image then holds the sun's term *plus* the ambient term.
+
 Blender (bpy) is needed only to render: :mod:`cnnps.synth.blender_renderer`, the one
 module that imports it, is imported when a folder actually has images to render, and
 without bpy that is one clear :class:`cnnps.core.errors.ConfigError`
@@ -58,7 +65,7 @@ from cnnps.core.errors import ConfigError, InputError
 from cnnps.core.hashing import bytes_sha256, derive_seed, file_sha256, stable_hash
 
 VERSION = 1  # bump when what is written for the same inputs changes (part of every render key)
-MATERIAL_KINDS = ("lambertian", "diffuse", "specular", "metallic")
+MATERIAL_KINDS = ("lambertian", "diffuse", "specular", "metallic", "narrow")
 # the settings that change the pictures (part of the content key); not device or threads
 PICTURE_FIELDS = ("size", "samples", "lights", "jitter_deg", "min_elevation_deg", "light_intensity", "max_bounces", "seed")
 
@@ -106,6 +113,15 @@ class RenderSettings:
     def picture_params(self) -> dict:
         """The settings that change the rendered pictures (part of the content key)."""
         return {k: getattr(self, k) for k in PICTURE_FIELDS}
+
+
+def capture_key(inputs: dict, environment: float = 0.0) -> str:
+    """Content key of a capture: ``stable_hash(inputs)``, with ``environment`` added to
+    the hashed dict only when it is non-zero, so captures without an environment light
+    keep the keys they had before the option existed."""
+    if environment:
+        inputs = {**inputs, "environment": float(environment)}
+    return stable_hash(inputs)
 
 
 def image_names(n: int) -> list[str]:
@@ -182,13 +198,21 @@ def render_into(
     meta: dict | None = None,
     progress: bool = True,
     desc: str = "render",
+    environment: float = 0.0,
 ) -> dict:
     """Render one capture folder, resuming a partial one with the same ``key``.
 
     ``material``: a renderer material dict (see :mod:`cnnps.synth.blender_renderer`), or a
     callable ``mask -> material dict`` called with Blender's mask (for maps drawn on it).
+    ``environment``: strength s of a dim uniform white world relative to the sun's
+    irradiance (0 = black world, as the paper): an unoccluded white Lambertian patch reads
+    ``s * intensity`` from it, in *every* image (the ambient term a real capture has);
+    the light directions and intensities written stay the sun's. Put a non-zero ``s`` in
+    ``key`` (the callers do); it is recorded in scene.json (``environment_strength``).
     Returns ``{"rendered": number of images rendered now, "skipped": bool}``.
     """
+    if not (np.isfinite(environment) and environment >= 0):
+        raise ConfigError(f"render environment strength must be a finite number >= 0, got {environment!r}")
     out = Path(out)
     if is_complete(out, key):
         return {"rendered": 0, "skipped": True}
@@ -203,7 +227,8 @@ def render_into(
     t0 = time.perf_counter()
     rendered = 0
     # the renderer first: a bad device fails before the folder is touched
-    with BlenderRenderer(size, samples, device=device, threads=threads, seed=seed, max_bounces=max_bounces) as r:
+    with BlenderRenderer(size, samples, device=device, threads=threads, seed=seed, max_bounces=max_bounces,
+                         environment=float(environment) * float(intensity)) as r:
         names = image_names(len(lights))
         pending = read_json(out / ".pending.json") or {}
         done_meta = read_json(out / "scene.json") or {}
@@ -253,8 +278,11 @@ def render_into(
             "threads": threads,  # Cycles threads (0 = Blender's default: all cores)
             "gpu_devices": gpus,
             "blender_version": blender_version(),
-            "renderer": "Cycles: orthographic camera, sun lamps (angle 0), black world, "
-            "Gaussian 0.01 px filter, no denoising, no clamping",
+            "renderer": "Cycles: orthographic camera, sun lamps (angle 0), "
+            + ("black world" if environment == 0 else "uniform white world (environment_strength x the sun's irradiance)")
+            + ", Gaussian 0.01 px filter, no denoising, no clamping",
+            # relative to the sun's irradiance; 0 = none. In every image; lights files stay the sun's
+            "environment_strength": float(environment),
             "mask_normal_source": "Blender camera rays through pixel centres: alpha and smooth shading normal",
             "render_seconds": round(time.perf_counter() - t0, 3),
             "images_rendered_last_run": rendered,
@@ -404,18 +432,23 @@ def render_capture(
     max_bounces: int = 8,
     threads: int = 0,
     progress: bool = True,
+    environment: float = 0.0,
 ) -> Path:
     """Render one capture folder of ``mesh`` (a Trimesh in the camera frame, a mesh file,
     normalised into the unit sphere, or ``procedural:<kind>[:seed]``) and return its path.
 
     material: ``lambertian`` (white Lambertian, albedo 1: pixel = max(0, n.l) plus
     interreflections) or a category of the materials stage (``diffuse``, ``specular``,
-    ``metallic``) drawn on ``superpixels`` superpixels of the mask with ``seed``.
+    ``metallic``, ``narrow``) drawn on ``superpixels`` superpixels of the mask with ``seed``.
+    ``environment``: a dim uniform white world, strength relative to the sun's irradiance
+    (:func:`render_into`; 0 = black world, and then the key is the same as before it existed).
     """
     if material not in MATERIAL_KINDS:
         raise ConfigError(f"material must be one of {', '.join(MATERIAL_KINDS)}, got {material!r}")
     if superpixels < 1:
         raise ConfigError(f"superpixels must be >= 1, got {superpixels}")
+    if not (np.isfinite(environment) and environment >= 0):
+        raise ConfigError(f"environment must be a finite number >= 0, got {environment!r}")
     p = RenderSettings(
         size=size, samples=samples, lights=lights, jitter_deg=jitter_deg, light_intensity=light_intensity,
         max_bounces=max_bounces, device=device, seed=seed, threads=threads,
@@ -436,12 +469,13 @@ def render_capture(
             maps = sample_material_maps(mask, material, superpixels, derive_seed(int(seed), "material"))
             return principled_material(extend_maps(dict(maps.params), mask))
 
-    key = stable_hash({"mesh": mesh_hash, "material": [material, superpixels], "params": p.picture_params(), "v": VERSION})
+    key = capture_key({"mesh": mesh_hash, "material": [material, superpixels], "params": p.picture_params(), "v": VERSION},
+                      environment)
     out = Path(out_dir)
     meta = {"mesh_sha256": mesh_hash, "material": material, "superpixels": superpixels, **info}
     render_into(
         out, vertices, faces, mat, key=key, lights=L, intensity=p.light_intensity, size=p.size,
         samples=p.samples, seed=seed, max_bounces=p.max_bounces, device=p.device, threads=p.threads,
-        meta=meta, progress=progress, desc=out.name,
+        meta=meta, progress=progress, desc=out.name, environment=environment,
     )
     return out

@@ -126,3 +126,18 @@ def test_cuda_requested_without_cuda(tmp_path, capsys):
                                "--model", str(model), "--device", "cuda"], capsys)
     assert code == 2 and stderr.count("\n") == 1 and "--device cuda" in stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_predict_warns_in_one_line_when_images_are_fewer_than_the_model_trained_on(tmp_path, capsys):
+    # the shipped model trained on maps of 50+ lights (its provenance says so): 10 images warn
+    write_capture(tmp_path / "cap", fmt="exr", size=12, m=10, max_tilt_deg=45)
+    code, stdout, stderr = run_cli(["predict", str(tmp_path / "cap"), "--out", str(tmp_path / "o"),
+                                    "--rotations", "1", "--no-progress"], capsys)
+    assert code == 0, stderr
+    warnings = [line for line in stderr.splitlines() if line.startswith("cnnps: warning:")]
+    assert warnings == [line for line in stderr.splitlines() if "warning" in line] and len(warnings) == 1
+    assert "10 images, but this model was trained on maps of 50 or more lights" in warnings[0]
+    # lambertian has no such limit
+    code, _, stderr = run_cli(["predict", str(tmp_path / "cap"), "--out", str(tmp_path / "o2"),
+                               "--method", "lambertian", "--no-progress"], capsys)
+    assert code == 0 and "warning" not in stderr

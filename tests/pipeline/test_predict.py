@@ -45,7 +45,7 @@ def test_no_ground_truth_writes_no_metrics(tmp_path):
     assert info["dropped"] == [1] and info["method"] == "lambertian"
 
 
-def _fake_models(monkeypatch, truth, calls, fail=False, load_fail=False):
+def _fake_models(monkeypatch, truth, calls, fail=False, load_fail=False, meta=None):
     """Stand-ins for cnnps.models.checkpoint / cnnps.models.inference (tests the plumbing only)."""
     ckpt = types.ModuleType("cnnps.models.checkpoint")
     inf = types.ModuleType("cnnps.models.inference")
@@ -54,7 +54,7 @@ def _fake_models(monkeypatch, truth, calls, fail=False, load_fail=False):
         calls["load"] = (str(path), device)
         if load_fail:
             raise ValueError("not a checkpoint")
-        return "NET", {}, {}
+        return "NET", {}, dict(meta or {})
 
     def predict_normals(model, I, L, rotations, device, precision, batch_size, progress):
         calls["predict"] = dict(model=model, shape=I.shape, L=L, rotations=rotations, device=device,
@@ -162,3 +162,27 @@ def test_unloadable_model_names_the_file(sphere, tmp_path):
         predict_capture(cap, tmp_path / "out", model=model, device="cpu", progress=False)
     assert info.value.path == model
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("min_lights, warned", [(None, False), (19, False), (20, False), (21, True), (50, True)])
+def test_warns_when_the_capture_has_fewer_images_than_the_model_trained_on(sphere, tmp_path, monkeypatch, min_lights, warned):
+    cap, truth = sphere  # 20 images
+    meta = {} if min_lights is None else {"min_lights": min_lights}
+    _fake_models(monkeypatch, truth, {}, meta=meta)
+    model = tmp_path / "m.pt"  # no provenance beside it: only the checkpoint's meta counts
+    model.write_bytes(b"x")
+    res = predict_capture(cap, tmp_path / "out", model=model, rotations=1, progress=False)
+    info = json.loads((tmp_path / "out" / "prediction.json").read_text())
+    assert info["warnings"] == res["warnings"]
+    if warned:
+        assert len(res["warnings"]) == 1 and f"20 images, but this model was trained on maps of {min_lights} or more" in res["warnings"][0]
+    else:
+        assert res["warnings"] == []
+
+
+def test_shipped_provenance_supplies_min_lights_for_old_checkpoints(tmp_path):
+    from cnnps.models.shipped import trained_min_lights, weights_path
+
+    assert trained_min_lights(weights_path(), {}) == 50  # v2 trained on maps of 50+ lights
+    assert trained_min_lights(weights_path(), {"min_lights": 6}) == 6  # the checkpoint's own record wins
+    assert trained_min_lights(tmp_path / "none.pt", {}) is None

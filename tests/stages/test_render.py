@@ -51,11 +51,57 @@ def test_params_validation():
     Params()
     for bad in (dict(size=0), dict(lights=2), dict(samples=0), dict(device="tpu"), dict(jitter_deg=-1),
                 dict(light_intensity=0.0), dict(max_bounces=-1), dict(min_elevation_deg=90), dict(workers=-1),
-                dict(threads=-1)):
+                dict(threads=-1), dict(env_fraction=-0.1), dict(env_fraction=1.5), dict(env_max=-1),
+                dict(env_max=2.0), dict(env_fraction="half")):
         with pytest.raises(ConfigError, match=r"^render\."):
             Params(**bad)
     # how scenes run is not part of the pictures (nor of their keys)
     assert Params(device="gpu", workers=3, threads=2, prune=False).picture_params() == Params().picture_params()
+    assert Params().env_fraction == 0.0 and Params().env_max == 0.05  # the environment light is opt-in
+
+
+def test_environment_strength_is_seeded_per_scene_and_off_by_default():
+    from cnnps.stages.render import Params, environment_strength
+
+    names = [f"view{i:04d}-specular" for i in range(2000)]
+    assert all(environment_strength(Params(), n) == 0.0 for n in names)
+    assert all(environment_strength(Params(env_fraction=1.0, env_max=0.0), n) == 0.0 for n in names)
+    p = Params(env_fraction=0.3, env_max=0.05)
+    s = np.array([environment_strength(p, n) for n in names])
+    assert s.tolist() == [environment_strength(p, n) for n in names]  # deterministic
+    assert np.mean(s > 0) == pytest.approx(0.3, abs=0.04) and s.max() <= 0.05
+    assert np.mean(s[s > 0]) == pytest.approx(0.025, abs=0.004)  # U(0, env_max)
+    # more scenes lit: the earlier ones keep theirs; a larger env_max scales the strengths
+    s2 = np.array([environment_strength(Params(env_fraction=0.6, env_max=0.1), n) for n in names])
+    assert np.all(s2[s > 0] > 0) and np.mean(s2 > 0) == pytest.approx(0.6, abs=0.04)
+    np.testing.assert_allclose(s2[s > 0], 2 * s[s > 0], rtol=1e-5)
+    # another seed, another draw
+    s3 = np.array([environment_strength(Params(env_fraction=0.3, env_max=0.05, seed=1), n) for n in names])
+    assert not np.array_equal(s3 > 0, s > 0)
+
+
+def test_render_keys_without_environment_are_unchanged(materials_data):
+    """Both new features off (the defaults): every scene's key is the one it had before they
+    existed (the old formula, and a pinned value of it); on, only lit scenes' keys move."""
+    from cnnps.core.hashing import file_sha256, files_sha256, stable_hash
+    from cnnps.stages import render
+    from cnnps.synth.capture_render import VERSION, capture_key
+
+    pinned = capture_key({"mesh": "m", "material": "t", "params": render.Params().picture_params(), "v": VERSION})
+    assert pinned == "1e8a2408e5be2b94b2023bb9458d7f2b3679fb20721f23ebd8b22a2db0ebcfde"  # computed before
+    p = render.Params(size=16, samples=1, lights=3)
+    jobs = render._scene_jobs(p, materials_data)
+    assert len(jobs) == 2
+    for j in jobs:
+        sdir = Path(j["material_dir"])
+        mat_sha = files_sha256([q for q in sdir.iterdir() if q.is_file() and q.suffix in (".npy", ".json", ".png")
+                                and q.name != "preview.png"])
+        old = stable_hash({"mesh": file_sha256(j["mesh_path"]), "material": mat_sha, "params": p.picture_params(), "v": VERSION})
+        assert j["key"] == old and j["environment"] == 0.0
+    lit = render._scene_jobs(render.Params(size=16, samples=1, lights=3, env_fraction=1.0), materials_data)
+    for j, k in zip(jobs, lit):
+        assert 0 < k["environment"] <= 0.05 and k["key"] != j["key"]
+        assert k["environment"] == render.environment_strength(render.Params(env_fraction=1.0), k["scene_id"])
 
 
 def test_stage_modules_and_cli_import_without_bpy():
@@ -145,3 +191,43 @@ def test_stage_run_renders_scenes_skips_current_and_redoes_changed(tmp_path):
         assert render.run(p, data) == {"scenes": 1, "skipped": 1, "rendered_images": 0}
     materials.run(materials.Params(size=16, superpixels=3, categories=("specular",), seed=5), data)
     assert render.run(p, data)["rendered_images"] == 4
+
+
+@pytest.mark.blender
+def test_stage_environment_light_and_narrow_scene(tmp_path):
+    """A narrow scene rendered with the environment light on, then off: scene.json records
+    the drawn strength, the lights files are the sun's, attached shadows are lit only when on."""
+    from cnnps.core.capture import load_capture
+    from cnnps.stages import materials, meshes, render
+
+    mesh_dir = tmp_path / "src"
+    mesh_dir.mkdir()
+    _sphere().export(mesh_dir / "ball.obj")
+    data = tmp_path / "data"
+    meshes.run(meshes.Params(mesh_dir=str(mesh_dir)), data)
+    materials.run(materials.Params(size=16, superpixels=3, categories=("narrow",)), data)
+    (scene,) = (data / "materials").iterdir()
+    assert scene.name.endswith("-narrow")
+    on = render.Params(size=16, samples=2, lights=6, jitter_deg=2, threads=THREADS, workers=1, env_fraction=1.0)
+    assert render.run(on, data)["rendered_images"] == 6
+    out = data / "render" / scene.name
+    meta = json.loads((out / "scene.json").read_text())
+    env = render.environment_strength(on, scene.name)
+    assert meta["environment_strength"] == env and 0 < env <= 0.05 and meta["category"] == "narrow"
+    np.testing.assert_allclose(np.loadtxt(out / "light_intensities.txt"), 1.0)  # the sun's
+    cap = load_capture(out)
+    n = cap.normal_gt[cap.mask]
+    shadow = (n @ cap.lights.T) < -0.05  # attached shadows, pixel x light
+    assert shadow.sum() > 10
+    I_on = cap.pixel_intensities()
+    assert I_on[shadow].min() > 0
+    assert render.run(on, data)["rendered_images"] == 0  # current: skipped
+    off = render.Params(size=16, samples=2, lights=6, jitter_deg=2, threads=THREADS, workers=1)
+    assert render.run(off, data)["rendered_images"] == 6  # another key: re-rendered
+    meta = json.loads((out / "scene.json").read_text())
+    assert meta["environment_strength"] == 0.0 and meta["key"] == render._scene_jobs(off, data)[0]["key"]
+    I_off = load_capture(out).pixel_intensities()
+    assert (I_off[shadow] == 0).all()
+    # the ambient term of a dielectric over a Lambertian base: about (1 - F0) * albedo * env,
+    # F0 <= 0.16 and albedo <= 1 here, plus the glossy lobe reflecting the white world (<= F0 * env)
+    assert I_on[shadow].max() < 1.2 * env  # measured 0.84 (median 0.65)

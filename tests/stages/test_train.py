@@ -13,7 +13,6 @@ from cnnps.models.optimiser import lr_at, make_model, train_step
 from cnnps.stages import extract, train
 from tests.support.renders import make_render_dir
 
-pytest.importorskip("cnnps.models.checkpoint", reason="cnnps.models.checkpoint not written yet")
 
 
 @pytest.fixture(scope="module")
@@ -55,6 +54,17 @@ def test_training_lowers_loss_and_val_error(dataset, tmp_path):
     model, config, meta = load_checkpoint(d / "train" / "model.pt")
     assert config["w"] == 16 and meta["steps"] == 150
     assert meta["val_mean_deg"] == pytest.approx(m["val_mean_deg"])
+    manifest = json.loads((d / "extract/manifest.json").read_text())
+    assert meta["min_lights"] == manifest["params"]["min_lights"]  # predict warns below it
+
+
+def test_fewest_lights_reads_the_sparse_minimum_when_sparse_pixels_were_drawn():
+    from cnnps.models.training import fewest_lights
+
+    assert fewest_lights({"params": {"min_lights": 50}}) == 50
+    assert fewest_lights({"params": {"min_lights": 50, "sparse_fraction": 0.3, "sparse_min_lights": 6}}) == 6
+    assert fewest_lights({"params": {"min_lights": 50, "sparse_fraction": 0.0, "sparse_min_lights": 6}}) == 50
+    assert fewest_lights({}) is None
 
 
 def _weights(d):

@@ -15,9 +15,25 @@ def test_default_ranges_are_the_papers():
     assert r.diffuse.metallic == (0, 0) and r.specular.metallic == (0, 0) and r.metallic.metallic == (1, 1)
     assert r.diffuse.specular == (0, 1) and r.specular.specular == (0, 4) and r.metallic.specular == (0, 1)
     assert r.metallic.roughness == (0.3, 0.7) and r.diffuse.roughness == (0, 1)
-    for c in bsdf.CATEGORIES:
+    for c in bsdf.DEFAULT_CATEGORIES:
         cr = r.get(c)
         assert cr.base_color == cr.sheen == cr.sheen_tint == (0, 1)
+    # the materials stage draws the paper's three unless told otherwise; narrow is opt-in
+    assert bsdf.DEFAULT_CATEGORIES == ("diffuse", "specular", "metallic")
+    assert bsdf.CATEGORIES == bsdf.DEFAULT_CATEGORIES + ("narrow",)
+
+
+def test_narrow_category_ranges_are_editable():
+    n = MaterialRanges().narrow
+    assert n.roughness == (0.02, 0.15) and n.specular == (0.5, 2.0) and n.metallic == (0, 0)
+    assert n.base_color == (0, 1) and n.sheen == n.sheen_tint == (0, 0)
+    assert n.high_specular_min_roughness == 0.02  # its own lower bound: the floor changes no default draw
+    r = MaterialRanges.from_dict({"Narrow": {"metallic": [0, 1], "roughness": [0.05, 0.1]}})
+    assert r.narrow.metallic == (0, 1) and r.narrow.roughness == (0.05, 0.1) and r.narrow.specular == (0.5, 2.0)
+    assert r.specular == MaterialRanges().specular
+    assert MaterialRanges().to_dict()["narrow"]["roughness"] == [0.02, 0.15]
+    with pytest.raises(ConfigError, match="high_specular_min_roughness"):
+        MaterialRanges.from_dict({"narrow": {"roughness": [0.0, 0.01]}})  # all below the floor, specular up to 2
 
 
 def test_ranges_from_dict_override_and_validate():
@@ -84,3 +100,27 @@ def test_sample_parameters_stay_in_range_and_exclude_near_mirrors():
     assert high.mean() == pytest.approx(0.75, abs=0.02)
     assert t["roughness"][high].min() >= cr.high_specular_min_roughness
     assert t["roughness"][~high].min() < 0.01  # the low-specular ones may still be mirror-like
+
+
+def test_narrow_samples_lie_in_their_ranges_and_map_to_blender():
+    cr = MaterialRanges().narrow
+    t = bsdf.sample_parameters(cr, 20000, np.random.default_rng(4))
+    for name in bsdf.PARAM_NAMES:
+        lo, hi = getattr(cr, name)
+        assert t[name].min() >= np.float32(lo) and t[name].max() <= np.float32(hi), name
+    # uniform over the whole range (the floor is the range's lower bound: no rescaling)
+    assert t["roughness"].min() < 0.021 and t["roughness"].max() > 0.149
+    assert np.mean(t["roughness"] < 0.05) == pytest.approx(0.03 / 0.13, abs=0.02)
+    assert np.mean(t["specular"] > 1) == pytest.approx(2 / 3, abs=0.02)
+    assert (t["metallic"] == 0).all() and (t["sheen"] == 0).all()
+    b = to_blender_inputs(t)
+    np.testing.assert_allclose(b["Roughness"], t["roughness"])
+    np.testing.assert_allclose(b["Specular IOR Level"], t["specular"])
+    np.testing.assert_allclose(bsdf.blender_f0(b), 0.08 * t["specular"], rtol=1e-6)  # F0 0.04-0.16
+    assert bsdf.blender_f0(b).min() >= 0.04 - 1e-6 and bsdf.blender_f0(b).max() <= 0.16 + 1e-6
+    assert (b["Metallic"] == 0).all() and (b["Sheen Weight"] == 0).all() and (b["IOR"] == 1.5).all()
+    np.testing.assert_allclose(b["Base Color"][:, :3], t["base_color"])
+    # the paper's categories draw exactly what they drew before narrow existed (pinned)
+    old = bsdf.sample_parameters(MaterialRanges().specular, 3, np.random.default_rng(0))
+    np.testing.assert_array_equal(old["specular"], np.float32([3.429617166519165, 0.13434229791164398, 2.918621778488159]))
+    np.testing.assert_array_equal(old["roughness"], np.float32([0.21687284111976624, 0.8631789088249207, 0.5643881559371948]))
