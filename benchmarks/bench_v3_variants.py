@@ -1,0 +1,159 @@
+"""Model v3: which capture augmentations pay. One start, one data set, one change at a time.
+
+    .venv/bin/python benchmarks/bench_v3_variants.py VARIANT [VARIANT ...] [--steps 1000] [--lr 1e-4]
+                                                     [--out benchmarks/results/variants_v3.json]
+
+Needs the renders and shards of the v2 training data first (about 17 minutes on 2 cores):
+
+    for s in meshes materials render extract; do cnnps run-stage $s --preset cpu-train; done
+
+Every variant starts from the shipped v2 weights and re-extracts the same 186 renders
+(``data/cpu-train/render``) with the preset's extract parameters plus its own overrides
+(into ``data/v3var/<name>/extract``), then trains ``--steps`` steps at a constant ``--lr``
+(batch 128, seed 0) with the train stage: the method of the v2 variant table
+(benchmarks/bench_variants.py), started from v2 instead of v1. ``base`` changes nothing:
+the control for what more steps alone give. Each is scored on
+
+* the validation maps of the v2 data (``data/cpu-train/extract``, split ``val``: 6 held-out
+  scenes x 3 categories, 79,050 maps, ambient augmentation only), each map alone (K = 1);
+* DiLiGenT BALL, 96 images, K = 1 and K = 10 (mean, median, rim and inner);
+* BALL from 20, 10 and 6 of its images (benchmarks/image_lists/, the seeded rule of
+  benchmarks/image_subsets.py): K = 1, and K = 10 at 10 images.
+
+The eval stage's synthetic test set is run for the final candidates only (its cost).
+Results are merged into ``--out`` per variant; the CPU model is recorded with the timings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from cnnps.core.atomic import write_text  # noqa: E402
+
+DATA = REPO / "data" / "cpu-train"
+OUT_ROOT = REPO / "data" / "v3var"
+# extract overrides on top of cnnps/presets/cpu-train.yaml's extract section (ambient 0.05)
+VARIANTS: dict[str, dict] = {
+    "base": {},
+    "sparse-0.3": {"sparse_fraction": 0.3},
+    "noise-0.02": {"noise_max": 0.02},
+    "direction-1.5": {"direction_error_deg": 1.5},
+    "intensity-0.03": {"intensity_error": 0.03},
+    "saturation-0.05": {"saturated_fraction_max": 0.05},
+    "quantize-8-16": {"quantize_bits": (8, 16)},
+    "black-0.02": {"black_level_max": 0.02},
+    "all": {"sparse_fraction": 0.3, "noise_max": 0.02, "direction_error_deg": 1.5, "intensity_error": 0.03,
+            "saturated_fraction_max": 0.05, "quantize_bits": (8, 16), "black_level_max": 0.02},
+}
+SUBSETS = {20: (1,), 10: (1, 10), 6: (1,)}
+
+
+def preset_extract_params():
+    from cnnps.pipeline import config as cfg
+
+    conf = cfg.load_config(cfg.preset_path("cpu-train"))
+    return cfg.build_params(conf, "extract", check_files=False)
+
+
+def validation_maps() -> tuple[np.ndarray, np.ndarray]:
+    from cnnps.core.shards import ShardStream, load_manifest, manifest_files
+
+    d = DATA / "extract"
+    man = load_manifest(d)
+    stream = ShardStream(manifest_files(d, man, "val"), int(man["w"]), batch_size=8192, seed=0, buffer_rows=8192,
+                         shuffle=False, drop_last=False)
+    ms, ns = zip(*stream.iter_epoch(0))
+    return np.concatenate(ms), np.concatenate(ns)
+
+
+def _stats(e: np.ndarray) -> dict:
+    return {"mean_deg": round(float(e.mean()), 3), "median_deg": round(float(np.median(e)), 3)}
+
+
+def score(model_path: Path, val: tuple[np.ndarray, np.ndarray], shared: Path) -> dict:
+    from benchmarks.image_subsets import drop_for, list_path, read_list
+    from cnnps.core.capture import load_capture
+    from cnnps.core.metrics import angular_error_deg
+    from cnnps.models.checkpoint import load_checkpoint
+    from cnnps.models.inference import MapPredictor, predict_normals
+
+    net, _, meta = load_checkpoint(model_path, "cpu")
+    out: dict = {"val": {"maps": len(val[0]), **_stats(angular_error_deg(MapPredictor(net, device="cpu")(val[0]), val[1]))}}
+    ball = shared / "data" / "diligent" / "ballPNG"
+    if not ball.is_dir():
+        return out
+    runs = [(96, None, (1, 10))] + [(n, drop_for(ball, read_list(list_path(ball.name, n))), ks) for n, ks in SUBSETS.items()]
+    for n, drop, ks in runs:
+        cap = load_capture(ball, drop=drop)
+        I, gt = cap.pixel_intensities(), cap.normal_gt[cap.mask]
+        tilt = np.degrees(np.arccos(np.clip(gt[:, 2], -1, 1)))
+        for k in ks:
+            t = time.perf_counter()
+            e = angular_error_deg(predict_normals(net, I, cap.lights, rotations=k, device="cpu", progress=False), gt)
+            out[f"ball{n}_k{k}"] = {**_stats(e), "rim_mean_deg": round(float(e[tilt > 70].mean()), 3),
+                                   "inner_mean_deg": round(float(e[tilt <= 70].mean()), 3),
+                                   "seconds": round(time.perf_counter() - t, 1)}
+            print(f"  BALL {n} images K={k}: {out[f'ball{n}_k{k}']}", flush=True)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("variants", nargs="+", choices=["shipped", *VARIANTS])
+    ap.add_argument("--steps", type=int, default=1000)
+    ap.add_argument("--lr", type=float, default=1e-4)
+    ap.add_argument("--shared", type=Path, default=REPO.parent / "shared")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "variants_v3.json")
+    args = ap.parse_args()
+
+    from benchmarks.bench_inference import _cpu_info
+    from cnnps.models.shipped import shipped_model_path
+    from cnnps.stages import extract, train
+
+    results = json.loads(args.out.read_text()) if args.out.is_file() else {"variants": {}}
+    results["cpu"] = _cpu_info()
+    results["method"] = (f"from the shipped v2 weights, {args.steps} steps x 128 at lr {args.lr} on the v2 renders "
+                         "re-extracted with each variant's overrides; scored as the module docstring says")
+    val = validation_maps()
+    base = preset_extract_params()
+    init = shipped_model_path()
+    for name in args.variants:
+        row: dict = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                     "load_average_before": [round(x, 2) for x in os.getloadavg()]}
+        model = init
+        if name != "shipped":
+            row["extract_overrides"] = {k: list(v) if isinstance(v, tuple) else v for k, v in VARIANTS[name].items()}
+            shards = OUT_ROOT / name / "extract"
+            t = time.perf_counter()
+            extract.run(dataclasses.replace(base, **VARIANTS[name], output=str(shards)), DATA)
+            man = json.loads((shards / "manifest.json").read_text())
+            row["data"] = {"train_rows": man["train_rows"], "extract_seconds": round(time.perf_counter() - t, 1)}
+            params = train.Params(max_steps=args.steps, epochs=1000, lr=args.lr, batch_size=128, val_every=0,
+                                  val_max_rows=4096, checkpoint_every=250, init=str(init), shards=str(shards),
+                                  progress=False)
+            t = time.perf_counter()
+            m = train.run(params, OUT_ROOT / name)
+            row["train"] = {"steps": m["steps"], "lr": args.lr, "seconds": round(time.perf_counter() - t, 1),
+                            "samples_per_s": m["samples_per_s"]}
+            model = OUT_ROOT / name / "train" / "model.pt"
+        print(name, flush=True)
+        row.update(score(model, val, args.shared))
+        results["variants"][name] = row
+        write_text(args.out, json.dumps(results, indent=2) + "\n")
+        print(name, json.dumps(row), flush=True)
+
+
+if __name__ == "__main__":
+    main()
