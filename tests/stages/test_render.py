@@ -31,6 +31,19 @@ def _load(out):
     return load_capture(out)
 
 
+def _one_sphere_scene(tmp_path: Path, category: str) -> Path:
+    """A data dir with one sphere mesh view and its ``category`` material maps (16 px, 3 superpixels)."""
+    from cnnps.stages import materials, meshes
+
+    mesh_dir = tmp_path / "src"
+    mesh_dir.mkdir()
+    _sphere().export(mesh_dir / "ball.obj")
+    data = tmp_path / "data"
+    meshes.run(meshes.Params(mesh_dir=str(mesh_dir)), data)
+    materials.run(materials.Params(size=16, superpixels=3, categories=(category,)), data)
+    return data
+
+
 @pytest.fixture(scope="module")
 def materials_data(views_data_dir, tmp_path_factory) -> Path:
     """meshes (2 procedural views) + materials (16 x 16, one category): 2 scenes to render."""
@@ -159,14 +172,9 @@ def test_stage_prunes_only_its_own_stale_folders(materials_data, tmp_path, monke
 @pytest.mark.blender
 def test_stage_run_renders_scenes_skips_current_and_redoes_changed(tmp_path):
     """meshes -> materials -> render on one tiny scene; rerun skips; a new material re-renders."""
-    from cnnps.stages import materials, meshes, render
+    from cnnps.stages import materials, render
 
-    mesh_dir = tmp_path / "src"
-    mesh_dir.mkdir()
-    _sphere().export(mesh_dir / "ball.obj")
-    data = tmp_path / "data"
-    meshes.run(meshes.Params(mesh_dir=str(mesh_dir)), data)
-    materials.run(materials.Params(size=16, superpixels=3, categories=("specular",)), data)
+    data = _one_sphere_scene(tmp_path, "specular")
     p = render.Params(size=16, samples=2, lights=4, jitter_deg=2, threads=THREADS, workers=1)
     res = render.run(p, data)
     assert res == {"scenes": 1, "skipped": 0, "rendered_images": 4}
@@ -198,14 +206,9 @@ def test_stage_environment_light_and_narrow_scene(tmp_path):
     """A narrow scene rendered with the environment light on, then off: scene.json records
     the drawn strength, the lights files are the sun's, attached shadows are lit only when on."""
     from cnnps.core.capture import load_capture
-    from cnnps.stages import materials, meshes, render
+    from cnnps.stages import render
 
-    mesh_dir = tmp_path / "src"
-    mesh_dir.mkdir()
-    _sphere().export(mesh_dir / "ball.obj")
-    data = tmp_path / "data"
-    meshes.run(meshes.Params(mesh_dir=str(mesh_dir)), data)
-    materials.run(materials.Params(size=16, superpixels=3, categories=("narrow",)), data)
+    data = _one_sphere_scene(tmp_path, "narrow")
     (scene,) = (data / "materials").iterdir()
     assert scene.name.endswith("-narrow")
     on = render.Params(size=16, samples=2, lights=6, jitter_deg=2, threads=THREADS, workers=1, env_fraction=1.0)
