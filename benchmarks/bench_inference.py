@@ -36,29 +36,12 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from benchmarks.machine import cpu_info  # noqa: E402
 from cnnps.core.atomic import write_text  # noqa: E402
 from cnnps.core.obsmap import observation_maps  # noqa: E402
 from cnnps.models.inference import MapPredictor, predict_normals  # noqa: E402
 from cnnps.models.network import CNNPS  # noqa: E402
 
-
-def _cpu_info() -> dict:
-    model, flags = platform.processor(), []
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name") and ":" in line:
-                model = line.split(":", 1)[1].strip()
-            if line.startswith("flags") and ":" in line:
-                flags = line.split(":", 1)[1].split()
-    except OSError:
-        pass
-    wanted = ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8", "amx_tile")
-    return {
-        "model": model,
-        "logical_cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
-        "flags": [f for f in wanted if f in flags],
-        "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
-    }
 
 
 def _scene(P: int, m: int = 96, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -164,7 +147,7 @@ def main(argv=None) -> int:
 
     result = {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "cpu": _cpu_info(),
+        "cpu": cpu_info(),
         "python": platform.python_version(),
         "torch": torch.__version__,
         "threads": threads,

@@ -10,26 +10,45 @@ A capture folder holds:
 - optional ground truth ``Normal_gt.mat`` (variable ``Normal_gt``) or ``normal_gt.npy``,
   both H x W x 3.
 
-Images may be 8/16-bit PNG, 16-bit TIFF or float32 EXR (:func:`cnnps.core.images.read_image`).
-Each is turned into one grey float32 image: the mean of its intensity-normalised channels
-(``grey="mean"``), or their luminance 0.2989 R + 0.5870 G + 0.1140 B
-(``grey="luminance"``, MATLAB's rgb2gray weights, used by published least-squares numbers).
-A one-channel image is divided by the same combination of the three light intensities.
+Images may be 8/16-bit PNG, 8-bit JPEG, 8/16-bit TIFF or float32 EXR
+(:func:`cnnps.core.images.read_image_raw`). Integer images are scaled to [0, 1] by their
+type's maximum and, with ``linearize="srgb"``, decoded with the sRGB EOTF
+(:mod:`cnnps.core.srgb`); ``linearize=None`` or ``"none"`` takes them as linear (right
+for DiLiGenT's 16-bit PNGs and raw-converted linear files, wrong for ordinary camera
+JPEGs). Float images are always linear. Each image is turned into one grey float32 image:
+the mean of its intensity-normalised channels (``grey="mean"``), or their luminance
+0.2989 R + 0.5870 G + 0.1140 B (``grey="luminance"``, MATLAB's rgb2gray weights, used by
+published least-squares numbers). A one-channel image is divided by the same combination
+of the three light intensities.
 
+Two ways to read the images:
+
+- :func:`load_capture` reads the whole stack into ``Capture.images`` (m x H x W float32):
+  simple, for small captures (training renders, tests, benchmarks);
+- :func:`scan_capture` validates the folder and reads only the mask, lights and ground
+  truth; :meth:`Capture.read_pixels` then gives one image's masked pixels at a time
+  (what ``cnnps predict`` streams into a :class:`cnnps.core.pixel_store.PixelStack`),
+  with saturated observations (any channel >= ``SATURATION_LEVEL`` of an integer type's
+  maximum, before linearization) flagged.
+
+Both compute every value with the same float32 operations, so they agree bit for bit.
 Every problem is reported as one :class:`cnnps.core.errors.InputError` naming the bad file.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable, NamedTuple
 
 import numpy as np
 
 from cnnps.core.errors import ConfigError, InputError
-from cnnps.core.images import read_image, read_mask
+from cnnps.core.images import max_code, read_image_raw, read_mask
+from cnnps.core.srgb import LINEARIZE, linear_table
 
 GREY_WEIGHTS = {
     "mean": np.array([1.0, 1.0, 1.0]) / 3.0,
@@ -41,6 +60,27 @@ DEFAULT_DROPS = {"bearPNG": list(range(20))}
 
 MIN_IMAGES = 3
 
+# An observation is saturated when any channel is >= this fraction of the integer type's
+# maximum (253 of 255, 64880 of 65535), judged on the stored codes before linearization.
+SATURATION_LEVEL = 0.99
+
+# Decoded images in flight at once while reading (threads): at most this many bytes of
+# raw pixels, so a 12-megapixel stack does not hold 8 decoded frames at a time.
+DECODE_BUDGET_BYTES = 512 * 2**20
+MAX_READ_WORKERS = 8
+
+
+class ImagePixels(NamedTuple):
+    """One image's masked pixels (:meth:`Capture.read_pixels`)."""
+
+    values: np.ndarray  # (P,) float32 grey, intensity-normalised, as stored (saturated ones too)
+    saturated: np.ndarray | None  # (P,) bool, True = saturated (a missing observation); None: none
+    kind: str  # the stored pixel type: "uint8", "uint16" or "float32"
+
+    @property
+    def n_saturated(self) -> int:
+        return 0 if self.saturated is None else int(self.saturated.sum())
+
 
 @dataclass
 class Capture:
@@ -49,7 +89,7 @@ class Capture:
     name: str
     root: Path
     filenames: list[str]
-    images: np.ndarray  # (m, H, W) float32 grey, intensity-normalised
+    images: np.ndarray | None  # (m, H, W) float32 grey, intensity-normalised; None from scan_capture
     lights: np.ndarray  # (m, 3) float64 unit directions
     intensities: np.ndarray  # (m, 3) float64 RGB light intensities (already divided out)
     mask: np.ndarray  # (H, W) bool
@@ -57,6 +97,9 @@ class Capture:
     dropped: list[int] = field(default_factory=list)  # indices into the original filenames.txt
     notes: list[str] = field(default_factory=list)  # messages for the user
     grey: str = "mean"
+    paths: list[Path] = field(default_factory=list)  # the image files, in light order
+    linearize: str | None = None  # "srgb" | "none" | None (not chosen: integer images taken as linear)
+    first_kind: str | None = None  # stored pixel type of the first image ("uint8", "uint16", "float32")
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -71,8 +114,55 @@ class Capture:
         return int(self.mask.sum())
 
     def pixel_intensities(self) -> np.ndarray:
-        """(P, m) float32 values of the mask pixels, row-major pixel order."""
+        """(P, m) float32 values of the mask pixels, row-major pixel order (needs
+        :func:`load_capture`; a scanned capture streams them with :meth:`read_pixels`)."""
+        if self.images is None:
+            raise ValueError("this capture was scanned, not loaded: use read_pixels(k) per image")
         return np.ascontiguousarray(self.images[:, self.mask].T, dtype=np.float32)
+
+    def read_grey(self, k: int) -> np.ndarray:
+        """Image ``k`` as one (H, W) float32 grey image (no saturation test)."""
+        raw = self._read_raw(k)
+        return _grey(linear_values(raw, self.linearize), self.intensities[k], GREY_WEIGHTS[self.grey])
+
+    def read_pixels(self, k: int, saturation: float | None = SATURATION_LEVEL) -> ImagePixels:
+        """Image ``k``'s mask pixels (row-major order, like :meth:`pixel_intensities`).
+
+        ``values`` are exactly those of :meth:`read_grey` at the mask pixels;
+        ``saturated`` flags the observations with any channel >= ``saturation`` x the
+        integer type's maximum (None when there is none). Float images have no maximum
+        and are never flagged; ``saturation`` None flags nothing. Works in bands of rows,
+        so the temporaries stay small next to the decoded image.
+        """
+        raw = self._read_raw(k)
+        H, W = self.shape
+        weights = GREY_WEIGHTS[self.grey]
+        level = saturation_code(raw.dtype, saturation)
+        values = np.empty(self.n_pixels, dtype=np.float32)
+        saturated = None
+        o = 0
+        band = max(1, (1 << 20) // max(1, W))  # about a megapixel of rows at a time
+        for r0 in range(0, H, band):
+            sub = raw[r0 : r0 + band][self.mask[r0 : r0 + band]]  # (n, C) stored values
+            n = sub.shape[0]
+            if n == 0:
+                continue
+            values[o : o + n] = _grey(linear_values(sub, self.linearize), self.intensities[k], weights)
+            if level is not None:
+                sat = (sub >= level).any(axis=-1)
+                if sat.any():
+                    if saturated is None:
+                        saturated = np.zeros(self.n_pixels, dtype=bool)
+                    saturated[o : o + n] = sat
+            o += n
+        return ImagePixels(values, saturated, str(raw.dtype))
+
+    def _read_raw(self, k: int) -> np.ndarray:
+        path = self.paths[k]
+        H, W = self.shape
+        raw = read_image_raw(path)
+        ref = None if k == 0 else (H, W, self.paths[0].name)
+        return _check_image(path, raw, ref)
 
     def to_image(self, values: np.ndarray) -> np.ndarray:
         """Scatter (P, C) (or (P,)) per-pixel values into (H, W, C) (or (H, W)), 0 outside."""
@@ -121,8 +211,10 @@ def _read_vectors(path: Path, what: str) -> tuple[np.ndarray, list[int]]:
     return np.array([v for _, v in rows], dtype=np.float64), [n for n, _ in rows]
 
 
-def _read_filenames(root: Path) -> list[str]:
-    path = root / "filenames.txt"
+def read_filenames(root: Path) -> list[str]:
+    """The image names of ``root/filenames.txt`` (one a line, light order; '#' comments
+    and blank lines skipped); an InputError when it is missing or lists nothing."""
+    path = Path(root) / "filenames.txt"
     names = [line for _, line in _read_lines(path)]
     if not names:
         raise InputError(path, "file is empty")
@@ -188,19 +280,97 @@ def _read_normal_gt(root: Path, shape: tuple[int, int]) -> np.ndarray | None:
 
 
 def _grey(img: np.ndarray, intensity: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    if img.shape[2] == 1:
-        return img[:, :, 0] / np.float32(weights @ intensity)
+    """(..., C) float32 linear values -> (...) float32 grey, intensity divided out."""
+    if img.shape[-1] == 1:
+        return img[..., 0] / np.float32(weights @ intensity)
     w = (weights / intensity).astype(np.float32)  # per-channel weight / intensity
-    return img[:, :, 0] * w[0] + img[:, :, 1] * w[1] + img[:, :, 2] * w[2]
+    return img[..., 0] * w[0] + img[..., 1] * w[1] + img[..., 2] * w[2]
+
+
+@functools.lru_cache(maxsize=8)
+def _table(top: int, linearize: str) -> np.ndarray:
+    table = linear_table(top, linearize)
+    table.flags.writeable = False
+    return table
+
+
+def linear_values(raw: np.ndarray, linearize: str | None) -> np.ndarray:
+    """Stored values (:func:`cnnps.core.images.read_image_raw`) -> float32 linear values
+    in [0, 1] (floats: as stored); ``linearize`` as :func:`scan_capture`.
+
+    Integers go through a look-up table: with ``"none"`` (or None) it holds
+    float32(code) / float32(max), exactly what :func:`cnnps.core.images.read_image` gives."""
+    top = max_code(raw.dtype)
+    if top is None:
+        return raw if raw.dtype == np.float32 else raw.astype(np.float32)
+    return _table(top, linearize or "none")[raw]
+
+
+def saturation_code(dtype, saturation: float | None = SATURATION_LEVEL) -> int | None:
+    """The smallest stored code counted as saturated: ``ceil(saturation x maximum)`` of an
+    integer pixel type (253 for uint8, 64880 for uint16 at 0.99); None for float types
+    (no maximum) or ``saturation`` None."""
+    top = max_code(dtype)
+    if saturation is None or top is None:
+        return None
+    return int(np.ceil(float(saturation) * top))
 
 
 def _check_image(path: Path, img: np.ndarray, ref) -> np.ndarray:
     if ref is not None and img.shape[:2] != ref[:2]:
         H, W, name = ref
         raise InputError(path, f"image is {img.shape[1]}x{img.shape[0]} but {name} is {W}x{H}")
-    if not np.all(np.isfinite(img)):
+    if np.issubdtype(img.dtype, np.floating) and not np.all(np.isfinite(img)):
         raise InputError(path, "image contains NaN or infinite pixels")
     return img
+
+
+def read_workers(capture: Capture, workers: int | None = None) -> int:
+    """Threads to decode images with: ``workers`` (default: the CPU count, at most
+    ``MAX_READ_WORKERS``), fewer when that many decoded images would pass
+    ``DECODE_BUDGET_BYTES`` (judged on the first image's size and type), at least 1."""
+    if workers is None:
+        workers = min(MAX_READ_WORKERS, os.cpu_count() or 1)
+    H, W = capture.shape
+    item = 2 if capture.first_kind == "uint16" else (1 if capture.first_kind == "uint8" else 4)
+    # the decoded frame plus the float32 grey/band temporaries of one image
+    per_image = H * W * (3 * item + 8)
+    return max(1, min(int(workers), DECODE_BUDGET_BYTES // max(1, per_image)))
+
+
+def for_each_image(
+    capture: Capture,
+    work: Callable[[int], None],
+    workers: int | None = None,
+    progress: bool = False,
+    desc: str | None = None,
+) -> None:
+    """Run ``work(k)`` for every image k of ``capture`` on a few threads (decoding with
+    OpenCV, OpenEXR and zlib releases the GIL), with a progress bar. Results are
+    consumed in order, so the first bad file (in list order) is the one reported, and
+    at most ``workers`` images are in flight (see :func:`read_workers`)."""
+    from tqdm import tqdm
+
+    n = capture.n_images
+    workers = read_workers(capture, workers)
+    bar = tqdm(total=n, desc=desc or f"reading {capture.name}", unit="img", disable=not progress, leave=False)
+    try:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            pending: list = []
+            nxt = 0
+            try:
+                while nxt < n or pending:
+                    while nxt < n and len(pending) < 2 * workers:
+                        pending.append(pool.submit(work, nxt))
+                        nxt += 1
+                    pending.pop(0).result()
+                    bar.update(1)
+            except BaseException:
+                for f in pending:
+                    f.cancel()
+                raise
+    finally:
+        bar.close()
 
 
 def _normalise_drop(drop, m: int, path: Path) -> list[int]:
@@ -214,30 +384,37 @@ def _normalise_drop(drop, m: int, path: Path) -> list[int]:
     return idx
 
 
-def load_capture(
+def scan_capture(
     path: str | Path,
     drop=None,
     grey: str = "mean",
-    progress: bool = False,
-    workers: int | None = None,
+    linearize: str | None = None,
 ) -> Capture:
-    """Load and validate a capture folder.
+    """Validate a capture folder and read everything but the image stack.
+
+    Reads the text files, the mask, the ground truth and the first image (for the size
+    and pixel type); checks that every listed image exists. The returned Capture has
+    ``images = None``; read images one at a time with :meth:`Capture.read_pixels` /
+    :meth:`Capture.read_grey` (each checks size and finite values of its file).
 
     drop: indices (0-based, in filenames.txt order) of images to leave out. None applies
         the benchmark default for known objects (``bearPNG``: the first 20), recorded in
         ``Capture.notes``; an empty list drops nothing.
     grey: "mean" or "luminance" (see the module docstring).
+    linearize: "srgb" | "none" | None for integer images (see the module docstring).
     """
     root = Path(path)
     if grey not in GREY_WEIGHTS:
         raise ConfigError(f"grey must be one of {sorted(GREY_WEIGHTS)}, got {grey!r}")
+    if linearize is not None and linearize not in LINEARIZE:
+        raise ConfigError(f"linearize must be one of {', '.join(LINEARIZE)}, got {linearize!r}")
     if not root.exists():
         raise InputError(root, "capture folder not found")
     if not root.is_dir():
         raise InputError(root, "not a folder (expected a capture folder with filenames.txt)")
     notes: list[str] = []
 
-    names = _read_filenames(root)
+    names = read_filenames(root)
     m_all = len(names)
     lights, intensities = _read_lights(root, m_all)
 
@@ -266,9 +443,10 @@ def load_capture(
     if not mask_path.is_file():
         raise InputError(mask_path, "file not found (every capture needs an object mask)")
 
-    weights = GREY_WEIGHTS[grey]
-    first = _check_image(paths[0], read_image(paths[0]), None)
+    first = _check_image(paths[0], read_image_raw(paths[0]), None)
     H, W = first.shape[:2]
+    kind = str(first.dtype)
+    del first
     mask = read_mask(mask_path)
     if mask.shape != (H, W):
         raise InputError(mask_path, f"mask is {mask.shape[1]}x{mask.shape[0]} but the images are {W}x{H}")
@@ -276,36 +454,11 @@ def load_capture(
         raise InputError(mask_path, "mask is empty (no non-zero pixel)")
     normal_gt = _read_normal_gt(root, (H, W))
 
-    images = np.empty((len(paths), H, W), dtype=np.float32)
-    images[0] = _grey(first, intensities[0], weights)
-    del first
-
-    def load(k: int) -> None:
-        img = _check_image(paths[k], read_image(paths[k]), (H, W, paths[0].name))
-        images[k] = _grey(img, intensities[k], weights)
-
-    if workers is None:
-        workers = min(8, os.cpu_count() or 1)
-    # Decoding (OpenCV, OpenEXR, zlib) releases the GIL: threads overlap file reading.
-    # Results are consumed in order so the first bad file (in list order) is reported.
-    from tqdm import tqdm
-
-    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        futures = [pool.submit(load, k) for k in range(1, len(paths))]
-        try:
-            bar = tqdm(futures, desc=f"reading {root.name}", unit="img", total=len(paths), initial=1, disable=not progress, leave=False)
-            for f in bar:
-                f.result()
-        except BaseException:
-            for f in futures:
-                f.cancel()
-            raise
-
     return Capture(
         name=root.name,
         root=root,
         filenames=names,
-        images=images,
+        images=None,
         lights=lights,
         intensities=intensities,
         mask=mask,
@@ -313,4 +466,32 @@ def load_capture(
         dropped=list(map(int, dropped)),
         notes=notes,
         grey=grey,
+        paths=paths,
+        linearize=linearize,
+        first_kind=kind,
     )
+
+
+def load_capture(
+    path: str | Path,
+    drop=None,
+    grey: str = "mean",
+    progress: bool = False,
+    workers: int | None = None,
+    linearize: str | None = None,
+) -> Capture:
+    """Load and validate a capture folder, the whole image stack into ``Capture.images``.
+
+    drop, grey, linearize: as :func:`scan_capture`. No saturation test (the stack holds
+    every value as stored); ``cnnps predict`` streams with :meth:`Capture.read_pixels`.
+    """
+    capture = scan_capture(path, drop=drop, grey=grey, linearize=linearize)
+    H, W = capture.shape
+    images = np.empty((capture.n_images, H, W), dtype=np.float32)
+
+    def load(k: int) -> None:
+        images[k] = capture.read_grey(k)
+
+    for_each_image(capture, load, workers=workers, progress=progress)
+    capture.images = images
+    return capture

@@ -1,8 +1,15 @@
-"""Reading and writing images of a capture: 8/16-bit PNG, 16-bit TIFF, float32 OpenEXR.
+"""Reading and writing images of a capture: 8/16-bit PNG, 8-bit JPEG, 8/16-bit TIFF,
+float32 OpenEXR.
 
-Every reader returns float32 H x W x C in RGB channel order (C = 1 or 3), with integer
-images scaled to [0, 1] by their type's maximum and EXR left linear as stored.
-Errors are :class:`cnnps.core.errors.InputError` naming the file.
+:func:`read_image` returns float32 H x W x C in RGB channel order (C = 1 or 3), with
+integer images scaled to [0, 1] by their type's maximum and EXR left linear as stored.
+:func:`read_image_raw` returns the same pixels in the file's own type (uint8, uint16 or
+float32), which is what saturation tests and look-up-table decoding (sRGB, see
+:mod:`cnnps.core.srgb`) need; :func:`max_code` is the largest value of an integer type.
+JPEG files are read as stored: the EXIF orientation tag is NOT applied, so the pixel
+grid is the sensor's (a mask drawn on a rotated view will not match in size).
+An alpha channel is dropped. Errors are :class:`cnnps.core.errors.InputError` naming
+the file.
 """
 
 from __future__ import annotations
@@ -14,7 +21,17 @@ import numpy as np
 from cnnps.core.atomic import atomic_path
 from cnnps.core.errors import InputError
 
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".exr")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
+
+
+def max_code(dtype) -> int | None:
+    """The largest value of an integer pixel type (255, 65535); None for float images."""
+    dtype = np.dtype(dtype)
+    if dtype == np.uint8:
+        return 255
+    if dtype == np.uint16:
+        return 65535
+    return None
 
 
 def _scale_integer(img: np.ndarray, path: Path) -> np.ndarray:
@@ -69,12 +86,14 @@ def _read_tiff(path: Path) -> np.ndarray:
         img = tifffile.imread(str(path))
     except Exception as exc:
         raise InputError(path, f"unreadable TIFF image ({exc})") from exc
-    return _scale_integer(np.asarray(img), path)
+    return np.asarray(img)
 
 
-def _read_png(path: Path) -> np.ndarray:
+def _read_opencv(path: Path) -> np.ndarray:
+    """PNG and JPEG through OpenCV, in the file's own type; RGB(A) order."""
     import cv2
 
+    # IMREAD_UNCHANGED keeps 16 bits and ignores the EXIF orientation (the stored grid)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputError(path, "unreadable image")
@@ -82,11 +101,12 @@ def _read_png(path: Path) -> np.ndarray:
         if img.shape[2] == 4:
             img = img[:, :, :3]
         img = img[:, :, ::-1]  # OpenCV gives BGR
-    return _scale_integer(np.ascontiguousarray(img), path)
+    return np.ascontiguousarray(img)
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Read one image as float32 H x W x C, RGB order, C in {1, 3}."""
+def read_image_raw(path: str | Path) -> np.ndarray:
+    """Read one image as H x W x C (C in {1, 3}, RGB order) in the file's own pixel type:
+    uint8 or uint16 for PNG, JPEG and TIFF, float32 for EXR (float TIFFs as float32)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "file not found")
@@ -95,17 +115,28 @@ def read_image(path: str | Path) -> np.ndarray:
         img = read_exr(path)
     elif suffix in (".tif", ".tiff"):
         img = _read_tiff(path)
-    elif suffix == ".png":
-        img = _read_png(path)
+    elif suffix in (".png", ".jpg", ".jpeg"):
+        img = _read_opencv(path)
     else:
-        raise InputError(path, f"unsupported image format {suffix!r} (use PNG, TIFF or EXR)")
+        raise InputError(path, f"unsupported image format {suffix!r} (use PNG, JPEG, TIFF or EXR)")
     if img.ndim == 2:
         img = img[:, :, None]
     if img.ndim != 3 or img.shape[2] not in (1, 3, 4):
         raise InputError(path, f"unexpected image shape {img.shape}")
     if img.shape[2] == 4:
         img = img[:, :, :3]
+    if not (img.dtype in (np.uint8, np.uint16) or np.issubdtype(img.dtype, np.floating)):
+        raise InputError(path, f"unsupported pixel type {img.dtype}")
+    if np.issubdtype(img.dtype, np.floating) and img.dtype != np.float32:
+        img = img.astype(np.float32)
     return img
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read one image as float32 H x W x C, RGB order, C in {1, 3}; integer images
+    scaled to [0, 1] by their type's maximum (no sRGB decoding: see :mod:`cnnps.core.srgb`)."""
+    path = Path(path)
+    return _scale_integer(read_image_raw(path), path)
 
 
 def read_mask(path: str | Path) -> np.ndarray:

@@ -16,6 +16,8 @@ from cnnps.core.errors import CnnpsError, one_line
 from cnnps.pipeline.app import app
 
 # Command modules register their commands on ``app`` when imported.
+from cnnps.pipeline import cli_calibrate  # noqa: E402,F401
+from cnnps.pipeline import cli_integrate  # noqa: E402,F401
 from cnnps.pipeline import cli_predict  # noqa: E402,F401
 from cnnps.pipeline import cli_render  # noqa: E402,F401
 from cnnps.pipeline import cli_stages  # noqa: E402,F401

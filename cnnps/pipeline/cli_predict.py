@@ -1,4 +1,4 @@
-"""The `cnnps predict` command: normals for one capture folder."""
+"""The `cnnps predict` command: normals (and, with --depth, a surface) for one capture folder."""
 
 from __future__ import annotations
 
@@ -56,6 +56,11 @@ def predict(
     drop: Optional[str] = typer.Option(None, "--drop", metavar="INDICES", help="Image indices to leave out, 0-based, e.g. '0,1,2' or '0-19'; 'none' drops nothing (bearPNG drops its first 20 by default)."),
     shadow_threshold: Optional[str] = typer.Option(None, "--shadow-threshold", metavar="T", help="lambertian: per pixel, use only lights brighter than this fraction of its brightest, in [0, 1)."),
     grey: str = typer.Option("mean", "--grey", help="mean | luminance: how RGB becomes grey."),
+    linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none", help="How 8/16-bit images become linear: srgb = decode the sRGB curve (camera JPEG/PNG), none = already linear (DiLiGenT, raw converters). Unset: taken as linear, with a note when images are 8-bit."),
+    saturated: str = typer.Option("exclude", "--saturated", metavar="exclude|keep", help="exclude: observations with a channel >= 0.99 of the format's maximum are left out (missing); keep: use them as stored."),
+    depth: bool = typer.Option(False, "--depth", help="Also integrate the normals into depth.npy, depth.png and surface.ply."),
+    tile_pixels: str = typer.Option("65536", "--tile-pixels", metavar="N", help="Mask pixels processed at a time (memory ~ N x images x 8 bytes)."),
+    scratch: Optional[Path] = typer.Option(None, "--scratch", metavar="DIR", help="Folder for the temporary pixel stack of large captures (default: next to --out; about pixels x images x 4 bytes)."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
     """Predict surface normals for a capture folder."""
@@ -63,6 +68,9 @@ def predict(
 
     k = _parse_int("--rotations", rotations, 1)
     bs = DEFAULT_BATCH_SIZE if batch_size is None else _parse_int("--batch-size", batch_size, 1)
+    tiles = _parse_int("--tile-pixels", tile_pixels, 1)
+    if linearize is not None and linearize not in ("srgb", "none"):
+        raise ConfigError(f"--linearize must be srgb or none, got {linearize!r}")
     t = None
     if shadow_threshold is not None:
         try:
@@ -84,9 +92,16 @@ def predict(
         shadow_threshold=t,
         grey=grey,
         progress=progress,
+        linearize=linearize,
+        depth=depth,
+        tile_pixels=tiles,
+        scratch_dir=scratch,
+        saturated=saturated,
     )
     for note in result.get("notes", []):
         typer.echo(f"note: {note}")
+    for notice in result.get("notices", []):
+        typer.echo(f"cnnps: note: {notice}", err=True)
     for warning in result.get("warnings", []):
         typer.echo(f"cnnps: warning: {warning}", err=True)
     how = method if method == "lambertian" else f"cnn, K={k}"

@@ -1,4 +1,4 @@
-"""Library side of ``cnnps predict``: normals for one capture folder.
+"""Library side of ``cnnps predict``: normals for one capture folder, of any size.
 
 Writes into OUT_DIR (all at once: a temporary folder renamed at the end, so a failure
 leaves OUT_DIR as it was):
@@ -6,9 +6,34 @@ leaves OUT_DIR as it was):
 - ``normal.npy``: H x W x 3 float32 unit normals in the capture frame (x right, y up,
   z toward the camera), zeros outside the mask;
 - ``normal.png``: the usual (n + 1) / 2 colouring;
-- ``prediction.json``: what was run (method, model, rotations, images, dropped, time);
+- ``prediction.json``: what was run (method, model, rotations, images, dropped, time,
+  linearization, saturated observations left out, tiling);
 - with ground truth: ``error.png`` (angular error map with a scale) and ``metrics.json``
-  (``mean_deg``, ``median_deg``, ... plus method, rotations, n_images, dropped).
+  (``mean_deg``, ``median_deg``, ... plus method, rotations, n_images, dropped);
+- with ``depth=True``: ``depth.npy``, ``depth.png`` and ``surface.ply`` from
+  :func:`cnnps.core.surface.write_surface_outputs` (its report goes into
+  ``prediction.json`` under ``"depth"``).
+
+Bounded memory (any image size): the capture is scanned (text files, mask, ground truth,
+first image), then every image is read ONCE and only its mask pixels are kept, in a
+:class:`cnnps.core.pixel_store.PixelStack` (in memory up to 256 MiB, else a temporary
+file next to OUT_DIR or in ``scratch_dir``, deleted at the end); normals are then computed
+tile by tile (``tile_pixels`` consecutive mask pixels, i.e. bands of image rows) with
+both methods. Peak memory is a few decoded images + one tile + the H x W output arrays,
+whatever the number of megapixels (``benchmarks/bench_predict_memory.py``). Tiles change
+nothing but rounding: least squares is per pixel, and the network sees each pixel's map
+alone (batch composition can move the last float32 bit; see
+``tests/pipeline/test_predict_tiles.py``).
+
+Real cameras: 8-bit images need ``linearize="srgb"`` (camera JPEG/PNG) or ``"none"``
+(already linear); left unchosen they are taken as linear and the result carries a
+one-line note (``notices``, printed on stderr by the CLI). Saturated observations (any
+channel >= 0.99 of an integer format's maximum) are MISSING: they are left out of the
+observation map (not written into its cell, exactly like a light that is not there, so a
+cell keeps the mean of its other lights, or 0 when it had no other) and out of the least
+squares. A map is still scaled so its largest present cell is 1: when the brightest
+observations of a pixel saturated, the map is normalised by the brightest unsaturated one
+instead. Their number is recorded in ``prediction.json``.
 
 Every argument and the whole capture are validated before any heavy work.
 """
@@ -27,7 +52,10 @@ METHODS = ("cnn", "lambertian")
 DEVICES = ("auto", "cpu", "cuda")
 PRECISIONS = ("fp32", "bf16")
 DEFAULT_BATCH_SIZE = None  # the inference default: 256 maps on a CPU, 4096 on CUDA
-OUTPUT_FILES = ("normal.npy", "normal.png", "prediction.json", "error.png", "metrics.json")
+SATURATED = ("exclude", "keep")
+DEFAULT_TILE_PIXELS = 65536  # mask pixels per tile (a multiple of the network's 4096-pixel chunks)
+DEPTH_FILES = ("depth.npy", "depth.png", "surface.ply")
+OUTPUT_FILES = ("normal.npy", "normal.png", "prediction.json", "error.png", "metrics.json") + DEPTH_FILES
 
 
 def default_model_path() -> Path:
@@ -37,7 +65,14 @@ def default_model_path() -> Path:
     return weights_path()
 
 
-def _check_options(method, rotations, device, precision, batch_size, shadow_threshold):
+def _check_options(method, rotations, device, precision, batch_size, shadow_threshold,
+                   linearize=None, tile_pixels=DEFAULT_TILE_PIXELS):
+    from cnnps.core.srgb import LINEARIZE
+
+    if linearize is not None and linearize not in LINEARIZE:
+        raise ConfigError(f"--linearize must be one of {', '.join(LINEARIZE)}, got {linearize!r}")
+    if isinstance(tile_pixels, bool) or not isinstance(tile_pixels, (int, np.integer)) or tile_pixels < 1:
+        raise ConfigError(f"--tile-pixels must be an integer >= 1, got {tile_pixels!r}")
     if method not in METHODS:
         raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
     if isinstance(rotations, bool) or not isinstance(rotations, (int, np.integer)) or rotations < 1:
@@ -106,25 +141,84 @@ def _torch_device(device: str) -> str:
         raise ConfigError(f"--device {device}: {exc}") from None
 
 
-def _cnn_normals(model_path, I, L, rotations, device, precision, batch_size, progress) -> np.ndarray:
+def _cnn_predictor(model_path, device, precision, batch_size):
+    """(MapPredictor, checkpoint meta): the network prepared once for every tile."""
     from cnnps.models.checkpoint import load_checkpoint
-    from cnnps.models.inference import predict_normals
+    from cnnps.models.inference import MapPredictor
 
     torch_device = _torch_device(device)
     net, _config, meta = load_checkpoint(model_path, torch_device)  # InputError naming the file
-    return meta, np.asarray(
-        predict_normals(
-            net,
-            I,
-            L,
-            rotations=rotations,
-            device=torch_device,
-            precision=precision,
-            batch_size=batch_size,
-            progress=progress,
-        ),
-        dtype=np.float64,
-    )
+    return MapPredictor(net, device=torch_device, precision=precision, batch_size=batch_size), meta
+
+
+def _cnn_tile(predictor, I, present, lights, rotations, bar) -> np.ndarray:
+    """(n, 3) float64 normals of one tile: what
+    :func:`cnnps.models.inference.predict_normals` computes (same chunks of pixels, same
+    rotations, same averaging), plus a per-pixel light mask for missing observations."""
+    from cnnps.core.obsmap import observation_maps
+    from cnnps.core.rotation import average_rotated_predictions, rotate_z, rotation_angles
+    from cnnps.models.inference import PIXEL_CHUNK
+
+    angles = rotation_angles(int(rotations))
+    rotated = [rotate_z(lights, a) for a in angles]
+    n = I.shape[0]
+    out = np.empty((n, 3), dtype=np.float32)
+    for s in range(0, n, PIXEL_CHUNK):
+        e = min(s + PIXEL_CHUNK, n)
+        mask = None if present is None else present[s:e]
+        preds = np.empty((len(angles), e - s, 3), dtype=np.float32)
+        for k, lk in enumerate(rotated):
+            preds[k] = predictor(observation_maps(I[s:e], lk, w=predictor.w, light_mask=mask), progress=bar)
+        out[s:e] = preds[0] if len(angles) == 1 else average_rotated_predictions(preds, angles)
+    N = np.asarray(out, dtype=np.float64)
+    if N.shape != (n, 3) or not np.all(np.isfinite(N)):
+        raise CnnpsError(f"the model returned invalid normals (shape {N.shape} or NaN values)")
+    return N
+
+
+def _surface_writer():
+    """``cnnps.core.surface.write_surface_outputs``, imported before any heavy work."""
+    try:
+        from cnnps.core.surface import write_surface_outputs
+    except ImportError as exc:
+        raise ConfigError(f"--depth needs cnnps.core.surface, which failed to import ({exc})") from None
+    return write_surface_outputs
+
+
+def _tile_pixels_index(row_start: np.ndarray, mask: np.ndarray, start: int, stop: int) -> np.ndarray:
+    """Flat (row * W + col) indices of mask pixels ``start:stop`` in row-major order."""
+    W = mask.shape[1]
+    r0 = int(np.searchsorted(row_start, start, side="right")) - 1
+    r1 = int(np.searchsorted(row_start, stop, side="left"))
+    flat = np.flatnonzero(mask[r0:r1]) + r0 * W
+    off = start - int(row_start[r0])
+    return flat[off : off + (stop - start)]
+
+
+def _normal_picture(normal: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``normal_to_rgb`` in bands of rows (it works in float64: 2x the normals' size)."""
+    from cnnps.core.visualize import normal_to_rgb
+
+    H, W = mask.shape
+    rgb = np.empty((H, W, 3), dtype=np.uint8)
+    band = max(1, (1 << 20) // max(1, W))
+    for r in range(0, H, band):
+        rgb[r : r + band] = normal_to_rgb(normal[r : r + band], mask[r : r + band])
+    return rgb
+
+
+def _jsonable(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def _dumps(obj) -> str:
+    return json.dumps(obj, indent=2, default=_jsonable) + "\n"
 
 
 def _sparse_warning(model_path, meta: dict, n_images: int) -> list[str]:
@@ -151,24 +245,45 @@ def predict_capture(
     shadow_threshold: float | None = None,
     grey: str = "mean",
     progress: bool = True,
+    linearize: str | None = None,
+    depth: bool = False,
+    tile_pixels: int = DEFAULT_TILE_PIXELS,
+    scratch_dir=None,
+    memory_limit: int | None = None,
+    workers: int | None = None,
+    saturated: str = "exclude",
 ) -> dict:
     """Predict normals for the capture in ``capture_dir``; write results into ``out_dir``.
 
+    linearize: "srgb" | "none" | None for integer images (None: taken as linear, with a
+        notice when any image is 8-bit).
+    depth: also integrate the normals into depth.npy, depth.png and surface.ply.
+    tile_pixels: mask pixels per tile of pass 2 (memory ~ tile_pixels x images x 8 B).
+    scratch_dir: where the pixel stack's temporary file goes when it does not fit in
+        ``memory_limit`` bytes (default: OUT_DIR's parent folder; 256 MiB).
+    workers: threads that decode images (default: CPU count, capped by memory).
+    saturated: "exclude" (observations with a channel >= 0.99 of an integer format's
+        maximum are missing) or "keep" (used as stored, as before this option existed).
+
     Returns a dict with ``method``, ``rotations`` (None for lambertian), ``n_images``,
-    ``dropped``, ``pixels``, ``seconds``, ``notes``, ``warnings``, ``out_dir`` and, when the capture
-    has ground truth, the error statistics (``mean_deg``, ``median_deg``, ...).
+    ``dropped``, ``pixels``, ``seconds``, ``notes`` (stdout), ``notices`` (stderr notes),
+    ``warnings``, ``out_dir``, what ``prediction.json`` holds and, when the capture has
+    ground truth, the error statistics (``mean_deg``, ``median_deg``, ...).
     """
     from cnnps.core.atomic import atomic_dir
-    from cnnps.core.capture import load_capture
+    from cnnps.core.capture import SATURATION_LEVEL, scan_capture
     from cnnps.core.images import write_png
-    from cnnps.core.lambertian import least_squares
+    from cnnps.core.masked_lstsq import least_squares_masked
     from cnnps.core.metrics import score_normals
+    from cnnps.core.pixel_store import DEFAULT_MEMORY_LIMIT, build_pixel_stack
     from cnnps.core.rotation import normalize
-    from cnnps.core.visualize import normal_to_rgb
+    from cnnps.core.srgb import UNCHOSEN_8BIT_NOTE
 
     t0 = time.perf_counter()
     capture_dir, out_dir = Path(capture_dir), Path(out_dir)
-    _check_options(method, rotations, device, precision, batch_size, shadow_threshold)
+    _check_options(method, rotations, device, precision, batch_size, shadow_threshold, linearize, tile_pixels)
+    if saturated not in SATURATED:
+        raise ConfigError(f"--saturated must be one of {', '.join(SATURATED)}, got {saturated!r}")
     model_path = None
     if method == "cnn":
         model_path = _resolve_model(model)
@@ -176,26 +291,70 @@ def predict_capture(
     if not capture_dir.is_dir():
         raise InputError(capture_dir, "capture folder not found" if not capture_dir.exists() else "not a folder")
     _check_out_dir(out_dir, capture_dir)
+    write_surface = _surface_writer() if depth else None
 
-    capture = load_capture(capture_dir, drop=drop, grey=grey, progress=progress)
-    I = capture.pixel_intensities()
+    capture = scan_capture(capture_dir, drop=drop, grey=grey, linearize=linearize)
     warnings: list[str] = []
-    t_load = time.perf_counter() - t0
+    predictor = meta = None
+    if method == "cnn":
+        predictor, meta = _cnn_predictor(model_path, device, precision, None if batch_size is None else int(batch_size))
+        warnings += _sparse_warning(model_path, meta, capture.n_images)
 
-    if method == "lambertian":
-        N, _albedo, valid = least_squares(I, capture.lights, shadow_threshold=shadow_threshold, return_valid=True)
-        if shadow_threshold is not None and not valid.all():
+    scratch = out_dir.resolve().parent if scratch_dir is None else Path(scratch_dir)
+    limit = DEFAULT_MEMORY_LIMIT if memory_limit is None else int(memory_limit)
+    level = SATURATION_LEVEL if saturated == "exclude" else None
+    stack = build_pixel_stack(capture, scratch_dir=scratch, memory_limit=limit, saturation=level,
+                              workers=workers, progress=progress)
+    with stack:
+        t_load = time.perf_counter() - t0
+        H, W = capture.shape
+        normal = np.zeros((H, W, 3), dtype=np.float32)
+        flat_normal = normal.reshape(-1, 3)
+        row_start = np.concatenate([[0], np.cumsum(capture.mask.sum(axis=1))])
+        n_invalid = n_sat_pixels = 0
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            if method == "cnn":
+                bar = tqdm(total=capture.n_pixels * int(rotations), unit="map", unit_scale=True, desc="cnn-ps", leave=False)
+            else:
+                bar = tqdm(total=capture.n_pixels, unit="px", unit_scale=True, desc="least squares", leave=False)
+        try:
+            for start, stop in stack.tiles(tile_pixels):
+                I, missing = stack.read(start, stop)  # (n, m) float32, (n, m) bool saturated or None
+                if missing is not None:
+                    n_sat_pixels += int(missing.any(axis=1).sum())
+                if method == "lambertian":
+                    N, _albedo, valid = least_squares_masked(
+                        I, capture.lights, missing, shadow_threshold=shadow_threshold, return_valid=True)
+                    n_invalid += int((~valid).sum())
+                    if bar is not None:
+                        bar.update(stop - start)
+                else:
+                    N = _cnn_tile(predictor, I, None if missing is None else ~missing, capture.lights, rotations, bar)
+                flat_normal[_tile_pixels_index(row_start, capture.mask, start, stop)] = normalize(N).astype(np.float32)
+        finally:
+            if bar is not None:
+                bar.close()
+        stack_where = "disk" if stack.on_disk else "memory"
+        n_saturated, kinds = stack.n_saturated, dict(sorted(stack.kinds.items()))
+    if method == "lambertian" and n_invalid:
+        if shadow_threshold is not None:
             capture.notes.append(
-                f"{int((~valid).sum())} pixels had fewer than 3 lights above the shadow threshold; "
+                f"{n_invalid} pixels had fewer than 3 lights above the shadow threshold; "
                 "they use all lights"
             )
-    else:
-        meta, N = _cnn_normals(model_path, I, capture.lights, int(rotations), device, precision, None if batch_size is None else int(batch_size), progress)
-        warnings += _sparse_warning(model_path, meta, capture.n_images)
-        if N.shape != (I.shape[0], 3) or not np.all(np.isfinite(N)):
-            raise CnnpsError(f"the model returned invalid normals (shape {N.shape} or NaN values)")
-    N = normalize(N).astype(np.float32)
-    normal = capture.to_image(N)
+        else:
+            capture.notes.append(f"{n_invalid} pixels had fewer than 3 unsaturated lights; they use all lights, saturated ones included")
+    if n_saturated:
+        capture.notes.append(
+            f"{n_saturated} saturated observations (>= {SATURATION_LEVEL:g} of the format's maximum) "
+            f"in {n_sat_pixels} pixels were left out as missing"
+        )
+    notices: list[str] = []
+    if linearize is None and kinds.get("uint8"):
+        notices.append(UNCHOSEN_8BIT_NOTE)
 
     summary = {
         "capture": str(capture_dir),
@@ -208,6 +367,15 @@ def predict_capture(
         "dropped": capture.dropped,
         "pixels": capture.n_pixels,
         "image_size": list(capture.shape),
+        "image_types": kinds,
+        "linearize": linearize or "none",
+        "linearize_chosen": linearize is not None,
+        "saturated": saturated,
+        "saturation_level": level,
+        "saturated_observations": int(n_saturated),
+        "saturated_pixels": int(n_sat_pixels),
+        "tile_pixels": int(tile_pixels),
+        "pixel_stack": stack_where,
     }
     metrics = score = None
     if capture.normal_gt is not None:
@@ -218,15 +386,21 @@ def predict_capture(
 
     with atomic_dir(out_dir) as tmp:
         np.save(tmp / "normal.npy", normal)
-        write_png(tmp / "normal.png", normal_to_rgb(normal, capture.mask))
+        write_png(tmp / "normal.png", _normal_picture(normal, capture.mask))
         if metrics is not None:
             write_png(tmp / "error.png", score.picture())
-            (tmp / "metrics.json").write_text(json.dumps({**metrics, **summary}, indent=2) + "\n")
+            (tmp / "metrics.json").write_text(_dumps({**metrics, **summary}))
+        if write_surface is not None:
+            try:
+                summary["depth"] = write_surface(tmp, normal, capture.mask)
+            except ValueError as exc:
+                raise CnnpsError(f"--depth: {exc}") from exc
         summary["seconds"] = round(time.perf_counter() - t0, 3)
         summary["load_seconds"] = round(t_load, 3)
         summary["notes"] = list(capture.notes)
+        summary["notices"] = notices
         summary["warnings"] = warnings
-        (tmp / "prediction.json").write_text(json.dumps(summary, indent=2) + "\n")
+        (tmp / "prediction.json").write_text(_dumps(summary))
 
     result = dict(summary)
     if metrics is not None:

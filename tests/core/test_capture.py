@@ -134,3 +134,116 @@ def test_not_a_folder(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(InputError, match="not a folder"):
         load_capture(tmp_path / "file")
+
+
+# ---------------------------------------------------------------- scanning and streaming
+
+
+@pytest.mark.parametrize("fmt", ["exr", "png8", "png16", "tiff16"])
+@pytest.mark.parametrize("grey", ["mean", "luminance"])
+def test_read_pixels_equals_the_loaded_stack_bit_for_bit(tmp_path, fmt, grey):
+    from cnnps.core.capture import scan_capture
+
+    write_capture(tmp_path / "cap", fmt=fmt, m=5)
+    loaded = load_capture(tmp_path / "cap", grey=grey)
+    scanned = scan_capture(tmp_path / "cap", grey=grey)
+    assert scanned.images is None and scanned.n_images == 5 and len(scanned.paths) == 5
+    assert scanned.first_kind == {"exr": "float32", "png8": "uint8", "png16": "uint16", "tiff16": "uint16"}[fmt]
+    I = loaded.pixel_intensities()
+    for k in range(5):
+        pix = scanned.read_pixels(k)
+        assert pix.values.dtype == np.float32 and pix.saturated is None and pix.n_saturated == 0
+        np.testing.assert_array_equal(pix.values, I[:, k])
+        np.testing.assert_array_equal(scanned.read_grey(k), loaded.images[k])
+    with pytest.raises(ValueError, match="read_pixels"):
+        scanned.pixel_intensities()
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_saturated_observations_are_flagged_on_the_stored_codes(tmp_path, bits):
+    from cnnps.core.capture import scan_capture
+    from cnnps.core.images import write_png
+
+    write_capture(tmp_path / "cap", fmt="png16", size=8, m=3, gt=None, intensities=np.ones((3, 3)))
+    top = 2**bits - 1
+    level = int(np.ceil(0.99 * top))  # 253 / 64880
+    img = np.full((8, 8, 3), top // 2, dtype=np.uint8 if bits == 8 else np.uint16)
+    img[0, :, 1] = level  # one channel at the level: saturated
+    img[1, :, 2] = level - 1  # just below: not
+    img[2, :, :] = top
+    write_png(tmp_path / "cap" / "001.png", img)
+    write_png(tmp_path / "cap" / "mask.png", np.full((8, 8), 255, np.uint8))
+    cap = scan_capture(tmp_path / "cap")
+    pix = cap.read_pixels(1)
+    want = np.zeros((8, 8), bool)
+    want[0], want[2] = True, True
+    np.testing.assert_array_equal(pix.saturated, want.ravel())
+    from cnnps.core.capture import saturation_code
+
+    assert saturation_code(img.dtype) == level == {8: 253, 16: 64880}[bits]
+    assert saturation_code(np.float32) is None and saturation_code(img.dtype, None) is None
+    assert pix.n_saturated == 16 and pix.kind == f"uint{bits}"
+    # the stored values are kept next to the flags
+    np.testing.assert_array_equal(pix.values, cap.read_grey(1).ravel())
+    assert cap.read_pixels(1, saturation=None).saturated is None
+    assert cap.read_pixels(0).saturated is None  # below 0.95 of full scale
+
+
+def test_float_images_are_never_flagged(tmp_path):
+    from cnnps.core.capture import scan_capture
+    from cnnps.core.images import write_exr
+
+    write_capture(tmp_path / "cap", fmt="exr", size=8, m=3, gt=None)
+    write_exr(tmp_path / "cap" / "000.exr", np.full((8, 8, 3), 5.0, np.float32))
+    assert scan_capture(tmp_path / "cap").read_pixels(0).saturated is None
+
+
+def test_linearize_srgb_decodes_integer_images_only(tmp_path):
+    from cnnps.core.srgb import srgb_to_linear
+
+    truth = write_capture(tmp_path / "cap", fmt="png8", m=4, intensities=np.ones((4, 3)))
+    plain = load_capture(tmp_path / "cap", linearize="none")
+    same = load_capture(tmp_path / "cap")
+    np.testing.assert_array_equal(plain.images, same.images)  # None = "none" (no note here: predict adds it)
+    dec = load_capture(tmp_path / "cap", linearize="srgb")
+    assert dec.linearize == "srgb"
+    # grey of decoded channels: mean over channels of EOTF(code / 255)
+    from cnnps.core.images import read_image_raw
+
+    raw = read_image_raw(tmp_path / "cap" / truth["names"][2]).astype(np.float64) / 255
+    np.testing.assert_allclose(dec.images[2], srgb_to_linear(raw).mean(axis=-1), atol=1e-6)
+    write_capture(tmp_path / "exr", fmt="exr", m=4)
+    np.testing.assert_array_equal(load_capture(tmp_path / "exr", linearize="srgb").images,
+                                  load_capture(tmp_path / "exr").images)
+    with pytest.raises(ConfigError, match="linearize"):
+        load_capture(tmp_path / "cap", linearize="gamma")
+
+
+def test_jpeg_capture(tmp_path):
+    import cv2
+
+    truth = write_capture(tmp_path / "cap", fmt="png8", m=4, intensities=np.ones((4, 3)))
+    names = []
+    for name in truth["names"]:
+        img = cv2.imread(str(tmp_path / "cap" / name), cv2.IMREAD_UNCHANGED)
+        jpg = name.replace(".png", ".jpg")
+        cv2.imwrite(str(tmp_path / "cap" / jpg), img, [cv2.IMWRITE_JPEG_QUALITY, 100])
+        names.append(jpg)
+    (tmp_path / "cap" / "filenames.txt").write_text("\n".join(names) + "\n")
+    cap = load_capture(tmp_path / "cap")
+    assert cap.first_kind == "uint8"
+    diff = np.abs(cap.images - truth["grey_mean"])
+    assert diff.mean() < 0.003 and diff.max() < 0.06  # JPEG's own loss, ringing at the shadow edges
+
+
+def test_read_workers_are_capped_by_memory(tmp_path, monkeypatch):
+    import cnnps.core.capture as capture_mod
+    from cnnps.core.capture import read_workers, scan_capture
+
+    write_capture(tmp_path / "cap", fmt="png16", size=16, m=3, gt=None)
+    cap = scan_capture(tmp_path / "cap")
+    assert read_workers(cap, 8) == 8 and read_workers(cap, 1) == 1
+    monkeypatch.setattr(capture_mod, "DECODE_BUDGET_BYTES", 16 * 16 * 14 * 2)  # two 16-bit images
+    assert read_workers(cap, 8) == 2
+    monkeypatch.setattr(capture_mod, "DECODE_BUDGET_BYTES", 1)
+    assert read_workers(cap, 8) == 1

@@ -13,19 +13,11 @@ import pytest
 
 from cnnps.core.errors import CnnpsError, InputError
 from cnnps.core.executor import LocalExecutor, WorkerLostError
+from tests.support.cli import run_cli
 from tests.support.jobs import always_crash, bad_input, crash_first_time
 
 
 # -- command line ----------------------------------------------------------------------
-
-
-def run_cli(argv, capsys):
-    from cnnps.pipeline.cli import main
-
-    with pytest.raises(SystemExit) as info:
-        main(argv)
-    out, err = capsys.readouterr()
-    return (0 if info.value.code is None else info.value.code), out, err
 
 
 @pytest.fixture

@@ -45,6 +45,35 @@ def test_no_ground_truth_writes_no_metrics(tmp_path):
     assert info["dropped"] == [1] and info["method"] == "lambertian"
 
 
+class _FakeMapPredictor:
+    """Stands in for cnnps.models.inference.MapPredictor: least squares on each map's lit
+    cells, with the light direction of each cell's centre. Rotation-equivariant and
+    right to about a degree, so wrong pixel order or a missing back-rotation shows."""
+
+    w = 32
+
+    def __init__(self, model, device="auto", precision="fp32", batch_size=None, calls=None, fail=False):
+        self.calls, self.fail = calls, fail
+        calls["predict"] = dict(model=model, device=device, precision=precision, batch_size=batch_size, maps=0)
+
+    def __call__(self, maps, progress=None):
+        if self.fail:
+            raise RuntimeError("boom")
+        B, w, _ = maps.shape
+        c = (np.arange(w) + 0.5) / w * 2 - 1
+        ly, lx = np.meshgrid(c, c, indexing="ij")  # map[row = y cell, col = x cell]
+        L = np.stack([lx, ly, np.sqrt(np.clip(1 - lx**2 - ly**2, 0, None))], -1).reshape(-1, 3)
+        out = np.zeros((B, 3), np.float32)
+        for i, v in enumerate(np.asarray(maps, np.float64).reshape(B, -1)):
+            use = v > 0
+            b = np.linalg.lstsq(L[use], v[use], rcond=None)[0]
+            out[i] = b / np.linalg.norm(b)
+        self.calls["predict"]["maps"] += B
+        if progress is not None:
+            progress.update(B)
+        return out
+
+
 def _fake_models(monkeypatch, truth, calls, fail=False, load_fail=False, meta=None):
     """Stand-ins for cnnps.models.checkpoint / cnnps.models.inference (tests the plumbing only)."""
     ckpt = types.ModuleType("cnnps.models.checkpoint")
@@ -56,15 +85,9 @@ def _fake_models(monkeypatch, truth, calls, fail=False, load_fail=False, meta=No
             raise ValueError("not a checkpoint")
         return "NET", {}, dict(meta or {})
 
-    def predict_normals(model, I, L, rotations, device, precision, batch_size, progress):
-        calls["predict"] = dict(model=model, shape=I.shape, L=L, rotations=rotations, device=device,
-                                precision=precision, batch_size=batch_size)
-        if fail:
-            raise RuntimeError("boom")
-        return truth["normals"][truth["mask"]] * 2.0  # right directions, not unit length
-
     ckpt.load_checkpoint = load_checkpoint
-    inf.predict_normals = predict_normals
+    inf.MapPredictor = lambda *a, **k: _FakeMapPredictor(*a, calls=calls, fail=fail, **k)
+    inf.PIXEL_CHUNK = 100  # several chunks per tile
     monkeypatch.setitem(sys.modules, "cnnps.models.checkpoint", ckpt)
     monkeypatch.setitem(sys.modules, "cnnps.models.inference", inf)
 
@@ -76,16 +99,16 @@ def test_cnn_method_plumbing(sphere, tmp_path, monkeypatch):
     model = tmp_path / "m.pt"
     model.write_bytes(b"x")
     res = predict_capture(cap, tmp_path / "out", model=model, rotations=4, device="cpu",
-                          precision="bf16", batch_size=123, progress=False)
+                          precision="bf16", batch_size=123, progress=False, tile_pixels=250)
     assert calls["load"] == (str(model), "cpu")
     p = calls["predict"]
-    assert p["model"] == "NET" and p["rotations"] == 4 and p["device"] == "cpu"
+    assert p["model"] == "NET" and p["device"] == "cpu"
     assert p["precision"] == "bf16" and p["batch_size"] == 123
-    assert p["shape"] == (truth["mask"].sum(), 20)
-    np.testing.assert_allclose(p["L"], truth["lights"], atol=1e-8)
-    assert res["mean_deg"] < 1e-3 and res["rotations"] == 4
+    assert p["maps"] == truth["mask"].sum() * 4  # every pixel under each of the 4 rotations
+    assert res["mean_deg"] < 2.0 and res["rotations"] == 4  # the stand-in's cell quantisation
     normal = np.load(tmp_path / "out" / "normal.npy")
     np.testing.assert_allclose(np.linalg.norm(normal[truth["mask"]], axis=1), 1.0, rtol=1e-6)
+    assert np.all(normal[~truth["mask"]] == 0)
 
 
 def test_failure_leaves_no_output(sphere, tmp_path, monkeypatch):
@@ -125,6 +148,10 @@ def test_missing_default_model_says_how_to_get_one(sphere, tmp_path, monkeypatch
         (dict(method="cnn", shadow_threshold=0.1, model="x"), "--shadow-threshold"),
         (dict(method="lambertian", grey="red"), "grey"),
         (dict(method="lambertian", drop=[99]), "out of range"),
+        (dict(method="lambertian", linearize="gamma"), "--linearize"),
+        (dict(method="lambertian", tile_pixels=0), "--tile-pixels"),
+        (dict(method="lambertian", tile_pixels=2.5), "--tile-pixels"),
+        (dict(method="lambertian", saturated="clip"), "--saturated"),
     ],
 )
 def test_bad_options(sphere, tmp_path, kwargs, words):
