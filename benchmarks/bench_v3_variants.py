@@ -20,6 +20,8 @@ the control for what more steps alone give. Each is scored on
 * BALL from 20, 10 and 6 of its images (benchmarks/image_lists/, the seeded rule of
   benchmarks/image_subsets.py): K = 1, and K = 10 at 10 images.
 
+Two variants need new renders (``narrow``, ``env-0.5``: see ``RENDER_VARIANTS``); they are
+made in ``data/v3src/<name>`` from the v2 meshes and materials, then extracted like the rest.
 The eval stage's synthetic test set is run for the final candidates only (its cost).
 Results are merged into ``--out`` per variant; the CPU model is recorded with the timings.
 """
@@ -31,6 +33,7 @@ import dataclasses
 import datetime
 import json
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -57,7 +60,55 @@ VARIANTS: dict[str, dict] = {
     "all": {"sparse_fraction": 0.3, "noise_max": 0.02, "direction_error_deg": 1.5, "intensity_error": 0.03,
             "saturated_fraction_max": 0.05, "quantize_bits": (8, 16), "black_level_max": 0.02},
 }
+# variants that need new renders (deliverable 3): built in data/v3src/<name> from the v2 meshes
+# and materials (symlinked), then extracted like the others with the preset's extract section.
+#   narrow:  the v2 renders plus one narrow-lobe scene per mesh view (materials category
+#            ``narrow``: roughness 0.02-0.15, specular 0.5-2, metallic 0), 62 new renders;
+#   env-0.5: the v2 renders with a dim white environment light U(0, 0.05) in half the
+#            scenes (render.env_fraction 0.5); the other half keep their key, so only the
+#            lit half is rendered again.
+RENDER_VARIANTS: dict[str, dict] = {
+    "narrow": {"materials": {"categories": ("narrow",)}},
+    "env-0.5": {"render": {"env_fraction": 0.5, "env_max": 0.05}},
+}
 SUBSETS = {20: (1,), 10: (1, 10), 6: (1,)}
+SRC_ROOT = REPO / "data" / "v3src"
+
+
+def _stage_params(stage: str, **overrides):
+    from cnnps.pipeline import config as cfg
+
+    conf = cfg.load_config(cfg.preset_path("cpu-train"))
+    return dataclasses.replace(cfg.build_params(conf, stage, check_files=False), **overrides)
+
+
+def _link(target: Path, link: Path) -> None:
+    if not link.exists():
+        link.symlink_to(target.resolve(), target_is_directory=True)
+
+
+def render_source(name: str) -> Path:
+    """The data folder whose ``render/`` a render variant extracts from (renders what is missing)."""
+    from cnnps.stages import materials, render
+
+    spec = RENDER_VARIANTS[name]
+    src = SRC_ROOT / name
+    src.mkdir(parents=True, exist_ok=True)
+    _link(DATA / "meshes", src / "meshes")
+    if "materials" in spec:  # new scenes only, rendered here, then shown next to the v2 renders
+        materials.run(_stage_params("materials", **spec["materials"]), src)
+        render.run(_stage_params("render"), src)
+        both = SRC_ROOT / f"{name}-all"
+        (both / "render").mkdir(parents=True, exist_ok=True)
+        for root in (DATA / "render", src / "render"):
+            for scene in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+                _link(scene, both / "render" / scene.name)
+        return both
+    _link(DATA / "materials", src / "materials")
+    if not (src / "render").exists():  # start from a copy: the scenes without the option keep their key
+        shutil.copytree(DATA / "render", src / "render")
+    render.run(_stage_params("render", **spec["render"]), src)
+    return src
 
 
 def preset_extract_params():
@@ -111,14 +162,14 @@ def score(model_path: Path, val: tuple[np.ndarray, np.ndarray], shared: Path) ->
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("variants", nargs="+", choices=["shipped", *VARIANTS])
+    ap.add_argument("variants", nargs="+", choices=["shipped", *VARIANTS, *RENDER_VARIANTS])
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--lr", type=float, default=1e-4)
     ap.add_argument("--shared", type=Path, default=REPO.parent / "shared")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "variants_v3.json")
     args = ap.parse_args()
 
-    from benchmarks.bench_inference import _cpu_info
+    from benchmarks.machine import cpu_info as _cpu_info
     from cnnps.models.shipped import shipped_model_path
     from cnnps.stages import extract, train
 
@@ -134,10 +185,16 @@ def main() -> None:
                      "load_average_before": [round(x, 2) for x in os.getloadavg()]}
         model = init
         if name != "shipped":
-            row["extract_overrides"] = {k: list(v) if isinstance(v, tuple) else v for k, v in VARIANTS[name].items()}
+            overrides, source = VARIANTS.get(name, {}), DATA
+            if name in RENDER_VARIANTS:
+                t = time.perf_counter()
+                source = render_source(name)
+                row["render_overrides"] = RENDER_VARIANTS[name]
+                row["render_seconds"] = round(time.perf_counter() - t, 1)
+            row["extract_overrides"] = {k: list(v) if isinstance(v, tuple) else v for k, v in overrides.items()}
             shards = OUT_ROOT / name / "extract"
             t = time.perf_counter()
-            extract.run(dataclasses.replace(base, **VARIANTS[name], output=str(shards)), DATA)
+            extract.run(dataclasses.replace(base, **overrides, output=str(shards)), source)
             man = json.loads((shards / "manifest.json").read_text())
             row["data"] = {"train_rows": man["train_rows"], "extract_seconds": round(time.perf_counter() - t, 1)}
             params = train.Params(max_steps=args.steps, epochs=1000, lr=args.lr, batch_size=128, val_every=0,
