@@ -162,12 +162,18 @@ def score(model_path: Path, val: tuple[np.ndarray, np.ndarray], shared: Path) ->
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("variants", nargs="+", choices=["shipped", *VARIANTS, *RENDER_VARIANTS])
+    names = ["shipped", *VARIANTS, *RENDER_VARIANTS]
+    ap.add_argument("variants", nargs="*", help=f"any of: {', '.join(names)}")
+    ap.add_argument("--score", nargs=2, action="append", default=[], metavar=("NAME", "CHECKPOINT"),
+                    help="also score a trained checkpoint (e.g. v3 data/cpu-train-v3/train/model.pt) under NAME")
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--lr", type=float, default=1e-4)
     ap.add_argument("--shared", type=Path, default=REPO.parent / "shared")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "variants_v3.json")
     args = ap.parse_args()
+    unknown = [v for v in args.variants if v not in names]
+    if unknown or not (args.variants or args.score):
+        ap.error(f"choose variants from {', '.join(names)} and/or --score NAME CHECKPOINT (unknown: {unknown})")
 
     from benchmarks.machine import cpu_info as _cpu_info
     from cnnps.models.shipped import shipped_model_path
@@ -180,6 +186,13 @@ def main() -> None:
     val = validation_maps()
     base = preset_extract_params()
     init = shipped_model_path()
+    for name, checkpoint in args.score:
+        row = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+               "load_average_before": [round(x, 2) for x in os.getloadavg()], "checkpoint": checkpoint}
+        print(name, flush=True)
+        row.update(score(Path(checkpoint), val, args.shared))
+        results["variants"][name] = row
+        write_text(args.out, json.dumps(results, indent=2) + "\n")
     for name in args.variants:
         row: dict = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                      "load_average_before": [round(x, 2) for x in os.getloadavg()]}

@@ -99,6 +99,8 @@ def ship(checkpoint: str | Path, provenance: dict, name: str = DEFAULT_NAME) -> 
         "train_meta": meta,
         **provenance,
     }
+    if meta.get("min_lights") is not None:  # what `cnnps predict` warns below (see trained_min_lights)
+        record["min_lights"] = int(meta["min_lights"])
     write_text(provenance_path(name), json.dumps(record, indent=2, sort_keys=True) + "\n")
     return out
 

@@ -99,6 +99,9 @@ class TrainingData:
     val_files: list
 
 
+SPARSE_MIN_LIGHTS_DEFAULT = 6  # cnnps.stages.extract.Params.sparse_min_lights (tests/stages/test_train.py checks they agree)
+
+
 def fewest_lights(manifest: dict) -> int | None:
     """The fewest lights any training map was built from, read from the extract params the
     manifest records (dense maps: ``min_lights``; with sparse pixels: ``sparse_min_lights``).
@@ -108,7 +111,8 @@ def fewest_lights(manifest: dict) -> int | None:
     if lo is None:
         return None
     if params.get("sparse_fraction"):
-        lo = min(int(lo), int(params.get("sparse_min_lights", lo)))
+        # manifests leave out extract parameters at their defaults: sparse_min_lights is 6 then
+        lo = min(int(lo), int(params.get("sparse_min_lights", SPARSE_MIN_LIGHTS_DEFAULT)))
     return int(lo)
 
 

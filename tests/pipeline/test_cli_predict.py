@@ -131,14 +131,18 @@ def test_cuda_requested_without_cuda(tmp_path, capsys):
 
 
 def test_predict_warns_in_one_line_when_images_are_fewer_than_the_model_trained_on(tmp_path, capsys):
-    # the shipped model trained on maps of 50+ lights (its provenance says so): 10 images warn
-    write_capture(tmp_path / "cap", fmt="exr", size=12, m=10, max_tilt_deg=45)
+    # the shipped model's record says the fewest lights its training maps had: one image fewer warns
+    from cnnps.models.shipped import trained_min_lights, weights_path
+
+    fewest = trained_min_lights(weights_path(), {})
+    m = max(3, fewest - 1)
+    write_capture(tmp_path / "cap", fmt="exr", size=12, m=m, max_tilt_deg=45)
     code, stdout, stderr = run_cli(["predict", str(tmp_path / "cap"), "--out", str(tmp_path / "o"),
                                     "--rotations", "1", "--no-progress"], capsys)
     assert code == 0, stderr
     warnings = [line for line in stderr.splitlines() if line.startswith("cnnps: warning:")]
     assert warnings == [line for line in stderr.splitlines() if "warning" in line] and len(warnings) == 1
-    assert "10 images, but this model was trained on maps of 50 or more lights" in warnings[0]
+    assert f"{m} images, but this model was trained on maps of {fewest} or more lights" in warnings[0]
     # lambertian has no such limit
     code, _, stderr = run_cli(["predict", str(tmp_path / "cap"), "--out", str(tmp_path / "o2"),
                                "--method", "lambertian", "--no-progress"], capsys)

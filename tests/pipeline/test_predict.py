@@ -208,8 +208,11 @@ def test_warns_when_the_capture_has_fewer_images_than_the_model_trained_on(spher
 
 
 def test_shipped_provenance_supplies_min_lights_for_old_checkpoints(tmp_path):
-    from cnnps.models.shipped import trained_min_lights, weights_path
+    from cnnps.models.shipped import trained_min_lights
 
-    assert trained_min_lights(weights_path(), {}) == 50  # v2 trained on maps of 50+ lights
-    assert trained_min_lights(weights_path(), {"min_lights": 6}) == 6  # the checkpoint's own record wins
+    old = tmp_path / "v2.pt"  # shipped before checkpoints recorded it: v2's provenance says 50
+    old.write_bytes(b"x")
+    old.with_suffix(".json").write_text(json.dumps({"min_lights": 50}))
+    assert trained_min_lights(old, {}) == 50
+    assert trained_min_lights(old, {"min_lights": 6}) == 6  # the checkpoint's own record wins
     assert trained_min_lights(tmp_path / "none.pt", {}) is None

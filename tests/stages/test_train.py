@@ -65,6 +65,10 @@ def test_fewest_lights_reads_the_sparse_minimum_when_sparse_pixels_were_drawn():
     assert fewest_lights({"params": {"min_lights": 50, "sparse_fraction": 0.3, "sparse_min_lights": 6}}) == 6
     assert fewest_lights({"params": {"min_lights": 50, "sparse_fraction": 0.0, "sparse_min_lights": 6}}) == 50
     assert fewest_lights({}) is None
+    # manifests leave out extract parameters at their defaults (the v3 manifest has no sparse_min_lights)
+    from cnnps.stages.extract import Params
+
+    assert fewest_lights({"params": {"min_lights": 50, "sparse_fraction": 0.2}}) == Params().sparse_min_lights == 6
 
 
 def _weights(d):

@@ -1,0 +1,98 @@
+"""v2 against v3, side by side: the README's model table, from measured results only.
+
+    .venv/bin/python benchmarks/compare_models.py --eval v2=data/eval-v2/eval/metrics.json \
+        --eval v3=data/cpu-train-v3/eval/metrics.json [--out benchmarks/results/v2_v3.json]
+
+Reads ``benchmarks/results/variants_v3.json`` (the validation maps and BALL with rim
+errors: rows ``shipped`` = v2 and ``v3``), ``benchmarks/results/model_v2.json`` /
+``model.json`` (BALL at 96, 20, 10, 6 images against least squares on the same images,
+written by ``bench_model.py``) and the eval stage's ``metrics.json`` of each model (the
+synthetic test set, per light count; non-convex = every test shape but the sphere). Prints
+Markdown rows and writes the numbers to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from cnnps.core.atomic import write_text  # noqa: E402
+
+
+def eval_summary(metrics: dict) -> dict:
+    """Per light count: mean error of each method over the non-convex and over all captures."""
+    out: dict = {}
+    for name, cap in metrics.get("captures", {}).items():
+        n = str(cap.get("n_images"))
+        groups = ["all"] + ([] if name.startswith("sphere") else ["nonconvex"])
+        for g in groups:
+            for m, s in cap.get("methods", {}).items():
+                out.setdefault(n, {}).setdefault(g, {}).setdefault(m, []).append(s["mean_deg"])
+    return {n: {g: {m: round(float(np.mean(v)), 3) for m, v in ms.items()} for g, ms in gs.items()}
+            for n, gs in out.items()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--eval", action="append", default=[], metavar="NAME=METRICS_JSON")
+    ap.add_argument("--variants", type=Path, default=REPO / "benchmarks" / "results" / "variants_v3.json")
+    ap.add_argument("--ball", action="append", default=[], metavar="NAME=MODEL_JSON",
+                    help="bench_model.py results per model (default v2=model_v2.json, v3=model.json)")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "v2_v3.json")
+    args = ap.parse_args()
+    res = REPO / "benchmarks" / "results"
+    balls = dict(a.split("=", 1) for a in args.ball) or {"v2": str(res / "model_v2.json"), "v3": str(res / "model.json")}
+    evals = dict(a.split("=", 1) for a in args.eval)
+    variants = json.loads(args.variants.read_text())["variants"]
+    table: dict = {"models": {}}
+    for name, row in (("v2", variants.get("shipped")), ("v3", variants.get("v3"))):
+        entry: dict = {"val_mean_deg": row["val"]["mean_deg"] if row else None}
+        if row:
+            entry["ball96_k10_rim_deg"] = row["ball96_k10"]["rim_mean_deg"]
+        m = json.loads(Path(balls[name]).read_text()) if Path(balls.get(name, "")).is_file() else {}
+        ball = m.get("ball", {})
+        entry["ball96"] = {k: ball[k]["mean_deg"] for k in ("lambertian", "cnn_k1_fp32", "cnn_k10_fp32") if k in ball}
+        for n, r in m.get("ball_subsets", {}).items():
+            if isinstance(r, dict) and "lambertian" in r:
+                entry[f"ball{n}"] = {k: r[k]["mean_deg"] for k in ("lambertian", "cnn_k1_fp32", "cnn_k10_fp32") if k in r}
+        if name in evals:
+            entry["eval"] = eval_summary(json.loads(Path(evals[name]).read_text()))
+        if m.get("fossil"):
+            entry["fossil_picture"] = m["fossil"].get("picture")
+        table["models"][name] = entry
+    write_text(args.out, json.dumps(table, indent=2) + "\n")
+
+    v2, v3 = table["models"]["v2"], table["models"]["v3"]
+
+    def cell(e, key, meth):
+        x = e.get(key, {}).get(meth)
+        return "–" if x is None else f"{x:.2f}°"
+
+    print("| measure | v2 | v3 | least squares |\n| --- | --- | --- | --- |")
+    for key, label in (("ball96", "BALL, 96 images"), ("ball20", "BALL, 20 images"), ("ball10", "BALL, 10 images"),
+                       ("ball6", "BALL, 6 images")):
+        for meth, k in (("cnn_k1_fp32", "K=1"), ("cnn_k10_fp32", "K=10")):
+            print(f"| {label}, {k} | {cell(v2, key, meth)} | {cell(v3, key, meth)} | {cell(v2, key, 'lambertian')} |")
+    print(f"| BALL 96, K=10, rim (tilt > 70°) | {v2.get('ball96_k10_rim_deg')}° | {v3.get('ball96_k10_rim_deg')}° | |")
+    print(f"| validation maps (v2's 79,050, K=1) | {v2['val_mean_deg']}° | {v3['val_mean_deg']}° | |")
+    for n in sorted(v3.get("eval", {}), key=int):
+        for g in ("nonconvex", "all"):
+            a, b = v2.get("eval", {}).get(n, {}).get(g, {}), v3["eval"][n].get(g, {})
+            ls = b.get("lambertian")
+            for meth in ("cnn_k1", "cnn_k10"):
+                if meth in b:
+                    r2 = f" ({a[meth] / ls:.2f}× LS)" if meth in a and ls else ""
+                    r3 = f" ({b[meth] / ls:.2f}× LS)" if ls else ""
+                    print(f"| eval stage, {n} lights, {g}, {meth.replace('cnn_k', 'K=')} | "
+                          f"{a.get(meth, float('nan')):.2f}°{r2} | {b[meth]:.2f}°{r3} | {ls:.2f}° |")
+
+
+if __name__ == "__main__":
+    main()
