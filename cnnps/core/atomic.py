@@ -9,6 +9,17 @@ Every rename is preceded by an ``fsync`` of what was written (the file, or every
 folder of a temporary tree) and followed by an ``fsync`` of the parent folder, so a power
 cut or a node crash leaves either the old output or the complete new one, never a
 renamed file whose data blocks were not yet on disk.
+
+A full disk. A write that fails leaves ``path`` as it was (the old file or folder, or
+nothing) and deletes its temporary file or folder, so a run that ran out of space loses
+no previous output and leaves no litter. Libraries report a full disk in their own ways
+(OpenEXR and torch raise ``RuntimeError``, ``numpy.save`` an ``OSError`` without errno,
+``cv2.imwrite`` just returns False, pyarrow and trimesh an ENOSPC without a file name);
+when the write fails and the filesystem holding the temporary is then full
+(:func:`filesystem_full`), or the error is an ENOSPC naming no file, it is raised as
+``OSError(ENOSPC, "No space left on device", path)`` naming the final path, so the
+command line prints ``cnnps: error: <path>: No space left on device`` whatever library
+was writing (an ENOSPC that names its file, e.g. the temporary, is left as it is).
 """
 
 from __future__ import annotations
@@ -74,6 +85,44 @@ def fsync_tree(root: Path) -> None:
         fsync_path(Path(dirpath))
 
 
+# A filesystem with less room than this (or no free inode) is full: a write that failed
+# there ran out of space. A failed write fills it up to the last block before the
+# error, so what is left is far below this; anything above is another failure.
+FULL_MARGIN_BYTES = 1 << 20
+
+
+def filesystem_full(path: str | Path) -> bool:
+    """Whether the filesystem holding ``path`` (a file or folder) has no room left for
+    this process: under :data:`FULL_MARGIN_BYTES` free (the root-reserved blocks count
+    for root only) or no free inode."""
+    try:
+        st = os.statvfs(path)
+    except OSError:
+        return False
+    root = hasattr(os, "geteuid") and os.geteuid() == 0
+    free_blocks = st.f_bfree if root else st.f_bavail
+    if free_blocks * st.f_frsize < FULL_MARGIN_BYTES:
+        return True
+    free_inodes = st.f_ffree if root else st.f_favail
+    return st.f_files > 0 and free_inodes == 0
+
+
+def _out_of_space(exc: BaseException, path: Path, where: Path) -> OSError | None:
+    """The one-line error for ``exc``, raised while writing ``path`` (temporary at
+    ``where``), when it means the disk is full (ENOSPC, a quota, or a library's own
+    error on a full filesystem); None otherwise."""
+    if not isinstance(exc, Exception):
+        return None  # KeyboardInterrupt, SystemExit, GeneratorExit: not a write failure
+    code = getattr(exc, "errno", None) if isinstance(exc, OSError) else None
+    if code not in (errno.ENOSPC, errno.EDQUOT):
+        if code not in (None, 0) or not filesystem_full(where if where.exists() else path.parent):
+            return None
+        code = errno.ENOSPC
+    if isinstance(exc, OSError) and exc.errno == code and exc.filename is not None:
+        return None  # already says it, naming a file
+    return OSError(code, os.strerror(code), str(path))
+
+
 def _tmp_sibling(path: Path, is_dir: bool) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     if is_dir:
@@ -102,8 +151,13 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         fsync_path(tmp)
         os.replace(tmp, path)
         fsync_path(path.parent)
+    except BaseException as exc:
+        full = _out_of_space(exc, path, tmp)  # before the temp file (and the space it holds) goes
+        if full is None:
+            raise
+        raise full from exc
     finally:
-        if tmp.exists():
+        if tmp.exists() or tmp.is_symlink():
             tmp.unlink()
 
 
@@ -127,12 +181,21 @@ def atomic_dir(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
             old = _tmp_sibling(path, is_dir=True)
             old.rmdir()
             os.replace(path, old)
-            os.replace(tmp, path)
+            try:
+                os.replace(tmp, path)
+            except BaseException:
+                os.replace(old, path)  # put the previous version back
+                raise
             fsync_path(path.parent)
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, path)
             fsync_path(path.parent)
+    except BaseException as exc:
+        full = _out_of_space(exc, path, tmp)
+        if full is None:
+            raise
+        raise full from exc
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)

@@ -111,6 +111,11 @@ def ray_available() -> bool:
 
 
 def _describe(job: Any, limit: int = 120) -> str:
+    """A job in a few words: its ``scene_id`` (a dict key or an attribute) when it has
+    one, else its repr, cut at ``limit`` characters."""
+    sid = job.get("scene_id") if isinstance(job, dict) else getattr(job, "scene_id", None)
+    if isinstance(sid, str) and sid:
+        return f"scene {sid}"
     text = repr(job)
     return text if len(text) <= limit else text[: limit - 3] + "..."
 

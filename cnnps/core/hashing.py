@@ -15,6 +15,20 @@ derived from the stage seed; both must be the same on every run and machine (no
   (procedural shape seeds, material-map seeds, the eval test set's material seeds), and
   :func:`key_entropy` to feed a hex key into such a sequence or a generator.
 
+Checksums (integrity, not cache keys: nothing is keyed on them):
+
+- :func:`file_record` / :func:`check_file_record`: ``{"bytes", "sha256"}`` of a file, and
+  what is wrong with a file that no longer matches its record (the render stage's
+  ``scene.json`` keeps one per file of the folder; the extract manifest one per shard);
+- :func:`json_checksum`, :func:`add_json_checksum`, :func:`json_checksum_ok`: a JSON
+  record's ``"checksum"`` of its own content, so a record edited by hand (or damaged in a
+  way that still parses) is told apart from the one a stage wrote. The checksum is the
+  SHA-256 of ``json.dumps(record without "checksum", indent=indent)``, i.e. of the bytes
+  the stage would have written without it: for ``manifest.json`` (indent 1) that is the
+  manifest hash the train stage's run key always used, so adding the entry changed no key.
+  Wall-time fields (``skip``: ``scene.json``'s ``render_seconds``, a scene marker's
+  ``seconds``) are left out, so two runs writing the same content write the same checksum.
+
 The VALUES these give are part of the caches: a change re-renders (or re-extracts)
 everything, so each function reproduces exactly what the stages computed before they
 shared this module (the ``compact`` flag of :func:`stable_hash` and the byte order of
@@ -33,6 +47,7 @@ from cnnps.core.errors import InputError
 
 CHUNK = 1 << 20
 SEED31_MASK = 0x7FFFFFFF
+CHECKSUM = "checksum"  # the self-checksum entry of a JSON record (json_checksum)
 
 
 def _update_from_file(digest, path: Path) -> None:
@@ -106,3 +121,54 @@ def entropy_seed(*entropy: int) -> int:
 def key_entropy(key: str) -> int:
     """A hex content key as an integer for a seed sequence (its first 15 hex digits, 60 bits)."""
     return int(key[:15], 16)
+
+
+# -- checksums (integrity) ---------------------------------------------------------------
+
+
+def file_record(path: str | Path) -> dict:
+    """``{"bytes": size, "sha256": hex digest}`` of a file, read once."""
+    path = Path(path)
+    digest = hashlib.sha256()
+    _update_from_file(digest, path)
+    return {"bytes": path.stat().st_size, "sha256": digest.hexdigest()}
+
+
+def check_file_record(path: str | Path, record: dict) -> str | None:
+    """What is wrong with ``path`` against ``record`` (``{"bytes", "sha256"}``, either may
+    be absent), or None when it matches: ``"missing"``, a size mismatch (truncated or
+    grown), or a content mismatch (same size, other bytes: a flipped byte). The size is
+    checked first, so a truncated file costs a ``stat``, not a read."""
+    path = Path(path)
+    if not path.is_file():
+        return "missing"
+    size = path.stat().st_size
+    if "bytes" in record and size != int(record["bytes"]):
+        return f"is {size} bytes, {int(record['bytes'])} were written (truncated or replaced)"
+    if "sha256" in record and file_sha256(path) != record["sha256"]:
+        return "its bytes do not match the SHA-256 recorded when it was written (damaged)"
+    return None
+
+
+def json_checksum(record: dict, *, indent: int | None, skip: tuple[str, ...] = ()) -> str:
+    """SHA-256 of ``json.dumps(record without "checksum" and the ``skip`` fields,
+    indent=indent)``: what the record's ``"checksum"`` entry holds (see the module
+    docstring). ``skip``: fields that differ between two runs writing the same content
+    (wall times), left out so the checksum, like the rest, is the same for both."""
+    rest = {k: v for k, v in record.items() if k != CHECKSUM and k not in skip}
+    return bytes_sha256(json.dumps(rest, indent=indent).encode())
+
+
+def add_json_checksum(record: dict, *, indent: int | None, skip: tuple[str, ...] = ()) -> dict:
+    """A copy of ``record`` with its ``"checksum"`` entry (last) set; write it with the
+    same ``indent``."""
+    rest = {k: v for k, v in record.items() if k != CHECKSUM}
+    return {**rest, CHECKSUM: json_checksum(rest, indent=indent, skip=skip)}
+
+
+def json_checksum_ok(record: dict, *, indent: int | None, skip: tuple[str, ...] = ()) -> bool | None:
+    """True when ``record``'s ``"checksum"`` matches its content, False when it does not
+    (edited by hand, or damaged), None when it has none (written before checksums)."""
+    if not isinstance(record, dict) or CHECKSUM not in record:
+        return None
+    return record[CHECKSUM] == json_checksum(record, indent=indent, skip=skip)

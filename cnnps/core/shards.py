@@ -22,6 +22,14 @@ Columns (see :func:`shard_schema`):
 Files are written under a temporary name and renamed only when complete
 (:class:`SceneShardWriter`), so a file named ``shard-*.parquet`` is always whole.
 
+Integrity: every shard's size and SHA-256 are recorded when it is written
+(:class:`ShardInfo`, copied into the extract stage's scene markers and ``manifest.json``),
+and the manifest carries a ``checksum`` of its own content
+(:func:`cnnps.core.hashing.json_checksum`, indent 1). :func:`manifest_digest` checks that
+checksum (a manifest edited by hand is refused) and :func:`verify_shards` checks every
+shard against its record before training reads one; :class:`ShardStream` also refuses a
+row group holding a non-finite map or normal, so NaN never reaches the network.
+
 Shards can live at a local path or at an fsspec URL (``s3://bucket/run/extract``,
 ``gs://...``, ``memory://...``; :mod:`cnnps.core.storage`): the writer stages a scene's
 files in a local temporary folder and uploads each one atomically (temporary name,
@@ -33,6 +41,7 @@ through a pyarrow filesystem. Local paths stay :class:`~pathlib.Path`, URLs stay
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import shutil
@@ -48,9 +57,11 @@ import pyarrow.parquet as pq
 from cnnps.core import storage
 from cnnps.core.atomic import publish_mode
 from cnnps.core.errors import InputError
-from cnnps.core.hashing import file_sha256
+from cnnps.core.hashing import CHUNK, bytes_sha256, check_file_record, file_sha256, json_checksum_ok
 
 MANIFEST = "manifest.json"
+MANIFEST_INDENT = 1  # manifest.json is json.dumps(..., indent=1): its checksum hashes that form
+FIX_EXTRACT = "rerun `cnnps run-stage extract` (it redoes the damaged scenes and rewrites the manifest)"
 MAP_DTYPE = np.dtype("<f2")
 ZSTD_LEVEL = 1  # level 1: 110k rows/s written vs 85k at the default 3, same size here
 
@@ -233,7 +244,11 @@ class SceneShardWriter:
 
     def __exit__(self, exc_type, exc, tb):
         if exc_type is None:
-            self.commit()
+            try:
+                self.commit()
+            except BaseException:  # e.g. a full disk while flushing the last group: leave no temporaries
+                self.abort()
+                raise
         else:
             self.abort()
         return False
@@ -266,6 +281,65 @@ def load_manifest(extract_dir: str | Path) -> dict:
         return json.loads(storage.read_text(path))
     except json.JSONDecodeError as exc:
         raise InputError(str(path), f"not valid JSON ({exc})") from exc
+
+
+def manifest_digest(extract_dir: str | Path, manifest: dict | None = None) -> str:
+    """The manifest's SHA-256 as the train stage keys its runs on it, after checking it.
+
+    A manifest with a ``checksum`` entry must match it (else InputError: edited by hand
+    or damaged); its digest is that checksum, which equals the SHA-256 of the file the
+    extract stage wrote before manifests carried one. A manifest without the entry
+    (written before) is hashed as it is on disk.
+    """
+    path = shard_path(extract_dir, MANIFEST)
+    if manifest is None:
+        manifest = load_manifest(extract_dir)
+    ok = json_checksum_ok(manifest, indent=MANIFEST_INDENT)
+    if ok is False:
+        raise InputError(str(path), f"edited by hand or damaged: its content does not match its checksum; {FIX_EXTRACT}")
+    if ok:
+        return str(manifest["checksum"])
+    return bytes_sha256(storage.read_bytes(path))
+
+
+def shard_problem(path: str | Path, record: dict) -> str | None:
+    """What is wrong with the shard at ``path`` (local or URL) against its manifest
+    record (``bytes``, ``sha256``), or None when it matches (see
+    :func:`cnnps.core.hashing.check_file_record`)."""
+    if storage.is_local(path):
+        return check_file_record(storage.local_path(path), record)
+    size = file_size(path)
+    if size is None:
+        return "missing"
+    if "bytes" in record and size != int(record["bytes"]):
+        return f"is {size} bytes, {int(record['bytes'])} were written (truncated or replaced)"
+    if "sha256" in record:
+        digest = hashlib.sha256()
+        with storage.open_input(path) as fh:
+            while block := fh.read(CHUNK):
+                digest.update(block)
+        if digest.hexdigest() != record["sha256"]:
+            return "its bytes do not match the SHA-256 recorded when it was written (damaged)"
+    return None
+
+
+def verify_shards(extract_dir: str | Path, manifest: dict, splits: Sequence[str] = ("train", "val"),
+                  fix: str = FIX_EXTRACT) -> int:
+    """Check every shard of ``splits`` against its manifest record (size, then SHA-256:
+    one read of each file); the first mismatch raises InputError naming the shard and
+    ``fix``. Returns the bytes checked."""
+    total = 0
+    for s in manifest["shards"]:
+        if s["split"] not in splits:
+            continue
+        path = shard_path(extract_dir, s["file"])
+        problem = shard_problem(path, s)
+        if problem == "missing":
+            raise InputError(str(path), f"shard listed in {MANIFEST} is missing; {fix}")
+        if problem is not None:
+            raise InputError(str(path), f"shard {problem}; {fix}")
+        total += int(s.get("bytes", 0))
+    return total
 
 
 def manifest_files(extract_dir: str | Path, manifest: dict, split: str) -> list[Path | str]:
@@ -331,6 +405,19 @@ def read_row_group(path: str | Path, index: int, w: int, columns: Sequence[str] 
         else:
             out[name] = col.to_numpy()
     return out
+
+
+def check_finite(path: str | Path, group: int, maps: np.ndarray, normals: np.ndarray) -> None:
+    """InputError naming the shard when row group ``group`` holds a NaN or infinite map
+    cell or normal (never written by the extract stage: such a file is damaged or foreign)."""
+    if maps.dtype == np.float16:
+        # all-ones exponent = Inf or NaN; 6x faster than np.isfinite, which has no float16 fast path
+        finite = maps.size == 0 or int(np.bitwise_and(maps.view(np.uint16), 0x7C00).max()) != 0x7C00
+    else:
+        finite = bool(np.isfinite(maps).all())
+    if not (finite and np.isfinite(normals).all()):
+        raise InputError(str(path), f"row group {group} holds NaN or infinite values (the extract stage never "
+                         "writes them): delete this shard and rerun `cnnps run-stage extract`")
 
 
 def row_group_units(files: Sequence[str | Path]) -> list[tuple[int, int, int]]:
@@ -406,6 +493,7 @@ class ShardStream:
     def _incoming(self, units) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         for fi, g, _ in units:
             d = read_row_group(self.files[fi], g, self.w)
+            check_finite(self.files[fi], g, d["map"], d["normal"])
             yield d["map"], d["normal"]
 
     def iter_epoch(

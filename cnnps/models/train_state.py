@@ -31,8 +31,10 @@ def list_checkpoints(ckpt_dir: Path) -> list[Path]:
 def save_training_state(ckpt_dir: Path, state: dict, keep: int) -> Path:
     """Write ``state`` (its ``"step"`` names the file) atomically; keep the newest ``keep``."""
     path = checkpoint_path(ckpt_dir, state["step"])
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        # through a file object: torch names the zip's root folder "archive" (given a path,
+        # it names it after the temporary file), so the bytes depend only on the state
+        torch.save(state, fh)
     for old in list_checkpoints(ckpt_dir)[:-keep]:
         old.unlink(missing_ok=True)
     return path

@@ -33,16 +33,17 @@ from tqdm import tqdm
 from cnnps.core import storage
 from cnnps.core.atomic import write_text
 from cnnps.core.errors import ConfigError, InputError
-from cnnps.core.hashing import bytes_sha256
 from cnnps.core.shards import (
     MANIFEST,
     ShardDataset,
     ShardStream,
     load_manifest,
+    manifest_digest,
     manifest_files,
     shard_path,
+    verify_shards,
 )
-from cnnps.models.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
+from cnnps.models.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint, write_sha256_file
 from cnnps.models.distributed import (
     DistInfo,
     all_gather,
@@ -93,7 +94,7 @@ class TrainingData:
 
     manifest: dict
     manifest_url: Path | str
-    manifest_sha256: str  # of the manifest file's bytes: part of the run key
+    manifest_sha256: str  # of the manifest's content (shards.manifest_digest): part of the run key
     w: int
     train_files: list
     val_files: list
@@ -116,22 +117,33 @@ def fewest_lights(manifest: dict) -> int | None:
     return int(lo)
 
 
-def open_training_data(extract_dir: str | Path) -> TrainingData:
-    """Read the manifest at ``extract_dir`` (a folder or an fsspec URL) and check that it
-    lists training shards and that every shard it lists exists."""
+def open_training_data(extract_dir: str | Path, verify: bool = True) -> TrainingData:
+    """Read the manifest at ``extract_dir`` (a folder or an fsspec URL) and check it: its
+    own checksum (an edited manifest is refused), that it lists training shards, and
+    that every shard it lists exists and, with ``verify``, has the size and SHA-256 the
+    manifest records (one read of every shard before the first step: 0.9 s for the
+    349 MB of cpu-train-v3's shards on 2 busy cores, against ~74 min for one epoch of
+    training there). Problems raise InputError naming the file and the fix."""
     if isinstance(extract_dir, str):
         extract_dir = extract_dir.rstrip("/")
     manifest = load_manifest(extract_dir)
     manifest_url = shard_path(extract_dir, MANIFEST)
-    manifest_sha256 = bytes_sha256(storage.read_bytes(manifest_url))
-    w = int(manifest["w"])
-    train_files = manifest_files(extract_dir, manifest, "train")
-    val_files = manifest_files(extract_dir, manifest, "val")
+    manifest_sha256 = manifest_digest(extract_dir, manifest)
+    try:
+        w = int(manifest["w"])
+        train_files = manifest_files(extract_dir, manifest, "train")
+        val_files = manifest_files(extract_dir, manifest, "val")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(str(manifest_url), f"not an extract manifest ({type(exc).__name__}: {exc}); "
+                         "rerun `cnnps run-stage extract`") from None
     if not train_files:
         raise InputError(str(manifest_url), "lists no training shards")
     for f in train_files + val_files:
         if not storage.exists(f):
-            raise InputError(str(f), "shard listed in the manifest is missing (rerun extract)")
+            raise InputError(str(f), "shard listed in the manifest is missing; rerun `cnnps run-stage extract` "
+                             "(it redoes the scenes whose shards are missing)")
+    if verify:
+        verify_shards(extract_dir, manifest)
     return TrainingData(manifest, manifest_url, manifest_sha256, w, train_files, val_files)
 
 
@@ -402,6 +414,7 @@ class Trainer:
                       "min_lights": fewest_lights(self.data.manifest),
                       **({"init_weights_sha256": self.init_sha} if self.init_sha else {})},
             )
+            write_sha256_file(self.out_dir / "model.pt")  # model.pt.sha256: load_checkpoint verifies it
             write_text(self.out_dir / "metrics.json", json.dumps(metrics, indent=1))
         if info.enabled:
             metrics = broadcast(metrics, info)  # rank 0's (with validation) everywhere

@@ -2,10 +2,17 @@
 
 Every command validates the parameters of *all* stages before any work starts, so a
 typo in the ``eval`` section fails in seconds, not after an hour of rendering.
+
+One writer per data folder: ``run-stage`` and ``demo`` hold the data folder's lock
+(:mod:`cnnps.core.lock`) while they write, so a second run on the same folder stops at
+once with one line naming the first (its command, PID, host and start time). ``demo``
+holds it for the whole pipeline and hands it to the ``cnnps run-stage`` processes its
+``dvc repro`` starts; under torchrun only rank 0 takes it. ``stages`` only reads.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import os
@@ -52,6 +59,16 @@ def _config(
     return conf
 
 
+def _data_lock(data_dir: Path, command: str):
+    """The data folder's lock (:class:`cnnps.core.lock.DataFolderLock`) for ``command``;
+    a no-op in the ranks > 0 of a torchrun job (rank 0 holds it; the others write nothing)."""
+    from cnnps.core.lock import DataFolderLock
+
+    if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1 and os.environ.get("RANK", "0") not in ("", "0"):
+        return contextlib.nullcontext()
+    return DataFolderLock(data_dir, command)
+
+
 def _fmt_time(seconds: float) -> str:
     return f"{seconds:.1f} s" if seconds < 120 else f"{seconds / 60:.1f} min"
 
@@ -95,7 +112,8 @@ def run_stage_cmd(
     conf = _config(params, preset, data_dir, executor, address)
     all_params = cfg.load_all(conf)  # every stage, before any work
     t0 = time.perf_counter()
-    cfg.run_stage(name, conf, all_params)
+    with _data_lock(conf.data_dir, f"cnnps run-stage {name}"):  # one writer per data folder
+        cfg.run_stage(name, conf, all_params)
     typer.echo(f"cnnps: stage {name} done in {_fmt_time(time.perf_counter() - t0)} ({conf.data_dir})", err=True)
 
 
@@ -108,8 +126,8 @@ def _dvc_usable(root: Path) -> bool:
     )
 
 
-def _run_dvc_repro(root: Path) -> None:
-    env = dict(os.environ)
+def _run_dvc_repro(root: Path, env: dict[str, str] | None = None) -> None:
+    env = dict(os.environ if env is None else env)
     # `cnnps run-stage` in dvc.yaml must resolve to this installation's command.
     env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
     env.setdefault("DVC_NO_ANALYTICS", "1")
@@ -142,14 +160,16 @@ def demo_cmd(
         params is None or params.resolve() == (root / cfg.DEFAULT_PARAMS).resolve()
     ) and preset is None and conf.data_dir.resolve() == (root / cfg.DEFAULT_DATA_DIR).resolve()
     t0 = time.perf_counter()
-    if use_dvc and default_setup and _dvc_usable(root):
-        _run_dvc_repro(root)
-    else:
-        for name in cfg.STAGES:
-            typer.echo(f"cnnps: stage {name} ...", err=True)
-            t1 = time.perf_counter()
-            cfg.run_stage(name, conf, all_params)
-            typer.echo(f"cnnps: stage {name} done in {_fmt_time(time.perf_counter() - t1)}", err=True)
+    with _data_lock(conf.data_dir, "cnnps demo") as lock:  # the whole pipeline, one writer
+        if use_dvc and default_setup and _dvc_usable(root):
+            # the `cnnps run-stage` processes of dvc repro inherit the lock through their environment
+            _run_dvc_repro(root, lock.child_env() if lock is not None else None)
+        else:
+            for name in cfg.STAGES:
+                typer.echo(f"cnnps: stage {name} ...", err=True)
+                t1 = time.perf_counter()
+                cfg.run_stage(name, conf, all_params)
+                typer.echo(f"cnnps: stage {name} done in {_fmt_time(time.perf_counter() - t1)}", err=True)
     elapsed = time.perf_counter() - t0
 
     metrics_path = conf.data_dir / "eval" / "metrics.json"

@@ -23,6 +23,13 @@ Outputs (the report and pictures are replaced together at the end):
   (``mean_deg``, ``median_deg``, ...), plus a ``summary`` (mean over captures);
 - ``data_dir/eval/report.md``: a Markdown table and, per capture, input image,
   predicted normals, ground truth and error maps (PNGs in ``data_dir/eval/pictures/``).
+
+Damaged inputs: the model is loaded (and verified: weights SHA-256, zip CRCs and, for the
+train stage's ``model.pt``, its ``model.pt.sha256``; :mod:`cnnps.models.checkpoint`)
+before anything is rendered or written, and a damaged one stops the stage with one line
+naming the file and the fix. Test captures are cached render folders: a damaged one is
+re-rendered (:mod:`cnnps.synth.capture_render`); a real capture with an unreadable or
+non-finite image stops the stage, naming it.
 """
 
 from __future__ import annotations
@@ -288,6 +295,19 @@ def run(params: Params, data_dir: Path) -> None:
         if not Path(c).is_dir():
             raise InputError(c, "capture folder not found")
 
+    from cnnps.models.checkpoint import load_checkpoint
+
+    from cnnps.models.devices import resolve_device
+
+    device = str(resolve_device(params.device))  # CnnpsError: cuda asked for, none here
+    try:  # before anything is rendered or written
+        net, _config, _meta = load_checkpoint(model_path, device)  # InputError naming the file
+    except InputError as exc:
+        fix = ("rerun `cnnps run-stage train` (it rewrites model.pt from its last checkpoint)"
+               if params.model is None else "replace it with an intact copy")
+        raise InputError(exc.path, f"{exc.problem}; {fix}") from None
+    net.eval()
+
     captures: list[tuple[str, Path, str]] = []
     if params.synthetic:
         captures += [(p.name, p, "synthetic") for p in build_testset(params, data_dir)]
@@ -299,13 +319,6 @@ def run(params: Params, data_dir: Path) -> None:
         dup = next(n for n in names if names.count(n) > 1)
         raise ConfigError(f"eval: two captures are named {dup!r}; rename one folder")
 
-    from cnnps.models.checkpoint import load_checkpoint
-
-    from cnnps.models.devices import resolve_device
-
-    device = str(resolve_device(params.device))  # CnnpsError: cuda asked for, none here
-    net, _config, _meta = load_checkpoint(model_path, device)  # InputError naming the file
-    net.eval()
     from cnnps.models.inference import predict_normals
 
     def predict(I, L, k):

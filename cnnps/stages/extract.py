@@ -121,7 +121,22 @@ Output in ``data_dir/extract/`` (or at ``output``: a path or an fsspec URL such 
 for the schema), one ``scene-<scene_id>.json`` marker per finished scene (its cache key
 and shard list, written after its shards are moved into place), and ``manifest.json``
 written last. A rerun skips scenes whose marker has the same cache key and whose shards
-still exist with their recorded sizes.
+still exist with their recorded sizes and SHA-256.
+
+Integrity. Inputs: every ``scene.json`` must match its own checksum, and before a scene
+is extracted its folder must match the size and SHA-256 that ``scene.json`` records for
+each file (:func:`cnnps.synth.capture_render.folder_problems`; all scenes to extract are
+checked before the first job starts), and its images must decode as finite values (the
+check that also covers folders rendered before checksums). A damaged input stops the
+stage with one line naming the file and the fix (the render stage re-renders exactly
+the damaged part); nothing is written. Outputs: each scene marker carries a ``checksum``
+of its own content (its ``seconds`` left out) and the shards' sizes and SHA-256; a
+rerun re-extracts exactly the scenes whose marker was edited or deleted or whose shard
+is missing, truncated or altered (local outputs are hashed in full; fsspec URLs are
+checked by size, the train stage checks their SHA-256). No NaN or infinite map is ever
+written (checked before each write). ``manifest.json`` carries a ``checksum`` of its
+own content, equal to the SHA-256 the file had before the entry existed (so the train
+stage's run keys did not change); a rerun always rewrites it.
 
 Scenes are independent jobs run by the executor (:mod:`cnnps.core.executor`: ``local``
 process pool or ``ray``); each job writes only its own shards and marker, atomically and
@@ -150,8 +165,18 @@ from cnnps.core.errors import ConfigError, InputError
 from cnnps.core.rotation import rotation_angles
 from cnnps.core import storage
 from cnnps.core.executor import ExecutorParams, runs_in_process, stage_executor
-from cnnps.core.hashing import bytes_sha256, derive_seed64, stable_hash
-from cnnps.core.shards import MANIFEST, SceneShardWriter, file_size, make_batch, shard_path, shard_schema
+from cnnps.core.hashing import add_json_checksum, bytes_sha256, derive_seed64, json_checksum_ok, stable_hash
+from cnnps.core.shards import (
+    MANIFEST,
+    MANIFEST_INDENT,
+    SceneShardWriter,
+    file_size,
+    make_batch,
+    shard_path,
+    shard_problem,
+    shard_schema,
+)
+from cnnps.synth.capture_render import SCENE_INDENT, SCENE_TIMINGS, folder_problems
 from cnnps.synth.training_samples import (
     STREAM_SPARSE,
     apply_capture_effects,
@@ -162,6 +187,9 @@ from cnnps.synth.training_samples import (
 )
 
 FORMAT_VERSION = 1  # bump when the rows written for the same inputs change
+MARKER_INDENT = 1  # scene-<id>.json is json.dumps(..., indent=1): its checksum hashes that form
+MARKER_TIMINGS = ("seconds",)  # not in the marker's checksum: it varies between runs
+FIX_RENDER = "rerun `cnnps run-stage render` (it re-renders exactly the damaged part), then this stage"
 
 
 @dataclass(frozen=True)
@@ -301,10 +329,12 @@ def list_scenes(render_dir: Path) -> list[tuple[str, Path, dict]]:
             continue  # an unfinished render leaves no scene.json
         try:
             meta = json.loads(meta_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise InputError(meta_path, f"not valid JSON ({exc})") from exc
-        if "key" not in meta:
-            raise InputError(meta_path, "has no 'key'")
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise InputError(meta_path, f"not valid JSON ({exc}); {FIX_RENDER}") from exc
+        if not isinstance(meta, dict) or "key" not in meta:
+            raise InputError(meta_path, f"has no 'key'; {FIX_RENDER}")
+        if json_checksum_ok(meta, indent=SCENE_INDENT, skip=SCENE_TIMINGS) is False:
+            raise InputError(meta_path, f"edited by hand or damaged: its content does not match its checksum; {FIX_RENDER}")
         scenes.append((d.name, d, meta))
     if not scenes:
         raise InputError(render_dir, "no rendered scenes with a scene.json")
@@ -321,19 +351,42 @@ class SceneJob:
     params: Params
     threads: int = 0
     progress: bool = True
+    checksummed: bool = True  # its scene.json records the folder's checksums (checked before the job)
+
+
+def check_render_folder(folder: Path, meta: dict) -> None:
+    """InputError naming the first file of a rendered scene that does not match the
+    checksums its ``scene.json`` records (none for a folder rendered before them)."""
+    problems = folder_problems(folder, meta)
+    if problems:
+        path, problem = problems[0]
+        more = f" (and {len(problems) - 1} more file(s) of this scene)" if len(problems) > 1 else ""
+        raise InputError(path, f"{problem}{more}; {FIX_RENDER}")
+
+
+def _load_render(folder: Path, checksummed: bool):
+    """The rendered capture, every image decoded and checked finite; a damaged file ->
+    InputError naming it and the fix. The render stage finds a damaged file by itself
+    only in a folder whose ``scene.json`` records checksums; in an older folder the file
+    must be deleted first."""
+    from cnnps.core.capture import load_capture
+
+    try:
+        return load_capture(folder)
+    except InputError as exc:
+        fix = FIX_RENDER if checksummed else f"delete it and {FIX_RENDER}"
+        raise InputError(exc.path, f"{exc.problem}; {fix}") from None
 
 
 def extract_scene(job: SceneJob) -> dict:
     """Extract one scene into its shards and marker; returns the marker's contents."""
-    from cnnps.core.capture import load_capture
-
     if job.threads:
         _limit_threads(job.threads)
     p = job.params
     t0 = time.perf_counter()
-    cap = load_capture(job.folder)
+    cap = _load_render(job.folder, job.checksummed)
     if cap.normal_gt is None:
-        raise InputError(job.folder, "rendered scene has no ground-truth normals (normal_gt.npy)")
+        raise InputError(job.folder, f"rendered scene has no ground-truth normals (normal_gt.npy); {FIX_RENDER}")
     rr, cc = np.nonzero(cap.mask)
     normals = cap.normal_gt[rr, cc].astype(np.float64)
     norm = np.linalg.norm(normals, axis=1)
@@ -359,7 +412,7 @@ def extract_scene(job: SceneJob) -> dict:
     dropped_dark = 0
     rows_written = 0
     bar = tqdm(total=len(pix), desc=f"extract {job.scene_id}", unit="px", disable=not job.progress, leave=False)
-    with SceneShardWriter(job.out_dir, f"shard-{job.scene_id}", schema, p.rows_per_group, p.rows_per_shard) as wr:
+    with bar, SceneShardWriter(job.out_dir, f"shard-{job.scene_id}", schema, p.rows_per_group, p.rows_per_shard) as wr:
         for c, start in enumerate(range(0, len(pix), p.chunk_pixels)):
             sel = pix[start : start + p.chunk_pixels]
             crng = np.random.default_rng([scene_seed, 1, c])
@@ -375,6 +428,9 @@ def extract_scene(job: SceneJob) -> dict:
             I = apply_capture_effects(I, mask, fx, scene_seed, c)
             n = normals[sel] / norm[sel, None]
             maps, rot_n = build_rows(I, n, map_lights, mask, angles, p.w)
+            if not (np.isfinite(maps).all() and np.isfinite(rot_n).all()):  # never write NaN maps
+                raise InputError(job.folder, "non-finite observation maps (NaN or infinite rendered values?); "
+                                 f"{FIX_RENDER}")
             R, P = len(angles), len(sel)
             order = crng.permutation(R * P)  # interleave rotations and pixels inside the chunk
             r_idx, p_idx = np.divmod(order, P)
@@ -394,7 +450,6 @@ def extract_scene(job: SceneJob) -> dict:
             )
             rows_written += R * P
             bar.update(len(sel) + int((~lit).sum()))
-    bar.close()
     record = {
         "scene": job.scene_id,
         "key": job.key,
@@ -406,7 +461,8 @@ def extract_scene(job: SceneJob) -> dict:
         "seconds": round(time.perf_counter() - t0, 3),
         "shards": [asdict(s) for s in wr.infos],
     }
-    storage.write_text(shard_path(job.out_dir, f"scene-{job.scene_id}.json"), json.dumps(record, indent=1))
+    record = add_json_checksum(record, indent=MARKER_INDENT, skip=MARKER_TIMINGS)
+    storage.write_text(shard_path(job.out_dir, f"scene-{job.scene_id}.json"), json.dumps(record, indent=MARKER_INDENT))
     return record
 
 
@@ -425,13 +481,22 @@ def _cached(out_dir: str | Path, scene_id: str, key: str) -> dict | None:
         return None
     try:
         rec = json.loads(storage.read_text(marker))
-    except (json.JSONDecodeError, InputError):
+    except (json.JSONDecodeError, UnicodeDecodeError, InputError):
         return None
-    if rec.get("key") != key:
+    if not isinstance(rec, dict) or rec.get("key") != key:
         return None
-    for s in rec.get("shards", []):
-        if file_size(shard_path(out_dir, s["file"])) != s["bytes"]:
-            return None
+    if json_checksum_ok(rec, indent=MARKER_INDENT, skip=MARKER_TIMINGS) is False:
+        return None  # a marker edited by hand (or damaged): extract the scene again
+    try:
+        for s in rec.get("shards", []):
+            path = shard_path(out_dir, s["file"])
+            if storage.is_local(path):
+                if shard_problem(path, s) is not None:  # missing, truncated or altered: redo the scene
+                    return None
+            elif file_size(path) != s["bytes"]:  # a URL: by size (train checks the SHA-256)
+                return None
+    except (KeyError, TypeError, ValueError):
+        return None
     return rec
 
 
@@ -483,7 +548,10 @@ def run(params: Params, data_dir: Path, executor=None) -> None:
         if rec is not None:
             records[sid] = rec
         else:
-            jobs.append(SceneJob(sid, folder, key, str(meta["key"]), out_dir, params))
+            jobs.append(SceneJob(sid, folder, key, str(meta["key"]), out_dir, params, checksummed="files" in meta))
+    metas = {sid: meta for sid, _, meta in scenes}
+    for j in jobs:  # every input checked before the first job writes anything
+        check_render_folder(j.folder, metas[j.scene_id])
     if jobs:
         with stage_executor(params, executor) as ex:
             in_process = runs_in_process(ex, len(jobs))
@@ -520,7 +588,8 @@ def run(params: Params, data_dir: Path, executor=None) -> None:
         },
         "shards": shards,
     }
-    storage.write_text(shard_path(out_dir, MANIFEST), json.dumps(manifest, indent=1))
+    manifest = add_json_checksum(manifest, indent=MANIFEST_INDENT)
+    storage.write_text(shard_path(out_dir, MANIFEST), json.dumps(manifest, indent=MANIFEST_INDENT))
     _remove_stale(out_dir, {s["file"] for s in shards}, {sid for sid, _, _ in scenes})
 
 

@@ -24,6 +24,14 @@ it, is told how many threads Cycles may use (``threads``, else the executor's
 images of a scene depend only on its key and seeds, so a retried job (its worker died)
 resumes the folder and a duplicated one rewrites the same pixels.
 
+Damaged files. A scene whose folder no longer matches the checksums its ``scene.json``
+records (a truncated, NaN-filled or byte-flipped image, a ``scene.json`` edited by hand)
+is not complete: this stage renders again exactly what is damaged (the images, or the
+whole scene when its light files or ``scene.json`` cannot be trusted;
+:mod:`cnnps.synth.capture_render`). Damaged inputs of another stage (a mesh or a
+material map that does not decode, holds NaN, or disagrees with its ``view.json``) stop
+the stage with one line naming the file and the fix, before the scene's folder is touched.
+
 Blender (bpy, the ``cnnps[render]`` extra) is needed only when a scene has images to
 render; without it the stage stops with one line (with the local executor before any
 job starts; on Ray the first job on a node without bpy fails with it). Only
@@ -154,13 +162,24 @@ def _scene_jobs(params: Params, data_dir: Path) -> list[dict]:
     return jobs
 
 
+def _load_map(p: Path) -> np.ndarray:
+    """A material map (.npy) as float32; unreadable or non-finite -> InputError."""
+    try:
+        arr = np.load(p, allow_pickle=False).astype(np.float32)
+    except Exception as exc:
+        raise InputError(p, f"unreadable .npy file ({exc})") from exc
+    if not np.isfinite(arr).all():
+        raise InputError(p, "material map holds NaN or infinite values")
+    return arr
+
+
 def _material_from_dir(sdir: Path, meta: dict) -> dict:
     """Renderer material of a materials-stage folder (maps extended past their mask)."""
     from cnnps.core.images import read_mask
 
     mask = read_mask(sdir / "mask.png")
     if meta.get("category") == "lambertian" or meta.get("bsdf") == "lambertian":
-        albedo = np.load(sdir / "base_color.npy") if (sdir / "base_color.npy").is_file() else 1.0
+        albedo = _load_map(sdir / "base_color.npy") if (sdir / "base_color.npy").is_file() else 1.0
         return lambertian_material(extend_maps({"a": albedo}, mask)["a"] if np.ndim(albedo) >= 2 else albedo)
     names = ("base_color", "metallic", "specular", "roughness", "sheen", "sheen_tint")
     maps = {}
@@ -168,13 +187,49 @@ def _material_from_dir(sdir: Path, meta: dict) -> dict:
         p = sdir / f"{n}.npy"
         if not p.is_file():
             raise InputError(p, "material parameter map missing")
-        try:
-            maps[n] = np.load(p, allow_pickle=False).astype(np.float32)
-        except Exception as exc:
-            raise InputError(p, f"unreadable .npy file ({exc})") from exc
+        maps[n] = _load_map(p)
         if maps[n].shape[:2] != mask.shape:
             raise InputError(p, f"map is {maps[n].shape}, mask is {mask.shape}")
     return principled_material(extend_maps(maps, mask))
+
+
+def _check_material_files(sdir: Path) -> None:
+    """Every file of a materials folder that enters the scene's key must decode as a whole
+    (maps: finite numbers; images: readable; JSON: valid), so a damaged one stops the
+    stage instead of changing the key and being rendered from."""
+    from cnnps.core.images import read_image_raw
+
+    for p in sorted(sdir.iterdir()):
+        if not p.is_file() or p.name == "preview.png":
+            continue
+        if p.suffix == ".npy":
+            _load_map(p)
+        elif p.suffix == ".png":
+            read_image_raw(p)
+        elif p.suffix == ".json" and read_json(p) is None:
+            raise InputError(p, "not valid JSON")
+
+
+def _read_mesh(mesh_path: Path):
+    """The view's mesh, checked against the vertex and face counts its ``view.json``
+    records (when it does) and for finite vertices."""
+    from cnnps.synth.meshes import read_view_mesh
+
+    mesh = read_view_mesh(mesh_path.parent)
+    view = read_json(mesh_path.parent / "view.json") or {}
+    for what, n in (("vertices", len(mesh.vertices)), ("faces", len(mesh.faces))):
+        want = view.get(f"n_{what}")
+        if want is not None and int(want) != n:
+            raise InputError(mesh_path, f"holds {n} {what}, its view.json records {want} (damaged)")
+    if not np.isfinite(np.asarray(mesh.vertices)).all():
+        raise InputError(mesh_path, "mesh has NaN or infinite vertices")
+    return mesh
+
+
+def _upstream_fix(stage: str, folder: Path) -> str:
+    """The fix for a damaged input of another stage (which trusts its own keys, so the
+    damaged folder must go first)."""
+    return f"delete {folder} and rerun `cnnps run-stage {stage}` (then this stage)"
 
 
 def render_scene_job(job: dict) -> dict:
@@ -185,11 +240,19 @@ def render_scene_job(job: dict) -> dict:
     if is_complete(out, job["key"]):
         return {"scene_id": sid, "rendered": 0, "skipped": True}
     from cnnps.synth.lights import hemisphere_lights
-    from cnnps.synth.meshes import read_view_mesh
 
     sdir = Path(job["material_dir"])
-    mesh = read_view_mesh(Path(job["mesh_path"]).parent)
-    material = _material_from_dir(sdir, read_json(sdir / "material.json") or {})
+    mesh_path = Path(job["mesh_path"])
+    # the inputs are read (and checked) before the scene's folder is touched
+    try:
+        mesh = _read_mesh(mesh_path)
+    except InputError as exc:
+        raise InputError(exc.path, f"{exc.problem}; {_upstream_fix('meshes', mesh_path.parent)}") from None
+    try:
+        _check_material_files(sdir)
+        material = _material_from_dir(sdir, read_json(sdir / "material.json") or {})
+    except InputError as exc:
+        raise InputError(exc.path, f"{exc.problem}; {_upstream_fix('materials', sdir)}") from None
     if isinstance(material.get("Color"), np.ndarray) and material["Color"].shape[:2] != (p.size, p.size):
         raise InputError(sdir, f"material maps are {material['Color'].shape[:2]}, render size is {p.size}")
     scene_seed = derive_seed(int(p.seed), str(sid))

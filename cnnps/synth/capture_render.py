@@ -22,6 +22,21 @@ without them is refused (InputError), an existing empty one is filled in place. 
 images of a folder depend only on its key and seeds (Cycles is deterministic per seed),
 so a retried or duplicated job resumes or rewrites the same pixels.
 
+Checksums. ``scene.json`` records every other file of the folder (``files``: name ->
+``{"bytes", "sha256"}``) and a ``checksum`` of its own content
+(:func:`cnnps.core.hashing.json_checksum`, indent 2, leaving out the two timing fields
+``render_seconds`` and ``images_rendered_last_run``, so it is the same for every run that
+writes the same folder). :func:`is_complete` verifies them
+(a truncated, NaN-filled or byte-flipped image, or a ``scene.json`` edited by hand, makes
+the folder incomplete), and :func:`render_into` then redoes exactly the damaged part:
+damaged images (or the mask and normals) are deleted and re-rendered with the same
+lights and seeds, so the folder ends with the bytes it had; damaged light files or an
+untrustworthy ``scene.json`` re-render the whole capture. Files of a killed run (no
+record yet) are checked by decoding (readable, finite) before they are kept.
+:func:`folder_problems` tells a reader (the extract stage) what does not match. The key
+does not depend on these entries, and a ``scene.json`` written before them (no
+``files``, no ``checksum``) is still complete as it was (only existence is checked).
+
 Mask and ground-truth normals come from Blender itself (one extra 1-sample render): the
 mask is the alpha of the camera rays through the pixel centres and ``normal_gt`` is the
 smooth shading normal at those hits, i.e. exactly the normal the BSDFs were lit with
@@ -62,12 +77,25 @@ from tqdm import tqdm
 from cnnps.core.atomic import atomic_path, publish_mode, write_text
 from cnnps.core.cache import read_json
 from cnnps.core.errors import ConfigError, InputError
-from cnnps.core.hashing import bytes_sha256, derive_seed, file_sha256, stable_hash
+from cnnps.core.hashing import (
+    add_json_checksum,
+    bytes_sha256,
+    check_file_record,
+    derive_seed,
+    file_record,
+    file_sha256,
+    json_checksum_ok,
+    stable_hash,
+)
 
 VERSION = 1  # bump when what is written for the same inputs changes (part of every render key)
 MATERIAL_KINDS = ("lambertian", "diffuse", "specular", "metallic", "narrow")
 # the settings that change the pictures (part of the content key); not device or threads
 PICTURE_FIELDS = ("size", "samples", "lights", "jitter_deg", "min_elevation_deg", "light_intensity", "max_bounces", "seed")
+SCENE_INDENT = 2  # scene.json is json.dumps(..., indent=2) + "\n": its checksum hashes that form
+SCENE_TIMINGS = ("render_seconds", "images_rendered_last_run")  # not in its checksum: they vary between runs
+LIGHT_FILES = ("filenames.txt", "light_directions.txt", "light_intensities.txt")
+GEOMETRY_FILES = ("mask.png", "normal_gt.npy")
 
 
 @dataclass(frozen=True)
@@ -170,14 +198,79 @@ def _write_lights(out: Path, L: np.ndarray, intensity: float, names: list[str]) 
     write_text(out / "filenames.txt", "".join(n + "\n" for n in names))
 
 
-def is_complete(out: Path, key: str) -> bool:
+def is_complete(out: Path, key: str, verify: bool = True) -> bool:
     """Whether ``out`` is a finished capture of ``key``: its ``scene.json`` holds the key
-    and every image it lists exists (no Blender needed to tell)."""
+    and every image it lists exists (no Blender needed to tell) and, with ``verify``, the
+    folder matches the checksums ``scene.json`` records (:func:`folder_problems`: one
+    read of every file)."""
     meta = read_json(out / "scene.json")
     if not meta or meta.get("key") != key:
         return False
     names = meta.get("filenames") or []
-    return bool(names) and all((out / n).is_file() for n in names) and (out / "normal_gt.npy").is_file()
+    if not (bool(names) and all((out / n).is_file() for n in names) and (out / "normal_gt.npy").is_file()):
+        return False
+    return not verify or not folder_problems(out, meta)
+
+
+def folder_problems(out: Path, meta: dict | None = None) -> list[tuple[Path, str]]:
+    """``(file, problem)`` for every file of the finished capture ``out`` that does not
+    match what its ``scene.json`` (``meta``: read when None) records: the record's own
+    checksum first (a ``scene.json`` edited by hand cannot vouch for anything, so it is
+    the only problem then), then each file's size and SHA-256. Empty when all match, or
+    when ``scene.json`` predates checksums (nothing to check against)."""
+    out = Path(out)
+    if meta is None:
+        meta = read_json(out / "scene.json") or {}
+    ok = json_checksum_ok(meta, indent=SCENE_INDENT, skip=SCENE_TIMINGS)
+    if ok is False:
+        return [(out / "scene.json", "edited by hand or damaged: its content does not match its checksum")]
+    problems = []
+    for name, record in (meta.get("files") or {}).items():
+        problem = check_file_record(out / name, record)
+        if problem is not None:
+            problems.append((out / name, problem))
+    return problems
+
+
+def decode_problem(path: Path) -> str | None:
+    """Why a file of a capture folder without a checksum record cannot be kept (not
+    readable by its decoder, or NaN / infinite values), or None when it reads as a whole."""
+    from cnnps.core.images import read_image_raw
+
+    try:
+        if path.suffix == ".npy":
+            arr = np.load(path, allow_pickle=False)
+            if not np.issubdtype(arr.dtype, np.number) or arr.ndim != 3 or not np.isfinite(arr).all():
+                return "not a finite H x W x 3 normal map"
+        else:
+            arr = read_image_raw(path)
+            if np.issubdtype(arr.dtype, np.floating) and not np.isfinite(arr).all():
+                return "holds NaN or infinite pixels"
+    except InputError as exc:
+        return exc.problem
+    except Exception as exc:  # noqa: BLE001 - any decoder failure: the file is damaged
+        return f"unreadable ({type(exc).__name__})"
+    return None
+
+
+def _drop_damaged(out: Path, names: list[str], records: dict) -> list[str]:
+    """Delete the images, mask and normals of ``out`` that do not match their record
+    (``records``: name -> {"bytes", "sha256"}) or, without one, do not decode as whole
+    finite files; they are rendered again. Returns the names deleted."""
+    dropped = []
+    for name in list(names) + list(GEOMETRY_FILES):
+        path = out / name
+        if not path.is_file():
+            continue
+        record = records.get(name)
+        problem = check_file_record(path, record) if record else decode_problem(path)
+        if problem is not None:
+            path.unlink()
+            dropped.append(name)
+    if any(n in dropped for n in GEOMETRY_FILES):  # written together: redo both
+        for n in GEOMETRY_FILES:
+            (out / n).unlink(missing_ok=True)
+    return dropped
 
 
 def render_into(
@@ -232,7 +325,14 @@ def render_into(
         names = image_names(len(lights))
         pending = read_json(out / ".pending.json") or {}
         done_meta = read_json(out / "scene.json") or {}
-        resume = key in (pending.get("key"), done_meta.get("key")) and (out / "light_directions.txt").is_file()
+        # a finished folder is resumed (its damaged files redone) only when its scene.json
+        # is the one we wrote and its light files are intact; else it is rendered afresh
+        done_ok = (done_meta.get("key") == key
+                   and json_checksum_ok(done_meta, indent=SCENE_INDENT, skip=SCENE_TIMINGS) is not False)
+        records = (done_meta.get("files") or {}) if done_ok else {}
+        resume = (pending.get("key") == key or done_ok) and (out / "light_directions.txt").is_file()
+        if resume and any(check_file_record(out / n, records[n]) for n in LIGHT_FILES if n in records):
+            resume = False
         if resume:
             try:
                 L = np.loadtxt(out / "light_directions.txt", ndmin=2)
@@ -241,8 +341,12 @@ def render_into(
             resume = L.shape == np.shape(lights)
         if resume:
             lights = L  # the directions of the interrupted run
-            (out / "scene.json").unlink(missing_ok=True)  # not complete any more
+            if (out / "scene.json").is_file():
+                # not complete any more: a killed resume must find .pending.json, not nothing
+                write_text(out / ".pending.json", json.dumps({"key": key}) + "\n")
+                (out / "scene.json").unlink()
             remove_temp_files(out)  # half-written files of the killed run
+            _drop_damaged(out, names, records)  # damaged (or unverifiable and unreadable) files
         else:
             lights = _start_folder(out, key, lights, intensity, names)
 
@@ -287,9 +391,12 @@ def render_into(
             "render_seconds": round(time.perf_counter() - t0, 3),
             "images_rendered_last_run": rendered,
             "version": VERSION,
+            # size and SHA-256 of every other file: what is_complete and the extract stage verify
+            "files": {n: file_record(out / n) for n in list(LIGHT_FILES) + list(GEOMETRY_FILES) + names},
         }
     )
-    write_text(out / "scene.json", json.dumps(scene, indent=2) + "\n")
+    scene = add_json_checksum(scene, indent=SCENE_INDENT, skip=SCENE_TIMINGS)
+    write_text(out / "scene.json", json.dumps(scene, indent=SCENE_INDENT) + "\n")
     (out / ".pending.json").unlink(missing_ok=True)
     return {"rendered": rendered, "skipped": False}
 

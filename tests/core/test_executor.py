@@ -80,6 +80,14 @@ def test_local_map_order_and_error(tmp_path, workers):
     assert ex.map(seeded_sum, []) == []
 
 
+def test_job_note_names_a_scene_job_by_its_id():
+    """A failed job's note names a scene job by its scene_id, not a cut-off dump of its dict."""
+    exc = ex_mod._note_job(ValueError("x"), "render", 2, {"scene_id": "ball-0-8ab7", "params": {"size": 16} | dict.fromkeys("abcdefghijklmnopqrstuvwxyz", 1.0)})
+    assert exc.__notes__ == ["(in render job 2: scene ball-0-8ab7)"]
+    long = ex_mod._note_job(ValueError("y"), "probe", 1, ("z" * 300,))
+    assert long.__notes__[0].endswith("...)") and len(long.__notes__[0]) < 150
+
+
 def test_stage_executor_owns_only_the_executor_it_makes(monkeypatch):
     """A stage given an executor uses it and leaves it open; one it makes from its params
     (``executor`` section, ``workers`` override; default one worker) is closed, on error too."""

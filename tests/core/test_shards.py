@@ -123,3 +123,79 @@ def test_shards_get_the_umask_mode_not_mkstemps(tmp_path):
     finally:
         os.umask(old)
     assert infos and all(stat.S_IMODE(os.stat(tmp_path / i.file).st_mode) == 0o644 for i in infos)
+
+
+def _manifest(d, infos, split="train"):
+    from dataclasses import asdict
+
+    return {"format": 1, "w": W, "shards": [{**asdict(i), "scene": "a", "split": split} for i in infos]}
+
+
+def test_manifest_digest_keeps_the_old_file_hash_and_refuses_edits(tmp_path):
+    import hashlib
+    import json
+
+    from cnnps.core.errors import InputError
+    from cnnps.core.hashing import add_json_checksum
+    from cnnps.core.shards import manifest_digest
+
+    man = _manifest(tmp_path, write_scene(tmp_path, "a", 0, 40))
+    old_bytes = json.dumps(man, indent=1).encode()  # what the extract stage wrote before checksums
+    (tmp_path / "manifest.json").write_bytes(old_bytes)
+    assert manifest_digest(tmp_path) == hashlib.sha256(old_bytes).hexdigest()
+    (tmp_path / "manifest.json").write_text(json.dumps(add_json_checksum(man, indent=1), indent=1))
+    assert manifest_digest(tmp_path) == hashlib.sha256(old_bytes).hexdigest()  # same run key as before
+    edited = add_json_checksum(man, indent=1)
+    edited["shards"][0]["split"] = "val"
+    (tmp_path / "manifest.json").write_text(json.dumps(edited, indent=1))
+    with pytest.raises(InputError, match="edited by hand or damaged.*cnnps run-stage extract") as info:
+        manifest_digest(tmp_path)
+    assert info.value.path == tmp_path / "manifest.json"
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip", "delete"])
+def test_verify_shards_names_a_damaged_shard(tmp_path, damage):
+    from cnnps.core.errors import InputError
+    from cnnps.core.shards import verify_shards
+
+    man = _manifest(tmp_path, write_scene(tmp_path, "a", 0, 250) + write_scene(tmp_path, "b", 1000, 30))
+    assert verify_shards(tmp_path, man) == sum(s["bytes"] for s in man["shards"])
+    victim = tmp_path / man["shards"][1]["file"]
+    data = victim.read_bytes()
+    if damage == "truncate":
+        victim.write_bytes(data[:-7])
+        expect = "truncated"
+    elif damage == "flip":
+        buf = bytearray(data)
+        buf[len(buf) // 2] ^= 0x10
+        victim.write_bytes(bytes(buf))
+        expect = "SHA-256"
+    else:
+        victim.unlink()
+        expect = "missing"
+    with pytest.raises(InputError, match=f"{expect}.*cnnps run-stage extract") as info:
+        verify_shards(tmp_path, man)
+    assert info.value.path == victim
+    assert verify_shards(tmp_path, man, splits=("val",)) == 0  # only the splits asked for are read
+
+
+@pytest.mark.parametrize("where", ["map-nan", "map-inf", "normal-nan"])
+def test_stream_refuses_non_finite_rows(tmp_path, where):
+    from cnnps.core.errors import InputError
+
+    schema = shard_schema(W)
+    maps = np.full((20, W, W), 0.5, np.float16)
+    normals = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (20, 1))
+    if where == "map-nan":
+        maps[7, 1, 2] = np.nan
+    elif where == "map-inf":
+        maps[19, 3, 3] = -np.inf
+    else:
+        normals[3, 1] = np.nan
+    z = np.zeros(20)
+    with SceneShardWriter(tmp_path, "shard-x", schema, 10, 100) as wr:
+        wr.write(make_batch(schema, maps, normals, "x", z, z, z + 5, z + 30, z, z))
+    s = ShardStream([tmp_path / wr.infos[0].file], W, batch_size=4, seed=0, buffer_rows=8)
+    with pytest.raises(InputError, match="NaN or infinite") as info:
+        list(s.iter_epoch(0))
+    assert info.value.path == tmp_path / wr.infos[0].file

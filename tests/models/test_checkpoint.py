@@ -176,3 +176,56 @@ def test_unforeseen_load_failure_names_the_file(tmp_path, monkeypatch):
     with pytest.raises(InputError, match="could not load model .ValueError: something unforeseen") as info:
         ck.load_checkpoint(tmp_path / "m.pt")
     assert info.value.path == tmp_path / "m.pt"
+
+
+def test_checkpoint_bytes_depend_only_on_the_content(tmp_path, model):
+    a = save_checkpoint(tmp_path / "a" / "model.pt", model, {}, {"steps": 1})
+    b = save_checkpoint(tmp_path / "b" / "other.pt", model, {}, {"steps": 1})
+    assert a.read_bytes() == b.read_bytes()  # no temporary file name inside the zip
+
+
+def _member_data(path, pick):
+    """(start, size) of a zip member's data in the file (after its local header)."""
+    raw = path.read_bytes()
+    with zipfile.ZipFile(path) as zf:
+        info = pick(zf.infolist())
+    o = info.header_offset
+    start = o + 30 + int.from_bytes(raw[o + 26:o + 28], "little") + int.from_bytes(raw[o + 28:o + 30], "little")
+    return start, info.compress_size
+
+
+def _flip(path, at):
+    buf = bytearray(path.read_bytes())
+    buf[at] ^= 0x01
+    path.write_bytes(bytes(buf))
+
+
+def test_a_flip_in_the_pickled_config_or_meta_is_caught_by_the_crc(tmp_path, model):
+    """The weights digest does not cover config and meta; the members' CRC-32 does."""
+    path = save_checkpoint(tmp_path / "model.pt", model, {}, {"steps": 12, "note": "x" * 40})
+    start, size = _member_data(path, lambda infos: next(i for i in infos if i.filename.endswith("data.pkl")))
+    _flip(path, start + size - 60)  # inside the pickle, among the meta strings
+    with pytest.raises(InputError, match="CRC-32") as info:
+        load_checkpoint(path)
+    assert info.value.path == path
+
+
+def test_sha256_file_covers_every_byte(tmp_path, model):
+    from cnnps.models.checkpoint import sha256_file_path, write_sha256_file
+
+    path = save_checkpoint(tmp_path / "model.pt", model, {}, {"steps": 1})
+    side = write_sha256_file(path)
+    assert side == sha256_file_path(path) == tmp_path / "model.pt.sha256"
+    assert side.read_text() == f"{hashlib.sha256(path.read_bytes()).hexdigest()}  model.pt\n"  # sha256sum -c format
+    load_checkpoint(path)
+    _flip(path, 10)  # the first member's modification time: no other check reads it
+    side.rename(tmp_path / "kept")
+    load_checkpoint(path)  # harmless without the checksum file (the loaded checkpoint is the same)
+    (tmp_path / "kept").rename(side)
+    with pytest.raises(InputError, match="model.pt.sha256") as info:
+        load_checkpoint(path)
+    assert info.value.path == path
+    side.write_text("not a checksum\n")
+    with pytest.raises(InputError, match="not a SHA-256 checksum file") as info:
+        load_checkpoint(path)
+    assert info.value.path == side

@@ -170,6 +170,85 @@ def test_cli_refuses_a_folder_that_is_not_a_render_folder(tmp_path):
         assert (user / "thesis.txt").read_text() == "precious"
 
 
+def _hand_made_capture(out: Path, names=("000.exr", "001.exr", "002.exr")) -> dict:
+    """A finished capture folder written the way render_into writes one (no Blender)."""
+    from cnnps.core.hashing import add_json_checksum, file_record
+    from cnnps.core.images import write_exr, write_png
+    from cnnps.synth.capture_render import GEOMETRY_FILES, LIGHT_FILES, SCENE_INDENT, SCENE_TIMINGS
+
+    out.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for n in names:
+        write_exr(out / n, rng.random((8, 8, 3)).astype(np.float32))
+    write_png(out / "mask.png", np.full((8, 8), 255, np.uint8))
+    np.save(out / "normal_gt.npy", np.tile(np.array([0, 0, 1], np.float32), (8, 8, 1)))
+    (out / "filenames.txt").write_text("".join(n + "\n" for n in names))
+    (out / "light_directions.txt").write_text("0 0 1\n" * len(names))
+    (out / "light_intensities.txt").write_text("1 1 1\n" * len(names))
+    meta = {"key": "k", "filenames": list(names), "render_seconds": 1.0, "images_rendered_last_run": 3,
+            "files": {n: file_record(out / n) for n in list(LIGHT_FILES) + list(GEOMETRY_FILES) + list(names)}}
+    meta = add_json_checksum(meta, indent=SCENE_INDENT, skip=SCENE_TIMINGS)
+    (out / "scene.json").write_text(json.dumps(meta, indent=SCENE_INDENT) + "\n")
+    return meta
+
+
+def _edit_scene_json(out: Path, edit) -> None:
+    meta = json.loads((out / "scene.json").read_text())
+    edit(meta)
+    (out / "scene.json").write_text(json.dumps(meta, indent=2) + "\n")
+
+
+def test_folder_problems_find_each_damaged_file(tmp_path):
+    from cnnps.synth.capture_render import folder_problems, is_complete
+
+    out = tmp_path / "cap"
+    _hand_made_capture(out)
+    assert folder_problems(out) == [] and is_complete(out, "k")
+    _edit_scene_json(out, lambda m: m.update(render_seconds=99.0))  # a wall time: not part of the checksum
+    assert is_complete(out, "k")
+    data = (out / "001.exr").read_bytes()
+    (out / "001.exr").write_bytes(data[:-5])  # truncated
+    buf = bytearray((out / "mask.png").read_bytes())
+    buf[len(buf) // 2] ^= 0x04  # one bit flipped
+    (out / "mask.png").write_bytes(bytes(buf))
+    problems = dict(folder_problems(out))
+    assert set(problems) == {out / "001.exr", out / "mask.png"}
+    assert "truncated" in problems[out / "001.exr"] and "SHA-256" in problems[out / "mask.png"]
+    assert not is_complete(out, "k") and is_complete(out, "k", verify=False)
+
+
+def test_an_edited_scene_json_vouches_for_nothing(tmp_path):
+    from cnnps.synth.capture_render import folder_problems, is_complete
+
+    out = tmp_path / "cap"
+    _hand_made_capture(out)
+    _edit_scene_json(out, lambda m: m.update(light_intensity=2.0))
+    assert folder_problems(out) == [(out / "scene.json", "edited by hand or damaged: its content does not match its checksum")]
+    assert not is_complete(out, "k")
+    # written before checksums: only existence is checked, as it always was
+    _edit_scene_json(out, lambda m: [m.pop(k) for k in ("files", "checksum")])
+    (out / "002.exr").write_bytes(b"garbage")
+    assert folder_problems(out) == [] and is_complete(out, "k")
+
+
+def test_decode_problem_without_a_record(tmp_path):
+    from cnnps.core.images import write_exr
+    from cnnps.synth.capture_render import decode_problem
+
+    out = tmp_path / "cap"
+    _hand_made_capture(out)
+    assert decode_problem(out / "000.exr") is None and decode_problem(out / "normal_gt.npy") is None
+    assert decode_problem(out / "mask.png") is None
+    img = np.ones((8, 8, 3), np.float32)
+    img[2, 3, 1] = np.inf
+    write_exr(out / "000.exr", img)
+    assert "NaN or infinite" in decode_problem(out / "000.exr")
+    (out / "001.exr").write_bytes((out / "001.exr").read_bytes()[:100])
+    assert decode_problem(out / "001.exr")
+    np.save(out / "normal_gt.npy", np.full((8, 8, 3), np.nan, np.float32))
+    assert decode_problem(out / "normal_gt.npy")
+
+
 def test_capture_key_without_environment_is_the_old_key():
     from cnnps.core.hashing import stable_hash
     from cnnps.synth.capture_render import VERSION, RenderSettings, capture_key
