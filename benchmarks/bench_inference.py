@@ -1,7 +1,11 @@
 """CNN-PS inference throughput on this machine.
 
     .venv/bin/python benchmarks/bench_inference.py [--repeat 5] [--pixels 45000] [--no-k10]
-                                                   [--out benchmarks/results/inference.json]
+                                                   [--ball DIR | --no-ball] [--out FILE]
+
+Results go to ``benchmarks/results/inference/<cpu kind>.json`` (:func:`cpu_kind`: the CPU
+model and its widest vector extension, e.g. ``amd-epyc_avx2``), so one kind's numbers
+never overwrite another's.
 
 Measures network inferences per second (maps prebuilt) for
   * eager fp32: the trained ``CNNPS`` as is (NCHW, batch 256) - the naive baseline;
@@ -11,6 +15,14 @@ Measures network inferences per second (maps prebuilt) for
   * bf16: ``FoldedCNNPS`` under ``torch.autocast(bfloat16)`` (what precision="bf16" runs);
 and the wall time of ``predict_normals`` for a whole object (``--pixels``, 96 lights,
 observation maps included) at K = 1 (best of ``--repeat``) and K = 10 (one run).
+``--precision auto`` (issue 15): the probe's choice on this machine for the shipped model
+(:func:`cnnps.models.precision_probe.probe`, uncached), and DiLiGenT BALL at K=10 end to
+end (``predict_capture`` in this process: images read, maps, network, rotations, outputs
+written) with ``auto`` and with ``fp32``, against the naive eager forward pass of the same
+network (``CNNPS`` as trained, fp32, NCHW, batch 256) over the same number of maps, timed
+on 4,096 of BALL's own maps in the same run and scaled to all of them (the maps' values do
+not change the time).
+
 It also reports how far bf16 and the fast path move the predicted normals from the
 eager fp32 network, in degrees (random he-initialised weights: a proxy until a trained
 model exists). Speed does not depend on the weights' values.
@@ -59,6 +71,85 @@ def _scene(P: int, m: int = 96, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return np.maximum(I, 0).astype(np.float32), L
 
 
+def cpu_kind(info: dict) -> str:
+    """A file-name slug for the CPU kind: model words and the widest vector extension."""
+    words = [w for w in info["model"].lower().replace("(r)", " ").replace("(tm)", " ").replace("-", " ").split()
+             if w not in ("processor", "cpu", "core") and not w.startswith("@")]
+    flags = set(info.get("flags", []))
+    ext = next((f for f in ("amx_bf16", "avx512_bf16", "avx512f", "avx2") if f in flags), "novec")
+    return "-".join(words[:3]) + "_" + ext.replace("_", "-")
+
+
+def ball_k10(ball: Path, repeat: int) -> dict:
+    """BALL at K=10 end to end (``cnnps predict`` processes, auto and fp32) and the naive
+    eager pass over the same number of maps, plus where the time goes."""
+    import subprocess
+    import tempfile
+
+    from cnnps.core.capture import load_capture
+    from cnnps.core.rotation import rotate_z, rotation_angles
+    from cnnps.models.checkpoint import load_checkpoint
+    from cnnps.models.precision_probe import probe
+    from cnnps.models.shipped import weights_path
+
+    net, _, _ = load_checkpoint(weights_path(), "cpu")
+    choice = probe(net, torch.device("cpu"))
+    out = {"probe": choice.as_dict()}
+    runs: dict[str, list] = {"auto": [], "fp32": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(os.environ, CNNPS_CACHE_DIR=str(Path(tmp) / "cache"),  # the first auto run probes
+                   PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        for r in range(repeat):
+            for precision in runs:
+                dest = Path(tmp) / f"{precision}{r}"
+                cmd = [sys.executable, "-m", "cnnps", "predict", str(ball), "--out", str(dest), "--rotations", "10",
+                       "--device", "cpu", "--precision", precision, "--saturated", "keep", "--no-progress"]
+                t = time.perf_counter()
+                subprocess.run(cmd, env=env, check=True, capture_output=True)
+                wall = time.perf_counter() - t
+                res = json.loads((dest / "prediction.json").read_text())
+                res["mean_deg"] = json.loads((dest / "metrics.json").read_text())["mean_deg"]
+                how = res.get("precision_choice") or {}
+                runs[precision].append({
+                    "seconds": round(wall, 2), "mean_deg": res["mean_deg"], "precision": res["precision"],
+                    "probed": how.get("requested") == "auto" and not how.get("cached"),
+                    "read_seconds": res["load_seconds"], "in_process_seconds": res["seconds"],
+                })
+    cap = load_capture(ball)
+    I = cap.pixel_intensities()  # (P, m), intensities already divided out
+    pixels = int(cap.mask.sum())
+    t = time.perf_counter()
+    for lk in (rotate_z(cap.lights, a) for a in rotation_angles(10)):
+        for s in range(0, pixels, 4096):
+            observation_maps(I[s:s + 4096], lk)
+    maps_s = time.perf_counter() - t
+    sample = observation_maps(I[:4096], cap.lights)
+    x = torch.from_numpy(sample).unsqueeze(1)
+    with torch.inference_mode():
+        net(x[:256])
+        t = time.perf_counter()
+        for s in range(0, len(x), 256):
+            net(x[s:s + 256])
+        eager_rate = len(x) / (time.perf_counter() - t)
+    naive = pixels * 10 / eager_rate
+    best = {k: min(v, key=lambda r: r["seconds"]) for k, v in runs.items()}
+    fp32 = best["fp32"]
+    out.update({
+        "command": "cnnps predict BALL --rotations 10 --device cpu --precision auto|fp32 --saturated keep",
+        "pixels": pixels, "maps": pixels * 10, "runs": runs,
+        "naive_eager_maps_per_s": round(eager_rate, 1), "naive_eager_seconds": round(naive, 1),
+        "speedup_vs_naive": {k: round(naive / v["seconds"], 2) for k, v in best.items()},
+        "target_speedup": 5.0,
+        "where_the_time_goes_fp32": {
+            "process_start_and_imports_s": round(fp32["seconds"] - fp32["in_process_seconds"], 2),
+            "read_images_s": round(fp32["read_seconds"], 2),
+            "observation_maps_all_rotations_s": round(maps_s, 2),
+            "network_rotations_outputs_s": round(fp32["in_process_seconds"] - fp32["read_seconds"] - maps_s, 2),
+        },
+    })
+    return out
+
+
 def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip((a * b).sum(1), -1, 1)))
 
@@ -71,8 +162,30 @@ def main(argv=None) -> int:
     ap.add_argument("--no-k10", action="store_true", help="skip the (long) K=10 whole-object run")
     ap.add_argument("--k10-pixels", type=int, default=None,
                     help="pixels for the K=10 run (default --pixels); fewer are scaled up to --pixels and marked so")
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "inference.json")
+    ap.add_argument("--ball", type=Path, default=REPO.parent / "shared" / "data" / "diligent" / "ballPNG",
+                    help="DiLiGenT BALL for the end-to-end K=10 runs (skipped when absent)")
+    ap.add_argument("--no-ball", action="store_true", help="skip the BALL runs")
+    ap.add_argument("--ball-repeat", type=int, default=2)
+    ap.add_argument("--no-throughput", action="store_true", help="only the probe and BALL")
+    ap.add_argument("--out", type=Path, default=None, help="default benchmarks/results/inference/<cpu kind>.json")
     args = ap.parse_args(argv)
+    info = cpu_info()
+    out_path = args.out or REPO / "benchmarks" / "results" / "inference" / f"{cpu_kind(info)}.json"
+    ball = None
+    if not args.no_ball and args.ball.is_dir():
+        ball = ball_k10(args.ball, args.ball_repeat)
+        print(f"probe: {ball['probe']['precision']} ({ball['probe']['reason']}; {ball['probe']['probe_seconds']} s)")
+        for k, v in ball["runs"].items():
+            print(f"BALL K=10 --precision {k}: " + ", ".join(f"{r['seconds']} s ({r['precision']}, {r['mean_deg']:.3f} deg)" for r in v))
+        print(f"naive eager: {ball['naive_eager_maps_per_s']:.0f} maps/s -> {ball['naive_eager_seconds']} s; "
+              f"speedup {ball['speedup_vs_naive']}")
+    if args.no_throughput:
+        result = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "cpu": info,
+                  "python": platform.python_version(), "torch": torch.__version__, "threads": torch.get_num_threads(),
+                  "load_average_after": os.getloadavg(), "ball_k10": ball}
+        write_text(out_path, json.dumps(result, indent=2) + "\n")
+        print(f"wrote {out_path}")
+        return 0
 
     threads = torch.get_num_threads()
     load_before = os.getloadavg()
@@ -140,14 +253,14 @@ def main(argv=None) -> int:
     if not args.no_k10:
         p10 = min(P, args.k10_pixels or P)
         t = time.perf_counter()
-        predict_normals(model, I[:p10], L, rotations=10, device="cpu", progress=True)
+        predict_normals(model, I[:p10], L, rotations=10, device="cpu", progress=False)
         sec = time.perf_counter() - t
         obj["k10"] = {"pixels": P, "lights": L.shape[0], "seconds": sec * P / p10, "runs": 1,
                       "measured_pixels": p10, "extrapolated": p10 != P}
 
     result = {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "cpu": cpu_info(),
+        "cpu": info,
         "python": platform.python_version(),
         "torch": torch.__version__,
         "threads": threads,
@@ -158,6 +271,7 @@ def main(argv=None) -> int:
         "throughput": throughput,
         "agreement_with_eager_fp32_random_weights": agreement,
         "whole_object": obj,
+        "ball_k10": ball,
         "note": "best of interleaved repeats; shared machine, see load averages",
     }
 
@@ -174,8 +288,8 @@ def main(argv=None) -> int:
         k10 = obj["k10"]
         how = f" (scaled from {k10['measured_pixels']} px)" if k10["extrapolated"] else ""
         print(f"whole object {P} px, K=10: {k10['seconds']:.2f} s{how}")
-    write_text(args.out, json.dumps(result, indent=2) + "\n")
-    print(f"wrote {args.out}")
+    write_text(out_path, json.dumps(result, indent=2) + "\n")
+    print(f"wrote {out_path}")
     return 0
 
 

@@ -13,6 +13,16 @@ SHARED = Path(os.environ.get("CNNPS_SHARED", REPO.parent / "shared"))
 HAVE_BPY = importlib.util.find_spec("bpy") is not None  # without importing it (slow)
 
 
+def pytest_configure(config):
+    """The suite never writes the user's cache folder (``--precision auto``'s probe answers,
+    :mod:`cnnps.models.precision_probe`): one temporary folder per run, inherited by the
+    ``cnnps`` processes the tests start."""
+    if "CNNPS_CACHE_DIR" not in os.environ:
+        import tempfile
+
+        os.environ["CNNPS_CACHE_DIR"] = tempfile.mkdtemp(prefix="cnnps-test-cache-")
+
+
 def pytest_collection_modifyitems(config, items):
     """Tests marked ``blender`` skip in an install without bpy (``pip install .``, no
     ``[render]`` extra: what ``make test-core`` checks); every other test must pass there."""

@@ -50,7 +50,7 @@ from cnnps.core.errors import CnnpsError, ConfigError, InputError
 
 METHODS = ("cnn", "lambertian")
 DEVICES = ("auto", "cpu", "cuda")
-PRECISIONS = ("fp32", "bf16")
+PRECISIONS = ("auto", "fp32", "bf16")  # auto: measured per machine (cnnps.models.precision_probe)
 DEFAULT_BATCH_SIZE = None  # the inference default: 256 maps on a CPU, 4096 on CUDA
 SATURATED = ("exclude", "keep")
 DEFAULT_TILE_PIXELS = 65536  # mask pixels per tile (a multiple of the network's 4096-pixel chunks)
@@ -142,13 +142,27 @@ def _torch_device(device: str) -> str:
 
 
 def _cnn_predictor(model_path, device, precision, batch_size):
-    """(MapPredictor, checkpoint meta): the network prepared once for every tile."""
+    """(MapPredictor, checkpoint meta, how the precision was chosen): the network prepared
+    once for every tile. ``precision="auto"``: the probe's (cached) pick for this machine
+    and model (:func:`cnnps.models.precision_probe.choose_precision`)."""
     from cnnps.models.checkpoint import load_checkpoint
     from cnnps.models.inference import MapPredictor
 
     torch_device = _torch_device(device)
     net, _config, meta = load_checkpoint(model_path, torch_device)  # InputError naming the file
-    return MapPredictor(net, device=torch_device, precision=precision, batch_size=batch_size), meta
+    if precision == "auto":
+        import torch
+
+        from cnnps.core.hashing import file_sha256
+        from cnnps.models.precision_probe import choose_precision
+
+        choice = choose_precision(net, torch.device(torch_device), file_sha256(model_path), batch_size)
+        how = {"requested": "auto", "reason": choice.reason, "cached": choice.cached,
+               "probe_seconds": choice.probe_seconds, "key": choice.key}
+        precision = choice.precision
+    else:
+        how = {"requested": precision, "reason": f"--precision {precision} given"}
+    return MapPredictor(net, device=torch_device, precision=precision, batch_size=batch_size), meta, how
 
 
 def _cnn_tile(predictor, I, present, lights, rotations, bar) -> np.ndarray:
@@ -239,7 +253,7 @@ def predict_capture(
     model=None,
     rotations: int = 10,
     device: str = "auto",
-    precision: str = "fp32",
+    precision: str = "auto",
     batch_size: int | None = DEFAULT_BATCH_SIZE,
     drop=None,
     shadow_threshold: float | None = None,
@@ -295,9 +309,10 @@ def predict_capture(
 
     capture = scan_capture(capture_dir, drop=drop, grey=grey, linearize=linearize)
     warnings: list[str] = []
-    predictor = meta = None
+    predictor = meta = precision_how = None
     if method == "cnn":
-        predictor, meta = _cnn_predictor(model_path, device, precision, None if batch_size is None else int(batch_size))
+        predictor, meta, precision_how = _cnn_predictor(model_path, device, precision,
+                                                        None if batch_size is None else int(batch_size))
         warnings += _sparse_warning(model_path, meta, capture.n_images)
 
     scratch = out_dir.resolve().parent if scratch_dir is None else Path(scratch_dir)
@@ -361,6 +376,8 @@ def predict_capture(
         "method": method,
         "model": None if model_path is None else str(model_path),
         "rotations": int(rotations) if method == "cnn" else None,
+        **({"precision": getattr(predictor, "precision", precision), "precision_choice": precision_how}
+           if predictor is not None else {}),
         "shadow_threshold": shadow_threshold,
         "grey": grey,
         "n_images": capture.n_images,

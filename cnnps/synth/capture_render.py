@@ -309,6 +309,8 @@ def render_into(
     out = Path(out)
     if is_complete(out, key):
         return {"rendered": 0, "skipped": True}
+    if _take_back_previous(out, key):  # a killed re-render left the version this key asks for
+        return {"rendered": 0, "skipped": True}
     _check_not_foreign(out)  # before Blender starts
     from cnnps.core.images import write_exr, write_png
 
@@ -317,87 +319,95 @@ def render_into(
 
     require_blender()  # one clear line without bpy, before the folder is touched
 
-    t0 = time.perf_counter()
-    rendered = 0
-    # the renderer first: a bad device fails before the folder is touched
-    with BlenderRenderer(size, samples, device=device, threads=threads, seed=seed, max_bounces=max_bounces,
-                         environment=float(environment) * float(intensity)) as r:
-        names = image_names(len(lights))
-        pending = read_json(out / ".pending.json") or {}
-        done_meta = read_json(out / "scene.json") or {}
-        # a finished folder is resumed (its damaged files redone) only when its scene.json
-        # is the one we wrote and its light files are intact; else it is rendered afresh
-        done_ok = (done_meta.get("key") == key
-                   and json_checksum_ok(done_meta, indent=SCENE_INDENT, skip=SCENE_TIMINGS) is not False)
-        records = (done_meta.get("files") or {}) if done_ok else {}
-        resume = (pending.get("key") == key or done_ok) and (out / "light_directions.txt").is_file()
-        if resume and any(check_file_record(out / n, records[n]) for n in LIGHT_FILES if n in records):
-            resume = False
-        if resume:
-            try:
-                L = np.loadtxt(out / "light_directions.txt", ndmin=2)
-            except ValueError:
-                L = np.zeros((0, 3))
-            resume = L.shape == np.shape(lights)
-        if resume:
-            lights = L  # the directions of the interrupted run
-            if (out / "scene.json").is_file():
-                # not complete any more: a killed resume must find .pending.json, not nothing
-                write_text(out / ".pending.json", json.dumps({"key": key}) + "\n")
-                (out / "scene.json").unlink()
-            remove_temp_files(out)  # half-written files of the killed run
-            _drop_damaged(out, names, records)  # damaged (or unverifiable and unreadable) files
-        else:
-            lights = _start_folder(out, key, lights, intensity, names)
+    prev = previous_path(out)
+    try:
+        t0 = time.perf_counter()
+        rendered = 0
+        # the renderer first: a bad device fails before the folder is touched
+        with BlenderRenderer(size, samples, device=device, threads=threads, seed=seed, max_bounces=max_bounces,
+                             environment=float(environment) * float(intensity)) as r:
+            names = image_names(len(lights))
+            pending = read_json(out / ".pending.json") or {}
+            done_meta = read_json(out / "scene.json") or {}
+            # a finished folder is resumed (its damaged files redone) only when its scene.json
+            # is the one we wrote and its light files are intact; else it is rendered afresh
+            done_ok = (done_meta.get("key") == key
+                       and json_checksum_ok(done_meta, indent=SCENE_INDENT, skip=SCENE_TIMINGS) is not False)
+            records = (done_meta.get("files") or {}) if done_ok else {}
+            resume = (pending.get("key") == key or done_ok) and (out / "light_directions.txt").is_file()
+            if resume and any(check_file_record(out / n, records[n]) for n in LIGHT_FILES if n in records):
+                resume = False
+            if resume:
+                try:
+                    L = np.loadtxt(out / "light_directions.txt", ndmin=2)
+                except ValueError:
+                    L = np.zeros((0, 3))
+                resume = L.shape == np.shape(lights)
+            if resume:
+                lights = L  # the directions of the interrupted run
+                if (out / "scene.json").is_file():
+                    # not complete any more: a killed resume must find .pending.json, not nothing
+                    write_text(out / ".pending.json", json.dumps({"key": key}) + "\n")
+                    (out / "scene.json").unlink()
+                remove_temp_files(out)  # half-written files of the killed run
+                _drop_damaged(out, names, records)  # damaged (or unverifiable and unreadable) files
+            else:
+                _set_aside(out)  # a finished capture of another key stays until the new one is complete
+                lights = _start_folder(out, key, lights, intensity, names)
 
-        r.load_scene(vertices, faces, material if isinstance(material, dict) else lambertian_material())
-        have_geometry = (out / "mask.png").is_file() and (out / "normal_gt.npy").is_file()
-        if not have_geometry or callable(material):
-            mask, normal = r.render_geometry()
-            if not mask.any():
-                raise InputError(out, "the mesh covers no pixel of the image (empty mask)")
-            if callable(material):
-                r.set_material(material(mask))
-            if not have_geometry:
-                with atomic_path(out / "normal_gt.npy") as tmp:
-                    np.save(tmp, normal)
-                write_png(out / "mask.png", mask.astype(np.uint8) * 255)
-        todo = [i for i, n in enumerate(names) if not (out / n).is_file()]
-        for i in tqdm(todo, desc=desc, unit="light", leave=False, disable=not progress or not todo):
-            write_exr(out / names[i], r.render(lights[i], intensity))
-            rendered += 1
-        gpus = getattr(r, "gpu_devices", None)
-    scene = dict(meta or {})
-    scene.update(
-        {
-            "key": key,
-            "filenames": names,
-            "n_lights": len(names),
-            "size": size,
-            "samples": samples,
-            "max_bounces": max_bounces,
-            "light_intensity": intensity,
-            "seed": seed,
-            "device": device,
-            "threads": threads,  # Cycles threads (0 = Blender's default: all cores)
-            "gpu_devices": gpus,
-            "blender_version": blender_version(),
-            "renderer": "Cycles: orthographic camera, sun lamps (angle 0), "
-            + ("black world" if environment == 0 else "uniform white world (environment_strength x the sun's irradiance)")
-            + ", Gaussian 0.01 px filter, no denoising, no clamping",
-            # relative to the sun's irradiance; 0 = none. In every image; lights files stay the sun's
-            "environment_strength": float(environment),
-            "mask_normal_source": "Blender camera rays through pixel centres: alpha and smooth shading normal",
-            "render_seconds": round(time.perf_counter() - t0, 3),
-            "images_rendered_last_run": rendered,
-            "version": VERSION,
-            # size and SHA-256 of every other file: what is_complete and the extract stage verify
-            "files": {n: file_record(out / n) for n in list(LIGHT_FILES) + list(GEOMETRY_FILES) + names},
-        }
-    )
-    scene = add_json_checksum(scene, indent=SCENE_INDENT, skip=SCENE_TIMINGS)
-    write_text(out / "scene.json", json.dumps(scene, indent=SCENE_INDENT) + "\n")
-    (out / ".pending.json").unlink(missing_ok=True)
+            r.load_scene(vertices, faces, material if isinstance(material, dict) else lambertian_material())
+            have_geometry = (out / "mask.png").is_file() and (out / "normal_gt.npy").is_file()
+            if not have_geometry or callable(material):
+                mask, normal = r.render_geometry()
+                if not mask.any():
+                    raise InputError(out, "the mesh covers no pixel of the image (empty mask)")
+                if callable(material):
+                    r.set_material(material(mask))
+                if not have_geometry:
+                    with atomic_path(out / "normal_gt.npy") as tmp:
+                        np.save(tmp, normal)
+                    write_png(out / "mask.png", mask.astype(np.uint8) * 255)
+            todo = [i for i, n in enumerate(names) if not (out / n).is_file()]
+            for i in tqdm(todo, desc=desc, unit="light", leave=False, disable=not progress or not todo):
+                write_exr(out / names[i], r.render(lights[i], intensity))
+                rendered += 1
+            gpus = getattr(r, "gpu_devices", None)
+        scene = dict(meta or {})
+        scene.update(
+            {
+                "key": key,
+                "filenames": names,
+                "n_lights": len(names),
+                "size": size,
+                "samples": samples,
+                "max_bounces": max_bounces,
+                "light_intensity": intensity,
+                "seed": seed,
+                "device": device,
+                "threads": threads,  # Cycles threads (0 = Blender's default: all cores)
+                "gpu_devices": gpus,
+                "blender_version": blender_version(),
+                "renderer": "Cycles: orthographic camera, sun lamps (angle 0), "
+                + ("black world" if environment == 0 else "uniform white world (environment_strength x the sun's irradiance)")
+                + ", Gaussian 0.01 px filter, no denoising, no clamping",
+                # relative to the sun's irradiance; 0 = none. In every image; lights files stay the sun's
+                "environment_strength": float(environment),
+                "mask_normal_source": "Blender camera rays through pixel centres: alpha and smooth shading normal",
+                "render_seconds": round(time.perf_counter() - t0, 3),
+                "images_rendered_last_run": rendered,
+                "version": VERSION,
+                # size and SHA-256 of every other file: what is_complete and the extract stage verify
+                "files": {n: file_record(out / n) for n in list(LIGHT_FILES) + list(GEOMETRY_FILES) + names},
+            }
+        )
+        scene = add_json_checksum(scene, indent=SCENE_INDENT, skip=SCENE_TIMINGS)
+        write_text(out / "scene.json", json.dumps(scene, indent=SCENE_INDENT) + "\n")
+        (out / ".pending.json").unlink(missing_ok=True)
+    except BaseException:
+        _restore_previous(out, prev)  # a failed re-render leaves the last complete version
+        raise
+    if prev.is_dir():  # the new version is complete: the previous one goes
+        shutil.rmtree(prev)
     return {"rendered": rendered, "skipped": False}
 
 
@@ -448,6 +458,44 @@ def _check_not_foreign(out: Path) -> None:
     """Refuse an existing ``out`` that holds something not of ours (never delete it)."""
     if out.exists() and not is_render_folder(out) and (not out.is_dir() or any(out.iterdir())):
         raise InputError(out.absolute(), "exists and is not a cnnps render folder; choose a new or empty folder")
+
+
+def previous_path(out: Path) -> Path:
+    """Where a finished capture waits while ``out`` is rendered again for another key:
+    the hidden sibling ``.<name>.previous`` (readers of a render folder skip hidden names)."""
+    return out.parent / f".{out.name}.previous"
+
+
+def _set_aside(out: Path) -> None:
+    """Move a finished capture (``scene.json``) at ``out`` to :func:`previous_path`, so a
+    re-render for another key that fails (a full disk) can put it back."""
+    if not (out / "scene.json").is_file():
+        return
+    prev = previous_path(out)
+    if prev.exists():
+        shutil.rmtree(prev)
+    out.rename(prev)
+
+
+def _restore_previous(out: Path, prev: Path) -> None:
+    """After a failed re-render: the set-aside version back at ``out``, the partial one gone."""
+    if not prev.is_dir():
+        return
+    if out.exists():
+        shutil.rmtree(out, ignore_errors=True)
+    prev.rename(out)
+
+
+def _take_back_previous(out: Path, key: str) -> bool:
+    """A set-aside version that is complete for ``key`` (a re-render for another key was
+    killed, then the parameters went back) replaces ``out``; True when it did."""
+    prev = previous_path(out)
+    if not (prev.is_dir() and is_complete(prev, key)):
+        return False
+    if out.exists():
+        shutil.rmtree(out)
+    prev.rename(out)
+    return True
 
 
 def _start_folder(out: Path, key: str, lights: np.ndarray, intensity: float, names: list[str]) -> np.ndarray:

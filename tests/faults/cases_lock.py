@@ -112,8 +112,7 @@ FILLS_FREE = {
 # (train: the resume checkpoints of another run key), and the one capture the render stage
 # rewrites in place (its folder then holds no scene.json: never taken for a finished one).
 LOST_BY_DESIGN = {
-    ("train", "full"): ("checkpoints/step-*.pt",),
-    ("render", "fills"): ("*/*",),
+    ("train", "full"): ("checkpoints/step-*.pt",),  # checkpoints of the old parameters: never resumed from
 }
 
 
@@ -312,14 +311,9 @@ class EnospcResult:
     stderr_tail: str = ""
 
     def lost_by_design(self) -> bool:
-        """Every lost file is one the stage destroys by design (:data:`LOST_BY_DESIGN`); for
-        render, all in one capture folder, left without a scene.json."""
+        """Every lost file is one the stage destroys by design (:data:`LOST_BY_DESIGN`)."""
         patterns = LOST_BY_DESIGN.get((self.stage, self.point), ())
-        if not all(any(fnmatch.fnmatchcase(p, pat) for pat in patterns) for p in self.lost):
-            return False
-        if self.stage == "render" and self.lost:
-            return len({p.split("/")[0] for p in self.lost}) == 1
-        return True
+        return all(any(fnmatch.fnmatchcase(p, pat) for pat in patterns) for p in self.lost)
 
     def passed(self) -> bool:
         """The stage stopped cleanly, wrote nothing half, lost nothing but what it drops by

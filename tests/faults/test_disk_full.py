@@ -179,7 +179,7 @@ print(sorted(p.name for p in d.iterdir()))
 # ----------------------------------------------------------------------------- whole stages
 
 # (stage, point, mode): the fixed CI subset. meshes and render where the disk fills mid-way
-# (render: the one capture being rewritten in place is lost by design), extract with no room
+# (render: the capture being re-rendered is put back as it was), extract with no room
 # at all (Parquet's own ENOSPC; its shard writer leaves a temporary file that the re-run
 # ignores and removes), and the injected fault (the fallback where no tmpfs can be mounted) once.
 CI_CASES = [

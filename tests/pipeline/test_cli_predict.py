@@ -183,3 +183,35 @@ def test_depth_and_tiles_from_the_command_line(tmp_path, capsys):
     info = json.loads((out / "prediction.json").read_text())
     assert info["tile_pixels"] == 50 and info["depth"]["pixels"] == info["pixels"]
     assert not (tmp_path / "scratch").exists() or list((tmp_path / "scratch").iterdir()) == []
+
+
+def test_precision_auto_says_which_path_ran_and_why(tmp_path, capsys, monkeypatch):
+    """The default ``--precision auto`` probes once (then reads its cache), ``-v`` prints
+    the choice in one line and prediction.json records it; an explicit precision never
+    probes."""
+    import json
+
+    from cnnps.models import precision_probe
+
+    monkeypatch.setenv("CNNPS_CACHE_DIR", str(tmp_path / "cache"))
+    write_capture(tmp_path / "cap", fmt="exr", size=12, m=20, max_tilt_deg=45)
+    argv = ["predict", str(tmp_path / "cap"), "--rotations", "1", "--no-progress"]
+    code, _, stderr = run_cli([*argv, "--out", str(tmp_path / "a"), "-v"], capsys)
+    assert code == 0, stderr
+    lines = [line for line in stderr.splitlines() if line.startswith("cnnps: precision ")]
+    assert len(lines) == 1 and "probe: fp32 " in lines[0] and "(cached)" not in lines[0], stderr
+    first = json.loads((tmp_path / "a" / "prediction.json").read_text())
+    assert first["precision"] in precision_probe.CANDIDATES
+    assert first["precision_choice"]["requested"] == "auto" and not first["precision_choice"]["cached"]
+    code, _, stderr = run_cli([*argv, "--out", str(tmp_path / "b"), "-v"], capsys)
+    second = json.loads((tmp_path / "b" / "prediction.json").read_text())
+    assert code == 0 and "(cached)" in stderr and second["precision"] == first["precision"]
+
+    def no_probe(*a, **k):
+        raise AssertionError("an explicit --precision must not probe")
+
+    monkeypatch.setattr(precision_probe, "probe", no_probe)
+    code, _, stderr = run_cli([*argv, "--out", str(tmp_path / "c"), "--precision", "fp32"], capsys)
+    third = json.loads((tmp_path / "c" / "prediction.json").read_text())
+    assert code == 0 and "cnnps: precision" not in stderr
+    assert third["precision"] == "fp32" and third["precision_choice"]["requested"] == "fp32"

@@ -432,3 +432,43 @@ def test_environment_light_in_every_image_lights_files_stay_the_suns(sphere_capt
     assert I[shadow].min() > 0 and I[shadow].max() < 1.001 * env
     assert abs(np.median(I[shadow]) - env) < 1e-3 * env and abs(I[shadow].mean() - env) < 0.02 * env
     assert abs(np.median(I[~shadow] - I0[~shadow]) - env) < 0.02 * env
+
+
+def test_a_failed_re_render_puts_the_previous_capture_back(tmp_path, monkeypatch):
+    """A finished capture re-rendered for another key waits in a hidden sibling until the new
+    one is complete: a failure (a full disk) puts it back byte for byte; success removes it;
+    a killed re-render followed by the old parameters takes it back without rendering."""
+    pytest.importorskip("bpy")
+    import cnnps.synth.capture_render as cr
+    from cnnps.core.images import write_exr as real_write_exr
+    from cnnps.synth.capture_render import lambertian_material, render_into
+    from cnnps.synth.lights import hemisphere_lights
+
+    out = tmp_path / "cap"
+    kw = dict(lights=hemisphere_lights(4, seed=0), intensity=1.0, size=8, samples=1, seed=0, threads=THREADS,
+              progress=False)
+    mesh = _sphere()
+    render_into(out, mesh.vertices, mesh.faces, lambertian_material(), key="old", **kw)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    calls = []
+
+    def full_disk(path, img):
+        calls.append(path)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device", str(path))
+        real_write_exr(path, img)
+
+    monkeypatch.setattr("cnnps.core.images.write_exr", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        render_into(out, mesh.vertices, mesh.faces, lambertian_material(), key="new", **kw)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert not cr.previous_path(out).exists() and [p.name for p in tmp_path.iterdir()] == ["cap"]
+    monkeypatch.setattr("cnnps.core.images.write_exr", real_write_exr)
+    # killed half-way through a re-render: both versions on disk; going back takes the old one
+    out.rename(cr.previous_path(out))
+    out.mkdir()
+    (out / ".pending.json").write_text('{"key": "new"}\n')
+    assert render_into(out, mesh.vertices, mesh.faces, lambertian_material(), key="old", **kw)["skipped"]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before and not cr.previous_path(out).exists()
+    render_into(out, mesh.vertices, mesh.faces, lambertian_material(), key="new", **kw)
+    assert cr.is_complete(out, "new") and not cr.previous_path(out).exists()

@@ -1,0 +1,240 @@
+"""``--precision auto``: time the exact-enough inference paths on this machine, keep the fastest.
+
+Which CPU path is fastest depends on the CPU, not on the code: on a 2-core Intel Xeon
+(AVX-512, no AMX) fast fp32 ran at 6,531 maps/s and bf16 autocast at 3,962; on a 2-core
+AMD EPYC with AVX-512 BF16 bf16 ran at 7,711 and fast fp32 at 3,806; on an AVX2-only AMD
+EPYC bf16 has no hardware support at all. So the default is measured, once per machine:
+
+1. **Candidates** (:data:`CANDIDATES`): ``fp32`` (on a CPU the folded, fused
+   :class:`~cnnps.models.network.FastCNNPS`) and ``bf16`` (autocast). Each runs the model
+   to be used over a fixed, seeded set of :data:`PROBE_MAPS` observation maps
+   (:func:`probe_maps`: Lambertian plus a specular lobe, attached and cast shadows, 96
+   lights, normals known), after one warm-up batch; its rate is the best of
+   :data:`PROBE_REPEATS` timed passes. A candidate that a 64-map estimate shows to be
+   at under half the best rate so far, or slower than :data:`PROBE_BUDGET_S` per pass, is
+   stopped there (it cannot be the pick).
+2. **Exact enough**: a candidate qualifies when the mean angular error of its normals
+   against the known ones is within :data:`TOLERANCE_DEG` (0.05°) of fp32's on the same
+   maps, the measure the benchmarks report; the mean angle between its normals and fp32's
+   is recorded beside it. fp32 always qualifies.
+3. **The pick** is the fastest that qualifies; it wins over fp32 only by more than
+   :data:`MIN_GAIN` (5 %), so timing noise does not flip a tie.
+
+The probe takes about a second (384 maps; a candidate that is clearly slower is stopped
+after 64). Its
+answer is cached per (CPU model and flags, logical CPUs, torch version, device, model
+SHA-256) in ``$CNNPS_CACHE_DIR`` or ``$XDG_CACHE_HOME/cnnps`` (default
+``~/.cache/cnnps``), file ``precision.json``, written atomically; a cache that cannot be
+read or written is ignored (the probe just runs again). ``--precision fp32|bf16`` never
+probes. :class:`Choice` says which path runs and why; ``cnnps predict -v`` prints it and
+``prediction.json`` records it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from cnnps.core.atomic import write_text
+from cnnps.core.obsmap import observation_maps
+
+CANDIDATES = ("fp32", "bf16")
+TOLERANCE_DEG = 0.05
+MIN_GAIN = 0.05
+PROBE_MAPS = 384
+WARM_MAPS = 64
+PROBE_REPEATS = 2
+PROBE_BUDGET_S = 0.5  # per timed pass of one candidate
+PROBE_SEED = 20261123
+CACHE_FILE = "precision.json"
+CACHE_VERSION = 1
+
+
+@dataclass
+class Choice:
+    """What ``--precision auto`` chose: ``precision`` runs; ``reason`` says why in one line."""
+
+    precision: str
+    reason: str
+    cached: bool = False
+    key: str = ""
+    rates: dict = field(default_factory=dict)  # candidate -> maps/s (None: stopped after the warm-up)
+    error_change_deg: dict = field(default_factory=dict)  # candidate -> mean error minus fp32's
+    deviation_deg: dict = field(default_factory=dict)  # candidate -> mean angle to fp32's normals
+    probe_seconds: float = 0.0
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def cache_dir() -> Path:
+    """Where the probe's answers are kept (see the module docstring)."""
+    if os.environ.get("CNNPS_CACHE_DIR"):
+        return Path(os.environ["CNNPS_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "cnnps"
+
+
+def cpu_signature() -> str:
+    """The CPU model, the instruction-set flags that decide the kernels, and the CPUs this
+    process may use."""
+    model, flags = platform.processor() or platform.machine(), set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name") and ":" in line:
+                model = line.split(":", 1)[1].strip()
+            elif line.startswith("flags") and ":" in line:
+                flags = set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    wanted = ("avx2", "avx512f", "avx512_bf16", "avx512_vnni", "amx_bf16", "amx_tile", "avx_vnni")
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return f"{model} [{' '.join(f for f in wanted if f in flags) or 'no avx2'}] x{cpus}"
+
+
+def cache_key(device: torch.device, model_sha256: str) -> str:
+    where = cpu_signature() if device.type == "cpu" else torch.cuda.get_device_name(device)
+    return f"{where} | torch {torch.__version__} | {device.type} | threads {torch.get_num_threads()} | model {model_sha256[:16]}"
+
+
+def probe_maps(n: int = PROBE_MAPS, w: int = 32, seed: int = PROBE_SEED) -> tuple[np.ndarray, np.ndarray]:
+    """(n, w, w) float32 observation maps and their (n, 3) true normals: seeded normals
+    within 75° of the view, 96 lights within 60°, albedo times (Lambertian + a
+    Blinn-Phong lobe), 10 % of the lights dropped per pixel (cast shadows)."""
+    rng = np.random.default_rng(seed)
+    tilt = np.arccos(rng.uniform(np.cos(np.radians(75)), 1.0, n))
+    phi = rng.uniform(0, 2 * np.pi, n)
+    normals = np.stack([np.sin(tilt) * np.cos(phi), np.sin(tilt) * np.sin(phi), np.cos(tilt)], 1)
+    m = 96
+    lz = rng.uniform(np.cos(np.radians(60)), 1.0, m)
+    lphi = rng.uniform(0, 2 * np.pi, m)
+    lights = np.stack([np.sqrt(1 - lz**2) * np.cos(lphi), np.sqrt(1 - lz**2) * np.sin(lphi), lz], 1)
+    h = lights + np.array([0.0, 0.0, 1.0])
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    ndl = np.clip(normals @ lights.T, 0, None)
+    ndh = np.clip(normals @ h.T, 0, None)
+    albedo = rng.uniform(0.2, 1.0, (n, 1))
+    spec = rng.uniform(0.0, 1.0, (n, 1))
+    shininess = rng.uniform(5, 80, (n, 1))
+    I = albedo * ndl + spec * ndl * ndh**shininess
+    I *= rng.random((n, m)) > 0.1
+    return observation_maps(I.astype(np.float32), lights, w=w).astype(np.float32), normals.astype(np.float32)
+
+
+def _mean_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    a = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
+    b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
+    return float(np.degrees(np.arccos(np.clip(np.sum(a * b, 1), -1, 1))).mean())
+
+
+def _time_candidate(predictor, maps: np.ndarray, floor: float | None) -> tuple[float, np.ndarray | None]:
+    """(maps/s, normals) of one candidate: a small warm-up call, a timed estimate on
+    :data:`WARM_MAPS` maps, then the best of :data:`PROBE_REPEATS` passes over all maps.
+    Stopped after the estimate, with normals None, when it shows the candidate would take
+    more than :data:`PROBE_BUDGET_S` or runs at under half of ``floor`` (the fastest rate so
+    far): it cannot be the pick."""
+    predictor(maps[:16])  # first call: kernels chosen, caches filled
+    warm = maps[:WARM_MAPS]
+    t0 = time.perf_counter()
+    predictor(warm)
+    estimate = len(warm) / max(time.perf_counter() - t0, 1e-9)
+    if len(maps) / estimate > PROBE_BUDGET_S or (floor is not None and estimate < 0.5 * floor):
+        return estimate, None
+    best, out = None, None
+    for _ in range(PROBE_REPEATS):
+        t0 = time.perf_counter()
+        out = predictor(maps)
+        dt = time.perf_counter() - t0
+        best = dt if best is None else min(best, dt)
+    return len(maps) / best, out
+
+
+def probe(model: nn.Module, device: torch.device, batch_size: int | None = None) -> Choice:
+    """Time and check every candidate (see the module docstring); no cache."""
+    from cnnps.models.inference import MapPredictor
+
+    t_start = time.perf_counter()
+    maps, truth = probe_maps(w=int(getattr(model, "w", 32)))
+    rates, outs = {}, {}
+    for c in CANDIDATES:
+        try:
+            predictor = MapPredictor(model, device=device, precision=c, batch_size=batch_size)
+            floor = max((r for r in rates.values() if isinstance(r, float)), default=None)
+            rates[c], outs[c] = _time_candidate(predictor, maps, floor)
+        except RuntimeError as exc:  # e.g. a device or build without bf16 kernels
+            if c == "fp32":
+                raise  # the reference path itself fails: nothing to choose from
+            rates[c], outs[c] = None, None
+            rates[f"{c}_error"] = str(exc).splitlines()[0][:200]
+    base_err = _mean_angle_deg(outs["fp32"], truth)
+    change, deviation = {}, {}
+    for c in CANDIDATES:
+        if outs.get(c) is not None:
+            change[c] = round(_mean_angle_deg(outs[c], truth) - base_err, 4)
+            deviation[c] = round(_mean_angle_deg(outs[c], outs["fp32"]), 4)
+    best = "fp32"
+    for c in CANDIDATES:
+        if c == "fp32" or outs.get(c) is None or abs(change[c]) > TOLERANCE_DEG:
+            continue
+        if rates[c] > rates[best] * (1 + MIN_GAIN):
+            best = c
+    parts = []
+    for c in CANDIDATES:
+        r = rates.get(c)
+        if r is None:
+            parts.append(f"{c} failed")
+        elif outs.get(c) is None:
+            parts.append(f"{c} ~{r:,.0f} maps/s (stopped after the warm-up)")
+        else:
+            tail = "" if c == "fp32" else f", mean error {change[c]:+.3f} deg vs fp32"
+            parts.append(f"{c} {r:,.0f} maps/s{tail}")
+    why = ("fastest within %.2f deg of fp32" % TOLERANCE_DEG) if best != "fp32" else "no faster path within %.2f deg of fp32" % TOLERANCE_DEG
+    return Choice(
+        precision=best,
+        reason=f"probe: {'; '.join(parts)}: {why}",
+        rates={k: (round(v, 1) if isinstance(v, float) else v) for k, v in rates.items()},
+        error_change_deg=change,
+        deviation_deg=deviation,
+        probe_seconds=round(time.perf_counter() - t_start, 3),
+    )
+
+
+def _read_cache(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(data, dict) or data.get("version") != CACHE_VERSION or not isinstance(data.get("choices"), dict):
+        return {}
+    return data
+
+
+def choose_precision(model: nn.Module, device: torch.device, model_sha256: str,
+                     batch_size: int | None = None, use_cache: bool = True) -> Choice:
+    """The precision ``--precision auto`` runs with on ``device`` for this model: the cached
+    answer for this machine, torch and model, else a fresh :func:`probe` (then cached)."""
+    key = cache_key(device, model_sha256)
+    path = cache_dir() / CACHE_FILE
+    if use_cache:
+        hit = _read_cache(path).get("choices", {}).get(key)
+        if isinstance(hit, dict) and hit.get("precision") in CANDIDATES:
+            fields = {k: hit[k] for k in Choice.__dataclass_fields__ if k in hit}
+            return Choice(**{**fields, "cached": True, "key": key})
+    choice = probe(model, device, batch_size)
+    choice.key = key
+    if use_cache:
+        data = _read_cache(path) or {"version": CACHE_VERSION, "choices": {}}
+        data["choices"][key] = {k: v for k, v in choice.as_dict().items() if k not in ("cached", "key")}
+        try:
+            write_text(path, json.dumps(data, indent=1) + "\n")
+        except OSError:
+            pass  # a read-only home: probe again next time
+    return choice
