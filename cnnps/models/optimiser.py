@@ -66,7 +66,7 @@ def train_step(model, opt, maps: torch.Tensor, normals: torch.Tensor, device: to
                channels_last: bool) -> torch.Tensor:
     """One Adam step on a batch (maps (B,1,w,w), unit normals (B,3)); the MSE loss, detached
     (a tensor on ``device``: reading it out is left to the caller, it waits for the step)."""
-    maps = maps.to(device, non_blocking=True)
+    maps = maps.to(device, non_blocking=True).float()  # float16 maps are converted on the device
     normals = normals.to(device, non_blocking=True)
     if channels_last:
         maps = maps.contiguous(memory_format=torch.channels_last)

@@ -219,7 +219,8 @@ class Trainer:
         """This rank's share of the training shards, its steps per epoch and the run's total."""
         params, info, data = self.params, self.info, self.data
         self.stream = ShardStream(data.train_files, data.w, params.batch_size // info.world_size, seed=params.seed,
-                                  buffer_rows=params.shuffle_buffer, rank=info.rank, world_size=info.world_size)
+                                  buffer_rows=params.shuffle_buffer, rank=info.rank, world_size=info.world_size,
+                                  prefetch=params.prefetch)
         self.steps_per_epoch = rank_steps_per_epoch(self.stream)
         if self.steps_per_epoch == 0:
             if info.enabled and len(self.stream.units) < info.world_size:
@@ -337,7 +338,7 @@ class Trainer:
         """Step until ``total_steps``: log the loss every ``log_every`` steps, validate
         every ``val_every``, checkpoint every ``checkpoint_every`` and at the end."""
         p, info = self.params, self.info
-        ds = ShardDataset(self.stream)
+        ds = ShardDataset(self.stream, float32=self.device.type != "cuda")  # a GPU converts float16 itself
         loader = self._loader(ds)
         bar = tqdm(total=self.total_steps * p.batch_size, initial=self.step * p.batch_size, unit="sample",
                    unit_scale=True, desc="train" if not info.enabled else f"train ({info.world_size} processes)",

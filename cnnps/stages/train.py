@@ -103,6 +103,7 @@ class Params:
     fused_adam: bool = True  # torch's fused Adam kernel (same algorithm, one pass per tensor)
     compile: bool = False  # torch.compile the model (inductor); falls back to eager with a warning
     num_workers: int = 0  # DataLoader worker processes; 0 = load in the main process
+    prefetch: int = 2  # row groups decoded ahead in a background thread (0 = none); batches do not change
     progress: bool = True
     shards: str | None = None  # where extract wrote (its `output`: path or fsspec URL); None = data_dir/extract
 
@@ -110,7 +111,7 @@ class Params:
         for name in ("epochs", "batch_size", "shuffle_buffer", "val_max_rows", "checkpoint_every", "keep_checkpoints", "log_every"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"train.{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("max_steps", "val_every", "threads", "num_workers"):
+        for name in ("max_steps", "val_every", "threads", "num_workers", "prefetch"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"train.{name} must be >= 0, got {getattr(self, name)}")
         if not self.lr > 0:
@@ -138,7 +139,7 @@ class Params:
         enters :func:`run_key` as the SHA-256 of its weights, not as a path."""
         d = asdict(self)
         for k in ("epochs", "max_steps", "val_every", "val_max_rows", "checkpoint_every", "keep_checkpoints",
-                  "log_every", "threads", "num_workers", "progress", "shards", "init"):
+                  "log_every", "threads", "num_workers", "prefetch", "progress", "shards", "init"):
             d.pop(k)
         d["lr_milestones"] = list(self.lr_milestones)
         return d

@@ -88,6 +88,25 @@ def test_skip_resumes_exactly(shards):
     assert all(np.array_equal(a, b) for a, b in zip(full[11:], tail))
 
 
+@pytest.mark.parametrize("shuffle", [True, False])
+def test_prefetch_does_not_change_the_batches(shards, shuffle):
+    """Row groups decoded ahead in a thread (any depth) give exactly the batches of the
+    plain loop, resumed mid-epoch too."""
+    _, files = shards
+
+    def batches(prefetch, skip=0):
+        s = ShardStream(files, W, batch_size=16, seed=7, buffer_rows=64, shuffle=shuffle, prefetch=prefetch)
+        return [(ids_of(m), n.tobytes()) for m, n in s.iter_epoch(1, skip_batches=skip)]
+
+    plain = batches(0)
+    assert len(plain) > 10
+    for depth in (1, 2, 5):
+        got = batches(depth)
+        assert len(got) == len(plain) and all(np.array_equal(x[0], y[0]) and x[1] == y[1] for x, y in zip(got, plain))
+    tail = batches(2, skip=7)
+    assert all(np.array_equal(x[0], y[0]) for x, y in zip(tail, plain[7:])) and len(tail) == len(plain) - 7
+
+
 def test_ranks_partition_row_groups(shards):
     _, files = shards
     parts = [ShardStream(files, W, 8, seed=1, buffer_rows=32, drop_last=False, rank=r, world_size=3) for r in range(3)]
