@@ -65,7 +65,7 @@ MANIFEST_INDENT = 1  # manifest.json is json.dumps(..., indent=1): its checksum 
 FIX_EXTRACT = "rerun `cnnps run-stage extract` (it redoes the damaged scenes and rewrites the manifest)"
 MAP_DTYPE = np.dtype("<f2")
 # Row groups decoded ahead by ShardStream's background thread: on 2 cores (AMD EPYC, AVX2)
-# the loader alone gives 170k samples/s without it (benchmarks/bench_loader.py)
+# the loader alone gives 314k samples/s with it, 245k without (benchmarks/bench_loader.py)
 PREFETCH_DEFAULT = 2
 ZSTD_LEVEL = 1  # level 1: 110k rows/s written vs 85k at the default 3, same size here
 
