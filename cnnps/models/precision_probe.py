@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -44,6 +43,8 @@ import torch
 from torch import nn
 
 from cnnps.core.atomic import write_text
+from cnnps.core.machine import cpu_model_and_flags, logical_cpus
+from cnnps.core.metrics import angular_error_deg
 from cnnps.core.obsmap import observation_maps
 
 CANDIDATES = ("fp32", "bf16")
@@ -86,18 +87,8 @@ def cache_dir() -> Path:
 def cpu_signature() -> str:
     """The CPU model, the instruction-set flags that decide the kernels, and the CPUs this
     process may use."""
-    model, flags = platform.processor() or platform.machine(), set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name") and ":" in line:
-                model = line.split(":", 1)[1].strip()
-            elif line.startswith("flags") and ":" in line:
-                flags = set(line.split(":", 1)[1].split())
-    except OSError:
-        pass
-    wanted = ("avx2", "avx512f", "avx512_bf16", "avx512_vnni", "amx_bf16", "amx_tile", "avx_vnni")
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return f"{model} [{' '.join(f for f in wanted if f in flags) or 'no avx2'}] x{cpus}"
+    model, flags = cpu_model_and_flags()
+    return f"{model} [{' '.join(flags) or 'no avx2'}] x{logical_cpus()}"
 
 
 def cache_key(device: torch.device, model_sha256: str) -> str:
@@ -130,9 +121,7 @@ def probe_maps(n: int = PROBE_MAPS, w: int = 32, seed: int = PROBE_SEED) -> tupl
 
 
 def _mean_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    a = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
-    b = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
-    return float(np.degrees(np.arccos(np.clip(np.sum(a * b, 1), -1, 1))).mean())
+    return float(angular_error_deg(a, b).mean())
 
 
 def _time_candidate(predictor, maps: np.ndarray, floor: float | None) -> tuple[float, np.ndarray | None]:
