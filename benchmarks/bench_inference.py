@@ -150,6 +150,43 @@ def ball_k10(ball: Path, repeat: int) -> dict:
     return out
 
 
+def roofline(model, fast_maps_per_s: float, naive_maps_per_s: float | None, repeat: int = 3) -> dict:
+    """What the CPU could do at best: the network's floating-point operations per map (the
+    folded network the fast path runs, counted by torch's FlopCounterMode: a multiply-add
+    is 2) against the best float32 GEMM rate of this machine's threads (2048^3 matmuls,
+    oneDNN/MKL), i.e. the rate a perfectly efficient network would reach."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from cnnps.models.network import fold_for_inference
+
+    folded = fold_for_inference(model).eval()
+    x = torch.rand(64, 1, model.w, model.w)
+    with torch.inference_mode():
+        with FlopCounterMode(display=False) as fc:
+            folded(x)
+        with FlopCounterMode(display=False) as fc_trained:
+            model(x)
+    flop_per_map = fc.get_total_flops() / len(x)
+    a = torch.rand(2048, 2048)
+    b = torch.rand(2048, 2048)
+    torch.mm(a, b)
+    best = min(_timed(lambda: torch.mm(a, b)) for _ in range(max(3, repeat)))
+    gemm = 2 * 2048**3 / best
+    bound = gemm / flop_per_map
+    out = {"flop_per_map_folded": round(flop_per_map), "flop_per_map_trained": round(fc_trained.get_total_flops() / len(x)),
+           "gemm_fp32_gflop_per_s": round(gemm / 1e9, 1), "maps_per_s_at_gemm_peak": round(bound),
+           "fast_fp32_share_of_gemm_peak": round(fast_maps_per_s / bound, 3)}
+    if naive_maps_per_s:
+        out["best_possible_speedup_vs_naive"] = round(bound / naive_maps_per_s, 2)
+    return out
+
+
+def _timed(fn) -> float:
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
 def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip((a * b).sum(1), -1, 1)))
 
@@ -241,6 +278,9 @@ def main(argv=None) -> int:
         agreement[name] = {"mean_deg": float(err.mean()), "p99_deg": float(np.percentile(err, 99)),
                            "max_deg": float(err.max())}
 
+    naive = (ball or {}).get("naive_eager_maps_per_s") or throughput["eager_fp32"]["best_maps_per_s"]
+    roof = roofline(model, throughput["fast_fp32"]["best_maps_per_s"], naive, args.repeat)
+
     # whole object, maps included
     P = args.pixels
     obj = {}
@@ -270,6 +310,7 @@ def main(argv=None) -> int:
         "repeat": args.repeat,
         "throughput": throughput,
         "agreement_with_eager_fp32_random_weights": agreement,
+        "roofline": roof,
         "whole_object": obj,
         "ball_k10": ball,
         "note": "best of interleaved repeats; shared machine, see load averages",
@@ -283,6 +324,9 @@ def main(argv=None) -> int:
     print(f"{'fast_fp32 1 thread, CPU time':30s} {throughput['fast_fp32_1thread']['cpu_time_maps_per_s']:.0f} maps/s")
     for name, row in agreement.items():
         print(f"{name} vs eager fp32: mean {row['mean_deg']:.4f} deg, p99 {row['p99_deg']:.4f}, max {row['max_deg']:.4f}")
+    print(f"roofline: {roof['flop_per_map_folded'] / 1e6:.1f} MFLOP a map, GEMM {roof['gemm_fp32_gflop_per_s']} GFLOP/s "
+          f"-> at most {roof['maps_per_s_at_gemm_peak']:,} maps/s; fast fp32 at {roof['fast_fp32_share_of_gemm_peak']:.0%} of it; "
+          f"best possible {roof.get('best_possible_speedup_vs_naive')}x the naive pass")
     print(f"whole object {P} px, K=1: {obj['k1']['best_s']:.2f} s (maps included)")
     if "k10" in obj:
         k10 = obj["k10"]

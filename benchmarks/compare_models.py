@@ -1,11 +1,12 @@
-"""v2 against v3, side by side: the README's model table, from measured results only.
+"""v2, v3 and v3.1, side by side: the README's model table, from measured results only.
 
     .venv/bin/python benchmarks/compare_models.py --eval v2=data/eval-v2/eval/metrics.json \
-        --eval v3=data/cpu-train-v3/eval/metrics.json [--out benchmarks/results/v2_v3.json]
+        --eval v3=data/cpu-train-v3-polish/eval/metrics.json --eval v3.1=data/eval-v3.1/eval/metrics.json \
+        [--out benchmarks/results/v2_v3.json]
 
 Reads ``benchmarks/results/variants_v3.json`` (the validation maps and BALL with rim
-errors: rows ``shipped`` = v2 and ``v3``), ``benchmarks/results/model_v2.json`` /
-``model.json`` (BALL at 96, 20, 10, 6 images against least squares on the same images,
+errors: rows ``shipped`` = v2, ``v3`` and ``v3.1``), ``benchmarks/results/model_v2.json`` /
+``model_v3.json`` / ``model.json`` (v3.1; BALL at 96, 20, 10, 6 images against least squares on the same images,
 written by ``bench_model.py``) and the eval stage's ``metrics.json`` of each model (the
 synthetic test set, per light count; non-convex = every test shape but the sphere). Prints
 Markdown rows and writes the numbers to ``--out``.
@@ -48,11 +49,12 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "v2_v3.json")
     args = ap.parse_args()
     res = REPO / "benchmarks" / "results"
-    balls = dict(a.split("=", 1) for a in args.ball) or {"v2": str(res / "model_v2.json"), "v3": str(res / "model.json")}
+    balls = dict(a.split("=", 1) for a in args.ball) or {"v2": str(res / "model_v2.json"), "v3": str(res / "model_v3.json"),
+                                                         "v3.1": str(res / "model.json")}
     evals = dict(a.split("=", 1) for a in args.eval)
     variants = json.loads(args.variants.read_text())["variants"]
     table: dict = {"models": {}}
-    for name, row in (("v2", variants.get("shipped")), ("v3", variants.get("v3"))):
+    for name, row in (("v2", variants.get("shipped")), ("v3", variants.get("v3")), ("v3.1", variants.get("v3.1"))):
         entry: dict = {"val_mean_deg": row["val"]["mean_deg"] if row else None}
         if row:
             entry["ball96_k10_rim_deg"] = row["ball96_k10"]["rim_mean_deg"]
@@ -69,30 +71,30 @@ def main() -> None:
         table["models"][name] = entry
     write_text(args.out, json.dumps(table, indent=2) + "\n")
 
-    v2, v3 = table["models"]["v2"], table["models"]["v3"]
+    names = list(table["models"])
+    cols = [table["models"][n] for n in names]
 
     def cell(e, key, meth):
         x = e.get(key, {}).get(meth)
         return "–" if x is None else f"{x:.2f}°"
 
-    print("| measure | v2 | v3 | least squares |\n| --- | --- | --- | --- |")
+    print("| measure | " + " | ".join(names) + " | least squares |\n|" + " --- |" * (len(names) + 2))
     for key, label in (("ball96", "BALL, 96 images"), ("ball20", "BALL, 20 images"), ("ball10", "BALL, 10 images"),
                        ("ball6", "BALL, 6 images")):
         for meth, k in (("cnn_k1_fp32", "K=1"), ("cnn_k10_fp32", "K=10")):
-            print(f"| {label}, {k} | {cell(v2, key, meth)} | {cell(v3, key, meth)} | {cell(v2, key, 'lambertian')} |")
-    print(f"| BALL 96, K=10, rim (tilt > 70°) | {v2.get('ball96_k10_rim_deg')}° | {v3.get('ball96_k10_rim_deg')}° | |")
-    print(f"| validation maps (v2's 79,050, K=1) | {v2['val_mean_deg']}° | {v3['val_mean_deg']}° | |")
-    for n in sorted(v3.get("eval", {}), key=int):
+            print(f"| {label}, {k} | " + " | ".join(cell(c, key, meth) for c in cols) + f" | {cell(cols[0], key, 'lambertian')} |")
+    print("| BALL 96, K=10, rim (tilt > 70°) | " + " | ".join(f"{c.get('ball96_k10_rim_deg')}°" for c in cols) + " | |")
+    print("| validation maps (v2's 79,050, K=1) | " + " | ".join(f"{c['val_mean_deg']}°" for c in cols) + " | |")
+    last = cols[-1].get("eval", {})
+    for n in sorted(last, key=int):
         for g in ("nonconvex", "all"):
-            a, b = v2.get("eval", {}).get(n, {}).get(g, {}), v3["eval"][n].get(g, {})
-            ls = b.get("lambertian")
+            ls = last[n].get(g, {}).get("lambertian")
             for meth in ("cnn_k1", "cnn_k10"):
-                if meth in b:
-                    r2 = f" ({a[meth] / ls:.2f}× LS)" if meth in a and ls else ""
-                    r3 = f" ({b[meth] / ls:.2f}× LS)" if ls else ""
-                    print(f"| eval stage, {n} lights, {g}, {meth.replace('cnn_k', 'K=')} | "
-                          f"{a.get(meth, float('nan')):.2f}°{r2} | {b[meth]:.2f}°{r3} | {ls:.2f}° |")
-
+                parts = []
+                for c in cols:
+                    x = c.get("eval", {}).get(n, {}).get(g, {}).get(meth)
+                    parts.append("–" if x is None else f"{x:.2f}°" + (f" ({x / ls:.2f}× LS)" if ls else ""))
+                print(f"| eval stage, {n} lights, {g}, {meth.replace('cnn_k', 'K=')} | " + " | ".join(parts) + f" | {ls:.2f}° |")
 
 if __name__ == "__main__":
     main()

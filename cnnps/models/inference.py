@@ -27,13 +27,12 @@ import torch
 from torch import nn
 
 from cnnps.core.errors import CnnpsError
-from cnnps.core.obsmap import observation_maps
 from cnnps.core.rotation import average_rotated_predictions, rotate_z, rotation_angles
 from cnnps.models.devices import resolve_device  # also part of this module's API
 from cnnps.models.network import CNNPS, fast_cpu_model, fold_for_inference
 
 PRECISIONS = ("fp32", "bf16")
-# Pixels whose maps are built at once (per rotation): 4096 x 32 x 32 float32 = 16 MB.
+# Maps built at once (all K rotations of PIXEL_CHUNK // K pixels): 4096 x 32 x 32 float32 = 16 MB.
 PIXEL_CHUNK = 4096
 # Network batch sizes: small batches keep the activations in the CPU caches, which is
 # worth more than the per-call overhead. Measured on a 2-core Xeon with the shipped model
@@ -112,7 +111,8 @@ def predict_normals(
     progress: bool = True,
     pixel_chunk: int = PIXEL_CHUNK,
 ) -> np.ndarray:
-    """Unit normals (P, 3) float32 for P pixels from their (P, m) intensities.
+    """Unit normals (P, 3) float32 for P pixels from their (P, m) intensities
+    (:func:`rotated_normals` with a :class:`MapPredictor` of ``model``).
 
     intensities: (P, m), already divided by each light's intensity.
     lights: (m, 3) unit light directions (camera frame: x right, y up, z to the camera).
@@ -128,29 +128,58 @@ def predict_normals(
     P, m = intensities.shape
     if lights.shape != (m, 3):
         raise ValueError(f"lights must be ({m}, 3) to match intensities, got {lights.shape}")
-    angles = rotation_angles(int(rotations))
     predictor = MapPredictor(model, device=device, precision=precision, batch_size=batch_size)
-    rotated = [rotate_z(lights, a) for a in angles]
-    out = np.empty((P, 3), dtype=np.float32)
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=P * len(angles), unit="map", unit_scale=True, desc="cnn-ps", leave=False)
+        bar = tqdm(total=P * int(rotations), unit="map", unit_scale=True, desc="cnn-ps", leave=False)
     try:
-        chunk = max(1, int(pixel_chunk))
-        for start in range(0, P, chunk):
-            block = intensities[start:start + chunk]
-            preds = np.empty((len(angles), block.shape[0], 3), dtype=np.float32)
-            for k, lk in enumerate(rotated):
-                preds[k] = predictor(observation_maps(block, lk, w=predictor.w), progress=bar)
-            if len(angles) == 1:
-                out[start:start + block.shape[0]] = preds[0]
-            else:
-                out[start:start + block.shape[0]] = average_rotated_predictions(preds, angles)
+        return rotated_normals(predictor, intensities, lights, rotations, progress=bar, pixel_chunk=pixel_chunk)
     finally:
         if bar is not None:
             bar.close()
+
+
+def rotated_normals(
+    predictor: MapPredictor,
+    intensities: np.ndarray,
+    lights: np.ndarray,
+    rotations: int,
+    light_mask: np.ndarray | None = None,
+    progress=None,
+    pixel_chunk: int = PIXEL_CHUNK,
+    read_ahead: int = 1,
+) -> np.ndarray:
+    """(P, 3) float32 normals: K-rotation test-time averaging, pixels in chunks.
+
+    The maps of a chunk's pixels under all K rotated light sets are built in one pass
+    (:func:`cnnps.core.obsmap.observation_maps_multi`: the values are masked and laid out
+    once, not K times; identical maps), about ``pixel_chunk`` maps per chunk in all
+    (``pixel_chunk // K`` pixels), and ``read_ahead`` chunks ahead in a background thread
+    (:func:`cnnps.core.prefetch.prefetched`; numpy releases the GIL), so building the next
+    chunk's maps overlaps the network on this one. ``light_mask`` (P, m): False drops an
+    observation (e.g. saturated). ``progress``: a tqdm bar updated per map.
+    """
+    from cnnps.core.obsmap import observation_maps_multi
+    from cnnps.core.prefetch import prefetched
+
+    angles = rotation_angles(int(rotations))
+    rotated = np.stack([rotate_z(lights, a) for a in angles])
+    P = intensities.shape[0]
+    chunk = max(1, int(pixel_chunk) // len(angles))
+    starts = range(0, P, chunk)
+
+    def maps_of(start: int) -> np.ndarray:
+        stop = min(start + chunk, P)
+        mask = None if light_mask is None else light_mask[start:stop]
+        return observation_maps_multi(intensities[start:stop], rotated, w=predictor.w, light_mask=mask)
+
+    out = np.empty((P, 3), dtype=np.float32)
+    for start, maps in zip(starts, prefetched(maps_of, starts, depth=read_ahead)):
+        K, n = maps.shape[:2]
+        preds = predictor(maps.reshape(K * n, predictor.w, predictor.w), progress=progress).reshape(K, n, 3)
+        out[start:start + n] = preds[0] if K == 1 else average_rotated_predictions(preds, angles)
     return out
 
 

@@ -20,6 +20,13 @@ EPYC bf16 has no hardware support at all. So the default is measured, once per m
 3. **The pick** is the fastest that qualifies; it wins over fp32 only by more than
    :data:`MIN_GAIN` (5 %), so timing noise does not flip a tie.
 
+4. **Threads** (CPU): the probe runs with one intra-op thread per CPU the process may use
+   (affinity), then times the pick again with half as many (:func:`thread_candidates`;
+   where two hardware threads share a core, one per core can be faster); fewer threads
+   win only by more than :data:`MIN_GAIN`, and torch is left at the winner (also when the
+   answer comes from the cache). Inter-op threads are not tuned: the network is one chain
+   of operators, with nothing to run side by side.
+
 The probe takes about a second (384 maps; a candidate that is clearly slower is stopped
 after 64). Its
 answer is cached per (CPU model and flags, logical CPUs, torch version, device, model
@@ -71,6 +78,8 @@ class Choice:
     error_change_deg: dict = field(default_factory=dict)  # candidate -> mean error minus fp32's
     deviation_deg: dict = field(default_factory=dict)  # candidate -> mean angle to fp32's normals
     probe_seconds: float = 0.0
+    threads: int | None = None  # torch intra-op threads to run with (CPU; None: leave as is)
+    thread_rates: dict = field(default_factory=dict)  # threads -> maps/s of the pick
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -93,7 +102,14 @@ def cpu_signature() -> str:
 
 def cache_key(device: torch.device, model_sha256: str) -> str:
     where = cpu_signature() if device.type == "cpu" else torch.cuda.get_device_name(device)
-    return f"{where} | torch {torch.__version__} | {device.type} | threads {torch.get_num_threads()} | model {model_sha256[:16]}"
+    return f"{where} | torch {torch.__version__} | {device.type} | model {model_sha256[:16]}"
+
+
+def thread_candidates() -> list[int]:
+    """Intra-op thread counts the probe tries on a CPU: every CPU this process may use
+    (affinity), and half of them (one per core where each core runs two hardware threads)."""
+    n = logical_cpus()
+    return [n] + ([n // 2] if n >= 2 else [])
 
 
 def probe_maps(n: int = PROBE_MAPS, w: int = 32, seed: int = PROBE_SEED) -> tuple[np.ndarray, np.ndarray]:
@@ -124,18 +140,20 @@ def _mean_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(angular_error_deg(a, b).mean())
 
 
-def _time_candidate(predictor, maps: np.ndarray, floor: float | None) -> tuple[float, np.ndarray | None]:
+def _time_candidate(predictor, maps: np.ndarray, floor: float | None,
+                    stoppable: bool = True) -> tuple[float, np.ndarray | None]:
     """(maps/s, normals) of one candidate: a small warm-up call, a timed estimate on
     :data:`WARM_MAPS` maps, then the best of :data:`PROBE_REPEATS` passes over all maps.
     Stopped after the estimate, with normals None, when it shows the candidate would take
     more than :data:`PROBE_BUDGET_S` or runs at under half of ``floor`` (the fastest rate so
-    far): it cannot be the pick."""
+    far): it cannot be the pick. The reference (fp32, ``stoppable=False``) always runs to
+    the end, however slow the machine: the others are judged against its normals."""
     predictor(maps[:16])  # first call: kernels chosen, caches filled
     warm = maps[:WARM_MAPS]
     t0 = time.perf_counter()
     predictor(warm)
     estimate = len(warm) / max(time.perf_counter() - t0, 1e-9)
-    if len(maps) / estimate > PROBE_BUDGET_S or (floor is not None and estimate < 0.5 * floor):
+    if stoppable and (len(maps) / estimate > PROBE_BUDGET_S or (floor is not None and estimate < 0.5 * floor)):
         return estimate, None
     best, out = None, None
     for _ in range(PROBE_REPEATS):
@@ -152,12 +170,15 @@ def probe(model: nn.Module, device: torch.device, batch_size: int | None = None)
 
     t_start = time.perf_counter()
     maps, truth = probe_maps(w=int(getattr(model, "w", 32)))
+    threads = thread_candidates() if device.type == "cpu" else []
+    if threads:
+        torch.set_num_threads(threads[0])
     rates, outs = {}, {}
     for c in CANDIDATES:
         try:
             predictor = MapPredictor(model, device=device, precision=c, batch_size=batch_size)
             floor = max((r for r in rates.values() if isinstance(r, float)), default=None)
-            rates[c], outs[c] = _time_candidate(predictor, maps, floor)
+            rates[c], outs[c] = _time_candidate(predictor, maps, floor, stoppable=c != "fp32")
         except RuntimeError as exc:  # e.g. a device or build without bf16 kernels
             if c == "fp32":
                 raise  # the reference path itself fails: nothing to choose from
@@ -186,6 +207,9 @@ def probe(model: nn.Module, device: torch.device, batch_size: int | None = None)
             tail = "" if c == "fp32" else f", mean error {change[c]:+.3f} deg vs fp32"
             parts.append(f"{c} {r:,.0f} maps/s{tail}")
     why = ("fastest within %.2f deg of fp32" % TOLERANCE_DEG) if best != "fp32" else "no faster path within %.2f deg of fp32" % TOLERANCE_DEG
+    pick_threads, thread_rates = _choose_threads(model, device, best, batch_size, maps, rates[best], threads)
+    if len(thread_rates) > 1:
+        why += "; " + ", ".join(f"{n} threads {r:,.0f}" for n, r in thread_rates.items()) + f": {pick_threads} threads"
     return Choice(
         precision=best,
         reason=f"probe: {'; '.join(parts)}: {why}",
@@ -193,7 +217,30 @@ def probe(model: nn.Module, device: torch.device, batch_size: int | None = None)
         error_change_deg=change,
         deviation_deg=deviation,
         probe_seconds=round(time.perf_counter() - t_start, 3),
+        threads=pick_threads,
+        thread_rates={str(k): round(v, 1) for k, v in thread_rates.items()},
     )
+
+
+def _choose_threads(model, device, precision, batch_size, maps, rate_all, threads) -> tuple[int | None, dict]:
+    """(threads, {threads: maps/s}): the picked path timed at each candidate thread count
+    (the first, all CPUs, was timed with the precisions); fewer threads win only by more
+    than :data:`MIN_GAIN`. torch is left at the pick."""
+    from cnnps.models.inference import MapPredictor
+
+    if not threads:
+        return None, {}
+    rates = {threads[0]: float(rate_all)}
+    predictor = MapPredictor(model, device=device, precision=precision, batch_size=batch_size)
+    for n in threads[1:]:
+        torch.set_num_threads(n)
+        rates[n] = _time_candidate(predictor, maps, None, stoppable=False)[0]
+    pick = threads[0]
+    for n in threads[1:]:
+        if rates[n] > rates[pick] * (1 + MIN_GAIN):
+            pick = n
+    torch.set_num_threads(pick)
+    return pick, rates
 
 
 def _read_cache(path: Path) -> dict:
@@ -216,7 +263,10 @@ def choose_precision(model: nn.Module, device: torch.device, model_sha256: str,
         hit = _read_cache(path).get("choices", {}).get(key)
         if isinstance(hit, dict) and hit.get("precision") in CANDIDATES:
             fields = {k: hit[k] for k in Choice.__dataclass_fields__ if k in hit}
-            return Choice(**{**fields, "cached": True, "key": key})
+            choice = Choice(**{**fields, "cached": True, "key": key})
+            if choice.threads:
+                torch.set_num_threads(int(choice.threads))
+            return choice
     choice = probe(model, device, batch_size)
     choice.key = key
     if use_cache:

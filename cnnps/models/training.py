@@ -43,7 +43,13 @@ from cnnps.core.shards import (
     shard_path,
     verify_shards,
 )
-from cnnps.models.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint, write_sha256_file
+from cnnps.models.checkpoint import (
+    load_checkpoint,
+    read_checkpoint,
+    save_checkpoint,
+    write_sha256_file,
+)
+from cnnps.models.device_feed import fed
 from cnnps.models.distributed import (
     DistInfo,
     all_gather,
@@ -57,6 +63,7 @@ from cnnps.models.distributed import (
     set_threads,
 )
 from cnnps.models.optimiser import compile_model, lr_at, make_model, set_lr, train_step
+from cnnps.models.step_clock import StepClock
 from cnnps.models.train_state import (
     CKPT_FORMAT,
     checkpoint_path,
@@ -200,6 +207,7 @@ class Trainer:
         self.history: dict = {"loss": [], "val": []}
         self.val_maps, self.val_normals = no_val(data.w)
         self.step0, self.seconds = 0, 0.0  # where this call started, and the step loop's time
+        self.clock: StepClock | None = None  # where the step loop's time went (run_steps)
 
     def _build_model(self, init_state: dict | None) -> None:
         """``raw`` (the CNN-PS) and ``opt`` (Adam); ``model``, what a step runs: ``raw``,
@@ -345,37 +353,41 @@ class Trainer:
                    disable=not p.progress or not self.main)
         step_model = compile_model(self.model, p)
         t0, self.step0 = time.perf_counter(), self.step
-        loss_acc, loss_n = torch.zeros(()), 0
+        clock = self.clock = StepClock(self.device)
+        loss_acc, loss_n = torch.zeros((), device=self.device), 0  # summed on the device: no wait per step
         while self.step < self.total_steps:
             set_lr(self.opt, lr_at(p, self.step))
             epoch, skip = divmod(self.step, self.steps_per_epoch)
             ds.set_epoch(epoch)
             ds.set_skip(skip)
-            for maps, normals in loader:
+            for maps, normals in clock.waiting(fed(loader, self.device)):
                 loss, step_model = self._train_step(step_model, maps, normals)
                 self.step += 1
                 step = self.step
                 if step in p.lr_milestones:
                     set_lr(self.opt, lr_at(p, step))
-                loss_acc += loss.float().cpu()
+                loss_acc += loss.float()
                 loss_n += 1
                 bar.update(p.batch_size)
                 if step % p.log_every == 0 or step == self.total_steps:
                     self.history["loss"].append([step, self._mean_loss(loss_acc, loss_n)])
                     bar.set_postfix(loss=f"{self.history['loss'][-1][1]:.4f}")
-                    loss_acc, loss_n = torch.zeros(()), 0
+                    loss_acc, loss_n = torch.zeros((), device=self.device), 0
                 if p.val_every and step % p.val_every == 0 and step != self.total_steps and self.main:
-                    v = self.validate()
+                    with clock.part("validation"):
+                        v = self.validate()
                     if v:
                         self.history["val"].append([step, v["val_mean_deg"], v["val_median_deg"]])
                 if step % p.checkpoint_every == 0 or step == self.total_steps:
-                    self.checkpoint()
+                    with clock.part("checkpoints"):
+                        self.checkpoint()
                 if stop_after_step is not None and step >= stop_after_step:
                     bar.close()
                     raise KeyboardInterrupt(f"stopped after step {step} (test)")
                 if step >= self.total_steps or step % self.steps_per_epoch == 0:
                     break  # the end, or this epoch's steps (ranks may hold a few more batches)
         bar.close()
+        clock.sync()
         self.seconds = time.perf_counter() - t0
 
     # -- the end -----------------------------------------------------------------------
@@ -401,6 +413,7 @@ class Trainer:
             "val_rows": len(self.val_maps),
             "train_rows": int(sum(u[2] for u in self.stream.units)),  # all ranks together
             "samples_per_s": round(ran * p.batch_size / self.seconds, 1) if ran > 0 and self.seconds > 0 else None,
+            "seconds": self.clock.summary(self.seconds) if self.clock is not None else None,
             "device": str(self.device),
             "precision": p.precision,
             "processes": info.world_size,

@@ -160,31 +160,24 @@ def _cnn_predictor(model_path, device, precision, batch_size):
         how = {"requested": "auto", "reason": choice.reason, "cached": choice.cached,
                "probe_seconds": choice.probe_seconds, "key": choice.key}
         precision = choice.precision
+        how["threads"] = choice.threads
     else:
         how = {"requested": precision, "reason": f"--precision {precision} given"}
+        if torch_device == "cpu":
+            from cnnps.models.inference import set_cpu_threads
+
+            how["threads"] = set_cpu_threads()  # every CPU the affinity allows
     return MapPredictor(net, device=torch_device, precision=precision, batch_size=batch_size), meta, how
 
 
 def _cnn_tile(predictor, I, present, lights, rotations, bar) -> np.ndarray:
-    """(n, 3) float64 normals of one tile: what
-    :func:`cnnps.models.inference.predict_normals` computes (same chunks of pixels, same
-    rotations, same averaging), plus a per-pixel light mask for missing observations."""
-    from cnnps.core.obsmap import observation_maps
-    from cnnps.core.rotation import average_rotated_predictions, rotate_z, rotation_angles
-    from cnnps.models.inference import PIXEL_CHUNK
+    """(n, 3) float64 normals of one tile: :func:`cnnps.models.inference.rotated_normals`
+    (what ``predict_normals`` computes), with a per-pixel light mask for missing observations."""
+    from cnnps.models.inference import PIXEL_CHUNK, rotated_normals
 
-    angles = rotation_angles(int(rotations))
-    rotated = [rotate_z(lights, a) for a in angles]
     n = I.shape[0]
-    out = np.empty((n, 3), dtype=np.float32)
-    for s in range(0, n, PIXEL_CHUNK):
-        e = min(s + PIXEL_CHUNK, n)
-        mask = None if present is None else present[s:e]
-        preds = np.empty((len(angles), e - s, 3), dtype=np.float32)
-        for k, lk in enumerate(rotated):
-            preds[k] = predictor(observation_maps(I[s:e], lk, w=predictor.w, light_mask=mask), progress=bar)
-        out[s:e] = preds[0] if len(angles) == 1 else average_rotated_predictions(preds, angles)
-    N = np.asarray(out, dtype=np.float64)
+    N = np.asarray(rotated_normals(predictor, I, lights, rotations, light_mask=present, progress=bar,
+                                   pixel_chunk=PIXEL_CHUNK), dtype=np.float64)
     if N.shape != (n, 3) or not np.all(np.isfinite(N)):
         raise CnnpsError(f"the model returned invalid normals (shape {N.shape} or NaN values)")
     return N

@@ -52,7 +52,7 @@ all ranks.
 
 Speed on CPU (benchmarks/bench_train.py, benchmarks/results/train.json): activations
 are channels_last (``channels_last``, ~1.3x), Adam uses torch's fused kernel
-(``fused_adam``), batches are decoded float16 -> float32 by numpy, and :func:`run` sets
+(``fused_adam``), batches are decoded float16 -> float32 by torch, and :func:`run` sets
 ``OMP_WAIT_POLICY=PASSIVE`` before torch loads unless the environment sets a policy
 (with another busy process on a 2-core machine, spinning OpenMP threads made training
 2.7x slower). ``precision: bf16`` (slower on CPUs without AMX) and ``compile: true``
@@ -62,8 +62,17 @@ they change float rounding (and, for channels_last or compile, which elements a 
 mask draws), so they are part of the resume key. ``threads: 1`` is faster than 2 threads
 when another job keeps a core busy.
 
+Feeding a GPU: Parquet row groups are decoded ``prefetch`` groups ahead in a background
+thread; on CUDA the float16 batches go through a ring of pinned host buffers with
+non-blocking copies (:mod:`cnnps.models.device_feed`) and are converted on the device,
+and the logged loss is summed on the device and read every ``log_every`` steps only, so
+no step waits for the one before. ``metrics.json`` (``seconds``,
+:mod:`cnnps.models.step_clock`) splits the step loop's wall time: waiting for data,
+validation, checkpoints (benchmarks/bench_stage.py compares the stage with the bare step).
+
 Outputs: ``data_dir/train/model.pt`` (``cnnps.models.checkpoint.save_checkpoint``; config w,
-dropout; meta steps, val error, manifest hash), ``metrics.json``, ``plots/loss.csv``
+dropout; meta steps, val error, manifest hash), ``metrics.json`` (with the loop's time
+split), ``plots/loss.csv``
 (step, loss) and ``plots/val.csv`` (step, val_mean_deg, val_median_deg) for
 ``dvc plots``.
 """

@@ -189,3 +189,42 @@ def test_shape_errors():
         predict_normals(toy, np.ones((4, 5), np.float32), np.ones((4, 3)), progress=False)
     with pytest.raises(ValueError, match="rotations"):
         predict_normals(toy, np.ones((4, 3), np.float32), np.eye(3), rotations=0, progress=False)
+
+
+class _RecordingPredictor:
+    """A MapPredictor stand-in that returns a fixed function of each map and keeps the maps."""
+
+    w = 32
+
+    def __init__(self):
+        self.maps = []
+
+    def __call__(self, maps, progress=None):
+        self.maps.append(np.array(maps))
+        flat = maps.reshape(len(maps), -1).astype(np.float64)
+        v = np.stack([flat[:, :300].sum(1), flat[:, 300:700].sum(1), 1.0 + flat[:, 700:].sum(1)], 1)
+        return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+
+
+@pytest.mark.parametrize("read_ahead", [0, 1])
+def test_rotated_normals_builds_the_same_maps_in_one_pass(read_ahead):
+    """All K rotations of a chunk in one pass (observation_maps_multi), built a chunk ahead:
+    the maps, and so the normals, equal K separate observation_maps calls."""
+    from cnnps.core.obsmap import observation_maps
+    from cnnps.core.rotation import average_rotated_predictions, rotate_z, rotation_angles
+    from cnnps.models.inference import rotated_normals
+
+    rng = np.random.default_rng(3)
+    lights = _cell_centre_lights(32, 40, np.random.default_rng(4)) @ np.diag([1, -1, 1])  # any directions
+    I = rng.random((250, 40)).astype(np.float32)
+    mask = rng.random((250, 40)) > 0.2
+    pred = _RecordingPredictor()
+    got = rotated_normals(pred, I, lights, 5, light_mask=mask, pixel_chunk=200, read_ahead=read_ahead)
+    angles = rotation_angles(5)
+    ref_maps = [observation_maps(I, rotate_z(lights, a), light_mask=mask) for a in angles]
+    ref = average_rotated_predictions(np.stack([_RecordingPredictor()(m) for m in ref_maps]), angles)
+    np.testing.assert_array_equal(got, ref.astype(np.float32))
+    chunks = [m.reshape(5, -1, 32, 32) for m in pred.maps]  # 40 pixels a chunk: 200 maps // 5 rotations
+    assert [c.shape[1] for c in chunks] == [40] * 6 + [10]
+    for k in range(5):
+        np.testing.assert_array_equal(np.concatenate([c[k] for c in chunks]), ref_maps[k])

@@ -42,7 +42,7 @@ def _fake_timings(monkeypatch, rates: dict, error_deg: dict):
     perp = np.cross(truth, [1.0, 0.0, 0.0])
     perp /= np.linalg.norm(perp, axis=1, keepdims=True)
 
-    def fake(predictor, maps, floor):
+    def fake(predictor, maps, floor, stoppable=True):
         a = np.radians(error_deg[predictor.precision])
         return float(rates[predictor.precision]), (np.cos(a) * truth + np.sin(a) * perp).astype(np.float32)
 
@@ -67,10 +67,20 @@ def test_the_pick_is_the_fastest_exact_enough_path(net, monkeypatch, rates, erro
 
 
 def test_a_candidate_stopped_early_is_never_picked(net, monkeypatch):
-    monkeypatch.setattr(pp, "_time_candidate", lambda p, maps, floor: (
+    monkeypatch.setattr(pp, "_time_candidate", lambda p, maps, floor, stoppable=True: (
         (3000.0, p.net(torch.from_numpy(maps[:, None])).detach().numpy()) if p.precision == "fp32" else (9000.0, None)))
     choice = pp.probe(net, torch.device("cpu"))
     assert choice.precision == "fp32" and "stopped" in choice.reason
+
+
+def test_a_machine_too_slow_for_the_budget_still_gets_fp32(net, monkeypatch):
+    # every candidate looks slower than the per-pass budget (a slow or loaded machine):
+    # the reference must still run to the end; it used to be stopped too, and the probe
+    # then crashed on its missing normals
+    monkeypatch.setattr(pp, "PROBE_BUDGET_S", 1e-9)
+    choice = pp.probe(net, torch.device("cpu"))
+    assert choice.precision == "fp32"
+    assert choice.error_change_deg == {"fp32": 0.0} and "bf16" in choice.reason and "stopped" in choice.reason
 
 
 def test_real_probe_is_quick_and_returns_a_candidate(net, cache):
@@ -102,3 +112,28 @@ def test_choice_is_cached_per_machine_torch_and_model(net, cache, monkeypatch):
     cache.write_text("{not json")  # a damaged cache is ignored and rewritten
     assert not pp.choose_precision(net, torch.device("cpu"), "a" * 64).cached and len(calls) == 3
     assert json.loads(cache.read_text())["version"] == pp.CACHE_VERSION
+
+
+@pytest.mark.parametrize("rate_by_threads, pick", [({2: 3000.0, 1: 2250.0}, 2),  # the AVX2 EPYC: 2 threads win
+                                                     ({2: 3000.0, 1: 3400.0}, 1),  # hyperthreads that only contend
+                                                     ({2: 3000.0, 1: 3100.0}, 2)])  # within 5 %: all CPUs
+def test_threads_are_chosen_by_timing_the_pick(net, monkeypatch, cache, rate_by_threads, pick):
+    _, truth = pp.probe_maps()
+    monkeypatch.setattr(pp, "thread_candidates", lambda: [2, 1])
+
+    def fake(predictor, maps, floor, stoppable=True):
+        rate = rate_by_threads[torch.get_num_threads()] * (1.0 if predictor.precision == "fp32" else 0.1)
+        return rate, truth.copy()
+
+    monkeypatch.setattr(pp, "_time_candidate", fake)
+    before = torch.get_num_threads()
+    try:
+        choice = pp.choose_precision(net, torch.device("cpu"), "c" * 64)
+        assert choice.precision == "fp32" and choice.threads == pick and torch.get_num_threads() == pick
+        assert choice.thread_rates == {"2": rate_by_threads[2], "1": rate_by_threads[1]}
+        assert f": {pick} threads" in choice.reason
+        torch.set_num_threads(1 if pick == 2 else 2)
+        again = pp.choose_precision(net, torch.device("cpu"), "c" * 64)  # from the cache: threads set again
+        assert again.cached and again.threads == pick and torch.get_num_threads() == pick
+    finally:
+        torch.set_num_threads(before)

@@ -88,6 +88,10 @@ def _fake_models(monkeypatch, truth, calls, fail=False, load_fail=False, meta=No
     ckpt.load_checkpoint = load_checkpoint
     inf.MapPredictor = lambda *a, **k: _FakeMapPredictor(*a, calls=calls, fail=fail, **k)
     inf.PIXEL_CHUNK = 100  # several chunks per tile
+    from cnnps.models.inference import rotated_normals  # the real routine, driving the stand-in
+
+    inf.rotated_normals = rotated_normals
+    inf.set_cpu_threads = lambda n=None: 2
     monkeypatch.setitem(sys.modules, "cnnps.models.checkpoint", ckpt)
     monkeypatch.setitem(sys.modules, "cnnps.models.inference", inf)
 

@@ -49,6 +49,11 @@ def test_training_lowers_loss_and_val_error(dataset, tmp_path):
     assert [int(r.split(",")[0]) for r in val_rows] == [50, 100, 150]
     metrics = json.loads((d / "train/metrics.json").read_text())
     assert metrics["val_mean_deg"] == pytest.approx(m["val_mean_deg"])
+    # the loop's time split: two validations (steps 50, 100) and checkpoints were timed
+    sec = metrics["seconds"]
+    assert sec["validation"] > 0 and sec["checkpoints"] > 0 and sec["data_wait"] > 0
+    assert sec["validation"] + sec["checkpoints"] + sec["data_wait"] <= sec["loop"] + 0.005  # rounded to ms
+    assert sec["overhead_share"] == pytest.approx((sec["validation"] + sec["checkpoints"]) / sec["loop"], abs=0.01)
     from cnnps.models.checkpoint import load_checkpoint
 
     model, config, meta = load_checkpoint(d / "train" / "model.pt")

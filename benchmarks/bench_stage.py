@@ -1,0 +1,197 @@
+"""The train stage against the bare training step, on one device, in one run (issue 13).
+
+    .venv/bin/python benchmarks/bench_stage.py [--device auto] [--batch-size 128] [--steps 600]
+        [--shards data/cpu-train-v3/extract | --synthetic 12] [--seconds 20] [--out PATH]
+
+Three rates, samples per second, measured one after the other in the same process:
+
+- ``loader``: the stage's loader alone over the same shards (``ShardDataset`` on a CPU,
+  float32 tensors; the float16 ``ShardStream`` batches on CUDA), no network;
+- ``bare_step``: :func:`cnnps.models.optimiser.train_step` on batches already on the
+  device (real maps from the shards, gathered once), nothing else: the network's rate;
+- ``stage``: ``cnnps.stages.train.run`` itself for ``--steps`` steps from scratch with
+  the stage's defaults (prefetch, channels_last, fused Adam, progress bar, loss log), a
+  validation and a checkpoint every ``--steps // 2`` steps; its rate is the one the stage
+  reports (the step loop's samples over its wall time) and ``seconds`` is its own split
+  (``metrics.json``: data wait, validation, checkpoints).
+
+``stage / bare_step`` is the stage's efficiency. The stage's defaults validate every
+2,000 steps (50,000 maps) and checkpoint every 1,000; from the measured cost of one
+validation and one checkpoint the benchmark also projects the overhead share at that
+cadence: ``(t_val / 2000 + t_ckpt / 1000) / t_step``.
+
+Shards: ``--shards`` (an extract output), else the first of
+``data/cpu-train-v3/extract``, ``data/cpu-train/extract`` that exists, else ``--synthetic N``
+scenes (default 12) of Lambertian spheres made without Blender and extracted with the
+stage's code into a temporary folder (what a GPU machine without the data sets uses).
+Results: ``benchmarks/results/stage/<device kind>.json`` with the CPU model (and GPU name).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from cnnps.models.openmp import prefer_passive_openmp  # noqa: E402
+
+prefer_passive_openmp()  # as the stage does, before torch loads
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from benchmarks.bench_inference import cpu_kind  # noqa: E402
+from benchmarks.machine import cpu_info  # noqa: E402
+from cnnps.core.atomic import write_text  # noqa: E402
+from cnnps.core.shards import ShardDataset, ShardStream, load_manifest, manifest_files  # noqa: E402
+
+CANDIDATES = ("data/cpu-train-v3/extract", "data/cpu-train/extract")
+DEFAULT_VAL_EVERY, DEFAULT_CKPT_EVERY = 2000, 1000
+
+
+def synthetic_shards(root: Path, scenes: int) -> Path:
+    """Extract shards (w = 32) of ``scenes`` synthetic Lambertian renders, made without Blender."""
+    from cnnps.stages import extract
+    from tests.support.renders import make_render_dir
+
+    make_render_dir(root, n_scenes=scenes, size=48, m=200)
+    extract.run(extract.Params(w=32, min_lights=50, max_lights=200, rotations=10, val_fraction=0.1), root)
+    return root / "extract"
+
+
+def loader_rate(files, w: int, batch: int, device: torch.device, seconds: float) -> dict:
+    stream = ShardStream(files, w, batch, seed=0, prefetch=2)
+    it = stream.iter_epoch(0) if device.type == "cuda" else iter(ShardDataset(stream))
+    n, t0 = 0, time.perf_counter()
+    for maps, _ in it:
+        n += len(maps)
+        if time.perf_counter() - t0 >= seconds:
+            break
+    dt = time.perf_counter() - t0
+    it.close()
+    return {"samples_per_s": round(n / dt, 1), "samples": n, "seconds": round(dt, 2),
+            "what": "ShardStream float16 batches" if device.type == "cuda" else "ShardDataset float32 tensors"}
+
+
+def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: float) -> dict:
+    from cnnps.models.optimiser import make_model, train_step
+    from cnnps.stages.train import Params
+
+    p = Params(batch_size=batch)
+    stream = ShardStream(files, w, 4096, seed=0, prefetch=0)
+    it = stream.iter_epoch(0)
+    maps, normals = next(it)
+    it.close()
+    maps = torch.from_numpy(np.ascontiguousarray(maps)).unsqueeze(1).to(device)  # float16, as the stage sends it
+    maps = maps if device.type == "cuda" else maps.float()
+    normals = torch.from_numpy(np.ascontiguousarray(normals)).to(device)
+    model, opt = make_model(w, p, device)
+    model.train()
+    nb = maps.shape[0] // batch
+
+    def step(i):
+        s = (i % nb) * batch
+        return train_step(model, opt, maps[s:s + batch], normals[s:s + batch], device, p.precision, p.channels_last)
+
+    for i in range(3):  # warm-up
+        step(i)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        for _ in range(10):
+            step(n)
+            n += 1
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+    dt = time.perf_counter() - t0
+    return {"samples_per_s": round(n * batch / dt, 1), "steps": n, "seconds": round(dt, 2),
+            "step_seconds": dt / n}
+
+
+def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path) -> dict:
+    from cnnps.stages import train
+
+    every = max(1, steps // 2)
+    params = train.Params(batch_size=batch, max_steps=steps, epochs=1000, val_every=every, checkpoint_every=every,
+                          shards=str(shards), device=device, progress=True)
+    t = time.perf_counter()
+    m = train.run(params, work)
+    wall = time.perf_counter() - t
+    sec = m["seconds"]
+    n_val, n_ckpt = max(1, steps // every - 1), steps // every  # validations inside the loop; checkpoints
+    return {"samples_per_s": m["samples_per_s"], "steps": m["steps"], "run_seconds": round(wall, 2),
+            "seconds": sec, "validations_in_loop": n_val, "checkpoints": n_ckpt,
+            "val_seconds_each": round(sec["validation"] / n_val, 3), "checkpoint_seconds_each": round(sec["checkpoints"] / n_ckpt, 3),
+            "val_rows": m["val_rows"], "params": {k: v for k, v in dataclasses.asdict(params).items()
+                                                  if k in ("batch_size", "max_steps", "val_every", "checkpoint_every",
+                                                           "val_max_rows", "prefetch", "channels_last", "fused_adam",
+                                                           "precision", "num_workers")}}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--batch-size", type=int, default=128)
+    ap.add_argument("--steps", type=int, default=600)
+    ap.add_argument("--shards", type=Path, default=None)
+    ap.add_argument("--synthetic", type=int, default=12, help="scenes of synthetic shards when no --shards exist")
+    ap.add_argument("--seconds", type=float, default=20.0, help="for the loader and the bare step each")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+
+    from cnnps.models.devices import resolve_device
+
+    device = resolve_device(args.device)
+    with tempfile.TemporaryDirectory(prefix="bench-stage-") as tmp:
+        shards = args.shards or next((REPO / c for c in CANDIDATES if (REPO / c / "manifest.json").is_file()), None)
+        source = str(shards) if shards else f"synthetic: {args.synthetic} Lambertian sphere scenes"
+        if shards is None:
+            shards = synthetic_shards(Path(tmp) / "synthetic", args.synthetic)
+        man = load_manifest(shards)
+        w, files = int(man["w"]), manifest_files(shards, man, "train")
+        info = cpu_info()
+        res: dict = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                     "command": "benchmarks/bench_stage.py " + " ".join(sys.argv[1:]), "cpu": info,
+                     "device": str(device), "torch": torch.__version__, "threads": torch.get_num_threads(),
+                     "shards": source, "train_rows": man.get("train_rows"), "batch_size": args.batch_size,
+                     "load_average_before": [round(x, 2) for x in os.getloadavg()]}
+        if device.type == "cuda":
+            res["gpu"] = torch.cuda.get_device_name(device)
+        print(f"loader alone ({args.seconds:g} s) ...", flush=True)
+        res["loader"] = loader_rate(files, w, args.batch_size, device, args.seconds)
+        print(f"  {res['loader']['samples_per_s']:,.0f} samples/s\nbare step ({args.seconds:g} s) ...", flush=True)
+        res["bare_step"] = bare_step_rate(files, w, args.batch_size, device, args.seconds)
+        print(f"  {res['bare_step']['samples_per_s']:,.0f} samples/s\nthe train stage ({args.steps} steps) ...", flush=True)
+        res["stage"] = stage_rate(shards, args.batch_size, args.steps, str(device), Path(tmp) / "run")
+        res["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
+    st, bare = res["stage"], res["bare_step"]
+    res["stage_over_bare"] = round(st["samples_per_s"] / bare["samples_per_s"], 3)
+    sec = st["seconds"]
+    steps_only = st["steps"] * args.batch_size / max(1e-9, sec["loop"] - sec["validation"] - sec["checkpoints"])
+    res["stage_over_bare_without_extras"] = round(steps_only / bare["samples_per_s"], 3)
+    t_step = bare["step_seconds"]
+    res["projected_overhead_share_at_defaults"] = round(
+        (st["val_seconds_each"] * (50000 / max(1, st["val_rows"])) / DEFAULT_VAL_EVERY
+         + st["checkpoint_seconds_each"] / DEFAULT_CKPT_EVERY) / t_step, 4)
+    res["note"] = ("projected share: one validation scaled to the default 50,000 maps, every 2,000 steps, and one "
+                   "checkpoint every 1,000, over the bare step's time")
+    kind = f"cuda-{res['gpu'].lower().replace(' ', '-')}" if device.type == "cuda" else f"cpu-{cpu_kind(info)}"
+    out = args.out or REPO / "benchmarks" / "results" / "stage" / f"{kind}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_text(out, json.dumps(res, indent=2) + "\n")
+    print(f"stage {st['samples_per_s']:,.0f} / bare step {bare['samples_per_s']:,.0f} samples/s = "
+          f"{res['stage_over_bare']:.2f}; loop split {st['seconds']}; projected overhead at the defaults "
+          f"{100 * res['projected_overhead_share_at_defaults']:.1f} %; wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
