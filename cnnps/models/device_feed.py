@@ -6,7 +6,7 @@ sent with ``non_blocking=True``: the copy is queued on the current stream behind
 previous step, and the host goes on to decode the next batch instead of waiting for the
 transfer (a copy from pageable memory makes the host wait). Before a buffer is reused,
 the host waits for the event recorded after its copy, so a copy never reads a buffer that
-is being refilled; with 3 slots the host can run at most 3 batches ahead of the GPU.
+is being refilled (batches a DataLoader already pinned are sent as they are); with 3 slots the host can run at most 3 batches ahead of the GPU.
 Batches keep their dtype: float16 maps cross the bus at half the bytes and the step
 converts them on the device (:func:`cnnps.models.optimiser.train_step`).
 """
@@ -40,6 +40,9 @@ class PinnedRing:
             event.synchronize()  # that slot's previous copies have finished reading its buffers
         out = []
         for i, t in enumerate(tensors):
+            if t.is_pinned():  # already page-locked (a DataLoader with pin_memory): no second copy
+                out.append(t.to(self.device, non_blocking=True))
+                continue
             key = (i, tuple(t.shape), t.dtype)
             bufs = self._buffers.get(key)
             if bufs is None:

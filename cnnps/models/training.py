@@ -43,12 +43,7 @@ from cnnps.core.shards import (
     shard_path,
     verify_shards,
 )
-from cnnps.models.checkpoint import (
-    load_checkpoint,
-    read_checkpoint,
-    save_checkpoint,
-    write_sha256_file,
-)
+from cnnps.models.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint, write_sha256_file
 from cnnps.models.device_feed import fed
 from cnnps.models.distributed import (
     DistInfo,
