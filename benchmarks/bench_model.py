@@ -12,7 +12,9 @@ Measures, with `cnnps predict` (images read included):
   * time for a 45,000-pixel object (96 lights) at K=1 and K=10, fp32 and bf16;
   * with ``--subsets 20 10 6``: BALL from n of its 96 images (the lists in
     benchmarks/image_lists/, drawn by benchmarks/image_subsets.py's seeded rule), CNN K=1
-    and K=10 against least squares on the same images and pixels. ``--only-subsets``
+    and K=10 against least squares on the same images and pixels, each with the network
+    alone (``cnn_k*_fp32``) and with the Lambertian fill (``cnn_k*_fp32_fill``, what
+    ``cnnps predict`` does below 50 images; cnnps.core.sparse_fill). ``--only-subsets``
     measures just that (results under ``ball_subsets``, merged into an existing --out file).
 Skips the parts whose data is absent. Published on BALL: least squares 4.10°, PS-FCN 2.82°,
 CNN-PS 2.7° (K=1) / 2.2° (K=10).
@@ -64,11 +66,13 @@ def _ball_subsets(args, tmp: Path) -> dict:
         rows = {"images": names}
         r, t, _ = _predict(ball, tmp, method="lambertian", drop=drop)
         rows["lambertian"] = {**_metric(r), "seconds": round(t, 2)}
-        for k in (1, 10):
-            r, t, _ = _predict(ball, tmp, method="cnn", model=args.model, rotations=k, drop=drop)
-            rows[f"cnn_k{k}_fp32"] = {**_metric(r), "seconds": round(t, 2)}
-        print(f"BALL {n} images: LS {rows['lambertian']['mean_deg']:.2f}, CNN K=1 {rows['cnn_k1_fp32']['mean_deg']:.2f}, "
-              f"K=10 {rows['cnn_k10_fp32']['mean_deg']:.2f}", flush=True)
+        for k in (1, 10):  # the network alone, then with the Lambertian fill (what `cnnps predict` does below 50)
+            for key, fill in ((f"cnn_k{k}_fp32", "off"), (f"cnn_k{k}_fp32_fill", "on")):
+                r, t, _ = _predict(ball, tmp, method="cnn", model=args.model, rotations=k, drop=drop, sparse_fill=fill)
+                rows[key] = {**_metric(r), "seconds": round(t, 2)}
+        print(f"BALL {n} images: LS {rows['lambertian']['mean_deg']:.2f}, CNN K=1 {rows['cnn_k1_fp32']['mean_deg']:.2f} "
+              f"(fill {rows['cnn_k1_fp32_fill']['mean_deg']:.2f}), K=10 {rows['cnn_k10_fp32']['mean_deg']:.2f} "
+              f"(fill {rows['cnn_k10_fp32_fill']['mean_deg']:.2f})", flush=True)
         out[str(n)] = rows
     return out
 

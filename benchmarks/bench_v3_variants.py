@@ -152,7 +152,8 @@ def score(model_path: Path, val: tuple[np.ndarray, np.ndarray], shared: Path) ->
         tilt = np.degrees(np.arccos(np.clip(gt[:, 2], -1, 1)))
         for k in ks:
             t = time.perf_counter()
-            e = angular_error_deg(predict_normals(net, I, cap.lights, rotations=k, device="cpu", progress=False), gt)
+            e = angular_error_deg(predict_normals(net, I, cap.lights, rotations=k, device="cpu", progress=False,
+                                                  sparse_fill="off"), gt)  # the network alone
             out[f"ball{n}_k{k}"] = {**_stats(e), "rim_mean_deg": round(float(e[tilt > 70].mean()), 3),
                                    "inner_mean_deg": round(float(e[tilt <= 70].mean()), 3),
                                    "seconds": round(time.perf_counter() - t, 1)}

@@ -1,7 +1,8 @@
-"""v2, v3 and v3.1, side by side: the README's model table, from measured results only.
+"""v2, v3, v3.1 and v3.1 with the Lambertian fill (cnnps.core.sparse_fill), side by side: the README's model table, from measured results only.
 
     .venv/bin/python benchmarks/compare_models.py --eval v2=data/eval-v2/eval/metrics.json \
         --eval v3=data/cpu-train-v3-polish/eval/metrics.json --eval v3.1=data/eval-v3.1/eval/metrics.json \
+        --eval v3.1+fill=data/eval-v3.1-fill/eval/metrics.json \
         [--out benchmarks/results/v2_v3.json]
 
 Reads ``benchmarks/results/variants_v3.json`` (the validation maps and BALL with rim
@@ -50,11 +51,15 @@ def main() -> None:
     args = ap.parse_args()
     res = REPO / "benchmarks" / "results"
     balls = dict(a.split("=", 1) for a in args.ball) or {"v2": str(res / "model_v2.json"), "v3": str(res / "model_v3.json"),
-                                                         "v3.1": str(res / "model.json")}
+                                                         "v3.1": str(res / "model.json"),
+                                                         "v3.1+fill": str(res / "model.json")}
     evals = dict(a.split("=", 1) for a in args.eval)
     variants = json.loads(args.variants.read_text())["variants"]
     table: dict = {"models": {}}
-    for name, row in (("v2", variants.get("shipped")), ("v3", variants.get("v3")), ("v3.1", variants.get("v3.1"))):
+    models = (("v2", variants.get("shipped")), ("v3", variants.get("v3")), ("v3.1", variants.get("v3.1")),
+              ("v3.1+fill", variants.get("v3.1")))  # the same weights, with the Lambertian fill below 50 images
+    for name, row in models:
+        fill = name.endswith("+fill")
         entry: dict = {"val_mean_deg": row["val"]["mean_deg"] if row else None}
         if row:
             entry["ball96_k10_rim_deg"] = row["ball96_k10"]["rim_mean_deg"]
@@ -63,7 +68,9 @@ def main() -> None:
         entry["ball96"] = {k: ball[k]["mean_deg"] for k in ("lambertian", "cnn_k1_fp32", "cnn_k10_fp32") if k in ball}
         for n, r in m.get("ball_subsets", {}).items():
             if isinstance(r, dict) and "lambertian" in r:
-                entry[f"ball{n}"] = {k: r[k]["mean_deg"] for k in ("lambertian", "cnn_k1_fp32", "cnn_k10_fp32") if k in r}
+                entry[f"ball{n}"] = {k: r[k + ("_fill" if fill and k != "lambertian" else "")]["mean_deg"]
+                                     for k in ("lambertian", "cnn_k1_fp32", "cnn_k10_fp32")
+                                     if k + ("_fill" if fill and k != "lambertian" else "") in r}
         if name in evals:
             entry["eval"] = eval_summary(json.loads(Path(evals[name]).read_text()))
         if m.get("fossil"):

@@ -110,6 +110,7 @@ def predict_normals(
     batch_size: int | None = None,
     progress: bool = True,
     pixel_chunk: int = PIXEL_CHUNK,
+    sparse_fill: str = "auto",
 ) -> np.ndarray:
     """Unit normals (P, 3) float32 for P pixels from their (P, m) intensities
     (:func:`rotated_normals` with a :class:`MapPredictor` of ``model``).
@@ -120,6 +121,8 @@ def predict_normals(
     device: 'auto' | 'cpu' | 'cuda[:N]'. precision: 'fp32' | 'bf16' (autocast).
     batch_size: maps per network call (default ``DEFAULT_BATCH_CPU`` = 256 on CPU,
     ``DEFAULT_BATCH_CUDA`` = 4096 on CUDA).
+    sparse_fill: 'auto' | 'on' | 'off': virtual Lambertian observations for sparse captures
+    (:mod:`cnnps.core.sparse_fill`; 'auto' = below ``FILL_BELOW`` = 50 images).
     """
     intensities = np.asarray(intensities, dtype=np.float32)
     lights = np.asarray(lights, dtype=np.float64)
@@ -128,6 +131,12 @@ def predict_normals(
     P, m = intensities.shape
     if lights.shape != (m, 3):
         raise ValueError(f"lights must be ({m}, 3) to match intensities, got {lights.shape}")
+    from cnnps.core.sparse_fill import lambertian_fill, should_fill
+
+    light_mask = None
+    if should_fill(sparse_fill, m):
+        fill = lambertian_fill(intensities, lights, w=getattr(model, "w", 32))
+        intensities, lights, light_mask = fill.intensities, fill.lights, fill.light_mask
     predictor = MapPredictor(model, device=device, precision=precision, batch_size=batch_size)
     bar = None
     if progress:
@@ -135,7 +144,8 @@ def predict_normals(
 
         bar = tqdm(total=P * int(rotations), unit="map", unit_scale=True, desc="cnn-ps", leave=False)
     try:
-        return rotated_normals(predictor, intensities, lights, rotations, progress=bar, pixel_chunk=pixel_chunk)
+        return rotated_normals(predictor, intensities, lights, rotations, light_mask=light_mask, progress=bar,
+                               pixel_chunk=pixel_chunk)
     finally:
         if bar is not None:
             bar.close()

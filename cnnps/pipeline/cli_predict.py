@@ -58,6 +58,7 @@ def predict(
     grey: str = typer.Option("mean", "--grey", help="mean | luminance: how RGB becomes grey."),
     linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none", help="How 8/16-bit images become linear: srgb = decode the sRGB curve (camera JPEG/PNG), none = already linear (DiLiGenT, raw converters). Unset: taken as linear, with a note when images are 8-bit."),
     saturated: str = typer.Option("exclude", "--saturated", metavar="exclude|keep", help="exclude: observations with a channel >= 0.99 of the format's maximum are left out (missing); keep: use them as stored."),
+    sparse_fill: str = typer.Option("auto", "--sparse-fill", metavar="auto|on|off", help="cnn: add virtual Lambertian observations to sparse maps, per pixel only where a Lambertian fit explains its observations; auto = with fewer than 50 images."),
     depth: bool = typer.Option(False, "--depth", help="Also integrate the normals into depth.npy, depth.png and surface.ply."),
     tile_pixels: str = typer.Option("65536", "--tile-pixels", metavar="N", help="Mask pixels processed at a time (memory ~ N x images x 8 bytes)."),
     scratch: Optional[Path] = typer.Option(None, "--scratch", metavar="DIR", help="Folder for the temporary pixel stack of large captures (default: next to --out; about pixels x images x 4 bytes)."),
@@ -98,11 +99,16 @@ def predict(
         tile_pixels=tiles,
         scratch_dir=scratch,
         saturated=saturated,
+        sparse_fill=sparse_fill,
     )
     if verbose and result.get("precision_choice"):
         how = result["precision_choice"]
         cached = " (cached)" if how.get("cached") else ""
         typer.echo(f"cnnps: precision {result['precision']}{cached}: {how['reason']}", err=True)
+    fill = result.get("sparse_fill")
+    if verbose and fill and fill["used"]:
+        typer.echo(f"cnnps: sparse fill ({fill['mode']}): {fill['filled_pixels']} of {result['pixels']} pixels "
+                   "got virtual Lambertian observations", err=True)
     for note in result.get("notes", []):
         typer.echo(f"note: {note}")
     for notice in result.get("notices", []):

@@ -66,8 +66,12 @@ def default_model_path() -> Path:
 
 
 def _check_options(method, rotations, device, precision, batch_size, shadow_threshold,
-                   linearize=None, tile_pixels=DEFAULT_TILE_PIXELS):
+                   linearize=None, tile_pixels=DEFAULT_TILE_PIXELS, sparse_fill="auto"):
+    from cnnps.core.sparse_fill import MODES as FILL_MODES
     from cnnps.core.srgb import LINEARIZE
+
+    if sparse_fill not in FILL_MODES:
+        raise ConfigError(f"--sparse-fill must be one of {', '.join(FILL_MODES)}, got {sparse_fill!r}")
 
     if linearize is not None and linearize not in LINEARIZE:
         raise ConfigError(f"--linearize must be one of {', '.join(LINEARIZE)}, got {linearize!r}")
@@ -170,17 +174,24 @@ def _cnn_predictor(model_path, device, precision, batch_size):
     return MapPredictor(net, device=torch_device, precision=precision, batch_size=batch_size), meta, how
 
 
-def _cnn_tile(predictor, I, present, lights, rotations, bar) -> np.ndarray:
-    """(n, 3) float64 normals of one tile: :func:`cnnps.models.inference.rotated_normals`
-    (what ``predict_normals`` computes), with a per-pixel light mask for missing observations."""
+def _cnn_tile(predictor, I, present, lights, rotations, bar, fill: bool = False) -> tuple[np.ndarray, int]:
+    """(n, 3) float64 normals of one tile and how many of its pixels were filled:
+    :func:`cnnps.models.inference.rotated_normals` (what ``predict_normals`` computes), with
+    a per-pixel light mask for missing observations and, with ``fill``, the virtual
+    observations of :func:`cnnps.core.sparse_fill.lambertian_fill`."""
+    from cnnps.core.sparse_fill import lambertian_fill
     from cnnps.models.inference import PIXEL_CHUNK, rotated_normals
 
     n = I.shape[0]
+    n_filled = 0
+    if fill:
+        f = lambertian_fill(I, lights, light_mask=present, w=predictor.w)
+        I, lights, present, n_filled = f.intensities, f.lights, f.light_mask, int(f.filled.sum())
     N = np.asarray(rotated_normals(predictor, I, lights, rotations, light_mask=present, progress=bar,
                                    pixel_chunk=PIXEL_CHUNK), dtype=np.float64)
     if N.shape != (n, 3) or not np.all(np.isfinite(N)):
         raise CnnpsError(f"the model returned invalid normals (shape {N.shape} or NaN values)")
-    return N
+    return N, n_filled
 
 
 def _surface_writer():
@@ -228,15 +239,17 @@ def _dumps(obj) -> str:
     return json.dumps(obj, indent=2, default=_jsonable) + "\n"
 
 
-def _sparse_warning(model_path, meta: dict, n_images: int) -> list[str]:
+def _sparse_warning(model_path, meta: dict, n_images: int, fill: bool = False) -> list[str]:
     """One line when the capture has fewer images than the model's sparsest training maps."""
     from cnnps.models.shipped import trained_min_lights
 
     fewest = trained_min_lights(model_path, meta)
     if fewest is None or n_images >= fewest:
         return []
+    how = ("the Lambertian fill is on: see --sparse-fill" if fill
+           else "try --sparse-fill on, --method lambertian, or a model trained with sparse lights")
     return [f"{n_images} images, but this model was trained on maps of {fewest} or more lights: "
-            f"expect larger errors (try --method lambertian, or a model trained with sparse lights)"]
+            f"expect larger errors ({how})"]
 
 
 def predict_capture(
@@ -259,6 +272,7 @@ def predict_capture(
     memory_limit: int | None = None,
     workers: int | None = None,
     saturated: str = "exclude",
+    sparse_fill: str = "auto",
 ) -> dict:
     """Predict normals for the capture in ``capture_dir``; write results into ``out_dir``.
 
@@ -271,6 +285,9 @@ def predict_capture(
     workers: threads that decode images (default: CPU count, capped by memory).
     saturated: "exclude" (observations with a channel >= 0.99 of an integer format's
         maximum are missing) or "keep" (used as stored, as before this option existed).
+    sparse_fill: "auto" | "on" | "off": virtual Lambertian observations where a pixel's
+        observations fit a Lambertian model (:mod:`cnnps.core.sparse_fill`); "auto" = when
+        the capture has fewer than 50 images. CNN only.
 
     Returns a dict with ``method``, ``rotations`` (None for lambertian), ``n_images``,
     ``dropped``, ``pixels``, ``seconds``, ``notes`` (stdout), ``notices`` (stderr notes),
@@ -284,11 +301,13 @@ def predict_capture(
     from cnnps.core.metrics import score_normals
     from cnnps.core.pixel_store import DEFAULT_MEMORY_LIMIT, build_pixel_stack
     from cnnps.core.rotation import normalize
+    from cnnps.core.sparse_fill import should_fill
     from cnnps.core.srgb import UNCHOSEN_8BIT_NOTE
 
     t0 = time.perf_counter()
     capture_dir, out_dir = Path(capture_dir), Path(out_dir)
-    _check_options(method, rotations, device, precision, batch_size, shadow_threshold, linearize, tile_pixels)
+    _check_options(method, rotations, device, precision, batch_size, shadow_threshold, linearize, tile_pixels,
+                   sparse_fill)
     if saturated not in SATURATED:
         raise ConfigError(f"--saturated must be one of {', '.join(SATURATED)}, got {saturated!r}")
     model_path = None
@@ -303,10 +322,12 @@ def predict_capture(
     capture = scan_capture(capture_dir, drop=drop, grey=grey, linearize=linearize)
     warnings: list[str] = []
     predictor = meta = precision_how = None
+    fill = method == "cnn" and should_fill(sparse_fill, capture.n_images)
+    n_filled = 0
     if method == "cnn":
         predictor, meta, precision_how = _cnn_predictor(model_path, device, precision,
                                                         None if batch_size is None else int(batch_size))
-        warnings += _sparse_warning(model_path, meta, capture.n_images)
+        warnings += _sparse_warning(model_path, meta, capture.n_images, fill)
 
     scratch = out_dir.resolve().parent if scratch_dir is None else Path(scratch_dir)
     limit = DEFAULT_MEMORY_LIMIT if memory_limit is None else int(memory_limit)
@@ -340,7 +361,9 @@ def predict_capture(
                     if bar is not None:
                         bar.update(stop - start)
                 else:
-                    N = _cnn_tile(predictor, I, None if missing is None else ~missing, capture.lights, rotations, bar)
+                    N, filled = _cnn_tile(predictor, I, None if missing is None else ~missing, capture.lights,
+                                          rotations, bar, fill)
+                    n_filled += filled
                 flat_normal[_tile_pixels_index(row_start, capture.mask, start, stop)] = normalize(N).astype(np.float32)
         finally:
             if bar is not None:
@@ -369,7 +392,8 @@ def predict_capture(
         "method": method,
         "model": None if model_path is None else str(model_path),
         "rotations": int(rotations) if method == "cnn" else None,
-        **({"precision": getattr(predictor, "precision", precision), "precision_choice": precision_how}
+        **({"precision": getattr(predictor, "precision", precision), "precision_choice": precision_how,
+            "sparse_fill": {"mode": sparse_fill, "used": fill, "filled_pixels": int(n_filled)}}
            if predictor is not None else {}),
         "shadow_threshold": shadow_threshold,
         "grey": grey,

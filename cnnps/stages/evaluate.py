@@ -79,6 +79,7 @@ class Params:
     device: str = "auto"
     batch_size: int = 0  # maps per network call (0 = the inference default: 256 on a CPU, 4096 on CUDA)
     lambertian_shadow_threshold: float | None = None
+    sparse_fill: str = "auto"  # CNN: auto | on | off, as `cnnps predict --sparse-fill` (cnnps.core.sparse_fill)
     seed: int = 0
 
     def __post_init__(self):
@@ -115,6 +116,10 @@ class Params:
             raise ConfigError(f"eval.device must be auto, cpu or cuda, got {self.device!r}")
         if self.batch_size < 0:
             raise ConfigError(f"eval.batch_size must be >= 0 (0 = default), got {self.batch_size}")
+        from cnnps.core.sparse_fill import MODES as FILL_MODES
+
+        if self.sparse_fill not in FILL_MODES:
+            raise ConfigError(f"eval.sparse_fill must be one of {', '.join(FILL_MODES)}, got {self.sparse_fill!r}")
         t = self.lambertian_shadow_threshold
         if t is not None and not 0.0 <= t < 1.0:
             raise ConfigError(f"eval.lambertian_shadow_threshold must be in [0, 1), got {t}")
@@ -322,7 +327,8 @@ def run(params: Params, data_dir: Path) -> None:
     from cnnps.models.inference import predict_normals
 
     def predict(I, L, k):
-        return predict_normals(net, I, L, rotations=k, device=device, batch_size=params.batch_size or None, progress=False)
+        return predict_normals(net, I, L, rotations=k, device=device, batch_size=params.batch_size or None, progress=False,
+                               sparse_fill=params.sparse_fill)
 
     metrics = evaluate_all(captures, predict, params, out_dir, str(model_path), t0)
     print(format_table(metrics))

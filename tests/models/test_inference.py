@@ -228,3 +228,37 @@ def test_rotated_normals_builds_the_same_maps_in_one_pass(read_ahead):
     assert [c.shape[1] for c in chunks] == [40] * 6 + [10]
     for k in range(5):
         np.testing.assert_array_equal(np.concatenate([c[k] for c in chunks]), ref_maps[k])
+
+
+class _CellCounter(nn.Module):
+    """Records how many cells of each map are non-empty; answers +z."""
+
+    def __init__(self, w: int = 32):
+        super().__init__()
+        self.w = w
+        self.cells: list[int] = []
+
+    def forward(self, x):
+        self.cells += (x.reshape(x.shape[0], -1) > 0).sum(1).tolist()
+        return torch.tensor([[0.0, 0.0, 1.0]]).repeat(x.shape[0], 1)
+
+
+def test_sparse_fill_below_fifty_images_only(lambertian_scene):
+    from cnnps.core.sparse_fill import FILL_BELOW, VIRTUAL_LIGHTS
+
+    intensities, lights, normals = lambertian_scene  # 60 lights, no shadows
+    counts = {}
+    for m, mode in ((8, "auto"), (8, "off"), (FILL_BELOW, "auto"), (FILL_BELOW, "on")):
+        net = _CellCounter()
+        predict_normals(net, intensities[:, :m], lights[:m], rotations=1, device="cpu", progress=False,
+                        sparse_fill=mode)
+        counts[m, mode] = np.array(net.cells)
+    assert (counts[8, "off"] == 8).all() and (counts[FILL_BELOW, "auto"] == FILL_BELOW).all()
+    assert (counts[8, "auto"] == 8 + VIRTUAL_LIGHTS).all()  # exact Lambertian values: every pixel filled
+    assert (counts[FILL_BELOW, "on"] > FILL_BELOW).all()
+    # the virtual values are the Lambertian fit's: an exact reader of maps stays exact
+    toy = CellLambertian(32)
+    n = predict_normals(toy, intensities[:, :8], lights[:8], rotations=1, device="cpu", progress=False)
+    assert angular_error_deg(n, normals).max() < 1e-2
+    with pytest.raises(ValueError, match="sparse fill"):
+        predict_normals(toy, intensities[:, :8], lights[:8], device="cpu", progress=False, sparse_fill="yes")

@@ -1,0 +1,127 @@
+"""The Lambertian fill (cnnps.core.sparse_fill): does it pay, and which residual gate.
+
+    .venv/bin/python benchmarks/bench_sparse_fill.py [--model M] [--rotations 1 10] [--gates 0.03 0.06 0.1 0.2]
+        [--counts 90] [--testset data/eval-v2/eval/testset] [--out benchmarks/results/sparse_fill.json]
+
+Scores, per model, on
+* the eval stage's synthetic test captures with 10 and 17 lights (``--testset``: an eval
+  stage's ``testset`` folder; sphere, bowl, holed x Specular, Metallic), every pixel;
+* DiLiGenT BALL from all 96, 40, 30, 20, 10 and 6 of its images (benchmarks/image_lists/), every pixel;
+
+the network alone, and the network with virtual observations for the pixels whose
+Lambertian fit residual is below each gate (``--gates``; 1e9 = every well-posed pixel).
+A gated pixel's map is either exactly the unfilled one or exactly the fully filled one,
+so each count needs two network passes, not one per gate. ``--counts 90 1000``
+also scores filling every free cell of the cone (there are fewer than 1,000). Least squares on the same
+images (lit observations only, as the fill's fit) is listed for reference. The gate was
+chosen on the synthetic captures, not on BALL (README, "Sparse images: the Lambertian fill").
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from cnnps.core.atomic import write_text  # noqa: E402
+from cnnps.core.capture import load_capture  # noqa: E402
+from cnnps.core.masked_lstsq import least_squares_masked  # noqa: E402
+from cnnps.core.metrics import angular_error_deg  # noqa: E402
+from cnnps.core.sparse_fill import RESIDUAL_MAX, VIRTUAL_LIGHTS, fit_residual, virtual_lights  # noqa: E402
+from cnnps.models.checkpoint import load_checkpoint  # noqa: E402
+from cnnps.models.inference import predict_normals  # noqa: E402
+from machine import cpu_info  # noqa: E402
+
+
+def _cases(testset: Path, shared: Path):
+    """(name, group, intensities, lights, true normals) of every capture scored."""
+    from image_subsets import drop_for, read_list
+
+    for d in sorted(testset.iterdir()) if testset.is_dir() else []:
+        if d.name.rsplit("-", 1)[-1] in ("10", "17"):
+            cap = load_capture(d)
+            yield d.name, f"eval-{d.name.rsplit('-', 1)[-1]}", cap.pixel_intensities(), cap.lights, cap.normal_gt[cap.mask]
+    ball = shared / "data" / "diligent" / "ballPNG"
+    if ball.is_dir():
+        for n in (96, 40, 30, 20, 10, 6):
+            drop = None if n == 96 else drop_for(ball, read_list(REPO / "benchmarks" / "image_lists" / f"ballPNG-{n}.txt"))
+            cap = load_capture(ball, drop=drop)
+            yield f"ballPNG-{n}", f"ball-{n}", cap.pixel_intensities(), cap.lights, cap.normal_gt[cap.mask]
+
+
+def _score(net, I, L, N, rotations, gates, counts) -> dict:
+    N = N / np.linalg.norm(N, axis=1, keepdims=True)
+    normals, albedo, valid = least_squares_masked(I, L, shadow_threshold=0.0, return_valid=True)
+    b = normals * albedo[:, None]
+    resid = np.where(valid, fit_residual(I, L, b, I > 0), np.inf)
+    out = {"pixels": int(len(N)), "least_squares": float(angular_error_deg(normals, N).mean())}
+    for k in rotations:
+        plain = predict_normals(net, I, L, rotations=k, device="cpu", precision="fp32", progress=False, sparse_fill="off")
+        row = {"net": float(angular_error_deg(plain, N).mean())}
+        for count in counts:
+            V = virtual_lights(L, count, net.w)
+            filled = predict_normals(net, np.concatenate([I, np.maximum(b @ V.T, 0).astype(np.float32)], axis=1),
+                                     np.concatenate([L, V]), rotations=k, device="cpu", precision="fp32",
+                                     progress=False, sparse_fill="off")
+            for g in gates:
+                use = (resid < g)[:, None]
+                row[f"fill{count}_gate{g:g}"] = float(angular_error_deg(np.where(use, filled, plain), N).mean())
+                row[f"fill{count}_gate{g:g}_share"] = float(use.mean())
+        out[f"K{k}"] = row
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", type=Path, default=REPO / "cnnps" / "models" / "weights" / "cnnps_default.pt")
+    ap.add_argument("--name", default=None, help="key in the results file (default: the model file's name)")
+    ap.add_argument("--rotations", type=int, nargs="+", default=[1, 10])
+    ap.add_argument("--gates", type=float, nargs="+", default=[0.03, 0.06, RESIDUAL_MAX, 0.2, 1e9])
+    ap.add_argument("--counts", type=int, nargs="+", default=[VIRTUAL_LIGHTS])
+    ap.add_argument("--cases", nargs="*", default=None, help="only these (e.g. ballPNG-96 bowl-specular-10)")
+    ap.add_argument("--testset", type=Path, default=REPO / "data" / "eval-v2" / "eval" / "testset")
+    ap.add_argument("--shared", type=Path, default=REPO.parent / "shared")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "sparse_fill.json")
+    args = ap.parse_args()
+    net = load_checkpoint(args.model, "cpu")[0].eval()
+    t0 = time.perf_counter()
+    cases = {}
+    for name, group, I, L, N in _cases(args.testset, args.shared):
+        if args.cases is not None and name not in args.cases:
+            continue
+        cases[name] = {"group": group, **_score(net, I, L, N, args.rotations, args.gates, args.counts)}
+        print(name, json.dumps(cases[name]["K1" if 1 in args.rotations else f"K{args.rotations[0]}"]), flush=True)
+    groups: dict = {}
+    for c in cases.values():
+        for k in args.rotations:
+            for key, v in c[f"K{k}"].items():
+                groups.setdefault(c["group"], {}).setdefault(f"K{k}", {}).setdefault(key, []).append(v)
+            groups[c["group"]].setdefault("least_squares", []).append(c["least_squares"])
+    means = {g: {k: ({m: round(float(np.mean(v)), 3) for m, v in d.items()} if isinstance(d, dict)
+                     else round(float(np.mean(d)), 3))
+                 for k, d in gd.items()} for g, gd in groups.items()}
+    for g, gd in sorted(means.items()):
+        print(g, json.dumps(gd))
+    results = json.loads(args.out.read_text()) if args.out.exists() else {"models": {}}
+    results["models"][args.name or args.model.name] = {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command": "benchmarks/bench_sparse_fill.py " + " ".join(sys.argv[1:]),
+        "model": str(args.model), "cpu": cpu_info(), "seconds": round(time.perf_counter() - t0, 1),
+        "note": "mean angular error (deg); groups average their captures (eval: 6 captures each, "
+                "sphere/bowl/holed x specular/metallic); gate 1e9 = every well-posed pixel filled",
+        "group_means": means, "cases": cases}
+    write_text(args.out, json.dumps(results, indent=1) + "\n")
+    print(f"wrote {args.out.relative_to(REPO) if args.out.is_relative_to(REPO) else args.out}")
+
+
+if __name__ == "__main__":
+    main()
