@@ -99,11 +99,15 @@ def lambertian_fill(
     L = np.asarray(lights, dtype=np.float64)
     P, m = I.shape
     present = np.ones((P, m), dtype=bool) if light_mask is None else np.asarray(light_mask, dtype=bool)
-    normals, albedo, valid = least_squares_masked(I, L, missing=~present, shadow_threshold=0.0, return_valid=True)
-    b = normals * albedo[:, None]
-    use = present & (I > 0)
-    filled = valid & (fit_residual(I, L, b, use) < float(residual_max))
     V = virtual_lights(L, count, w, seed)
+    if m < 3 or np.linalg.matrix_rank(L) < 3:  # no Lambertian fit exists: nothing is filled
+        b = np.zeros((P, 3))
+        filled = np.zeros(P, dtype=bool)
+    else:
+        normals, albedo, valid = least_squares_masked(I, L, missing=~present, shadow_threshold=0.0, return_valid=True)
+        b = normals * albedo[:, None]
+        use = present & (I > 0)
+        filled = valid & (fit_residual(I, L, b, use) < float(residual_max))
     virtual = np.maximum(b @ V.T, 0.0).astype(np.float32)
     return FillResult(
         intensities=np.concatenate([I, virtual], axis=1),

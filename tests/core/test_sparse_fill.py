@@ -70,3 +70,13 @@ def test_fill_rule():
     assert should_fill("on", 500) and not should_fill("off", 6)
     with pytest.raises(ValueError, match="sparse fill"):
         should_fill("sometimes", 6)
+
+
+def test_coplanar_lights_fill_nothing_instead_of_failing():
+    n, _, I, L = _scene(m=8)
+    flat = L.copy()
+    flat[:, 1] = 0.0  # every light in the x-z plane: no Lambertian fit
+    flat /= np.linalg.norm(flat, axis=1, keepdims=True)
+    out = lambertian_fill(I, flat)
+    assert not out.filled.any() and not out.light_mask[:, 8:].any()
+    np.testing.assert_array_equal(out.intensities[:, :8], I)
