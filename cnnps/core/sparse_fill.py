@@ -6,14 +6,17 @@ worse than dense ones (on BALL's 10-image list, even on exactly Lambertian value
 model explains, more cells can be made: fit b = albedo x normal by least squares to its
 lit observations, then add ``count`` *virtual* lights at empty cells inside the cone of
 the real ones, with the values max(b . l, 0) the fit predicts. The real observations stay
-as they are; a pixel whose relative fit residual is ``residual_max`` or more (specular,
-metallic, shadowed, inter-reflections: what least squares gets wrong) gets no virtual
-observations at all, so the network alone decides there.
+as they are. A pixel whose relative fit residual is ``residual_max`` or more gets a second
+chance: the fit again without its brightest observation (a specular highlight is one
+bright outlier), if at least 4 lit observations remain; if that fit explains the rest,
+its values fill the map (the bright observation stays in the map as measured). A pixel
+neither fit explains (metallic, shadowed, inter-reflections: what least squares gets
+wrong) gets no virtual observations at all, so the network alone decides there.
 
 Used only below ``FILL_BELOW`` images (:func:`should_fill`); measured choices (README,
 "Sparse images: the Lambertian fill"): 90 virtual lights (with ~10 real ones, a map about
-as full as DiLiGenT's 96), a residual gate of 0.1 (chosen on the eval stage's synthetic
-captures, not on BALL). Filling every cell of the cone instead (~300) made every figure
+as full as DiLiGenT's 96), a residual gate of 0.1 and the second chance (both chosen on the
+eval stage's synthetic captures, not on BALL). Filling every cell of the cone instead (~300) made every figure
 worse: the training maps never hold more than ~200 lights.
 
 All arrays follow :func:`cnnps.core.obsmap.observation_maps`: intensities (P, m) already
@@ -35,6 +38,25 @@ VIRTUAL_LIGHTS = 90
 RESIDUAL_MAX = 0.1
 SEED = 0
 MODES = ("auto", "on", "off")
+
+
+@dataclass(frozen=True)
+class Fits:
+    """Per pixel: the Lambertian fit b = albedo x normal (P, 3) and its relative residual
+    (P,), first on every lit observation, then without the brightest one (inf where a fit
+    is not possible)."""
+
+    b: np.ndarray
+    residual: np.ndarray
+    b_second: np.ndarray
+    residual_second: np.ndarray
+
+    def choose(self, residual_max: float = RESIDUAL_MAX) -> tuple[np.ndarray, np.ndarray]:
+        """(b (P, 3), filled (P,) bool): the first fit where it explains the pixel, else the
+        second where that one does."""
+        first = self.residual < residual_max
+        second = ~first & (self.residual_second < residual_max)
+        return np.where(second[:, None], self.b_second, self.b), first | second
 
 
 @dataclass(frozen=True)
@@ -83,6 +105,31 @@ def fit_residual(intensities: np.ndarray, lights: np.ndarray, b: np.ndarray, use
     return np.sqrt(num / np.maximum(den, 1e-30))
 
 
+def lambertian_fits(intensities: np.ndarray, lights: np.ndarray, light_mask: np.ndarray | None = None) -> Fits:
+    """Both least-squares fits of the module docstring, on the lit (value > 0), present
+    observations."""
+    I = np.asarray(intensities, dtype=np.float32)
+    L = np.asarray(lights, dtype=np.float64)
+    P, m = I.shape
+    present = np.ones((P, m), dtype=bool) if light_mask is None else np.asarray(light_mask, dtype=bool)
+    none = np.full(P, np.inf)
+    if m < 3 or np.linalg.matrix_rank(L) < 3:  # no Lambertian fit exists
+        return Fits(np.zeros((P, 3)), none, np.zeros((P, 3)), none)
+    lit = present & (I > 0)
+    normals, albedo, valid = least_squares_masked(I, L, missing=~present, shadow_threshold=0.0, return_valid=True)
+    b = normals * albedo[:, None]
+    residual = np.where(valid, fit_residual(I, L, b, lit), np.inf)
+    brightest = np.zeros((P, m), dtype=bool)
+    brightest[np.arange(P), np.where(present, I, -np.inf).argmax(axis=1)] = True
+    kept = lit & ~brightest
+    normals2, albedo2, valid2 = least_squares_masked(I, L, missing=~present | brightest, shadow_threshold=0.0,
+                                                     return_valid=True)
+    b2 = normals2 * albedo2[:, None]
+    ok2 = valid2 & (kept.sum(axis=1) >= 4)
+    residual2 = np.where(ok2, fit_residual(I, L, b2, kept), np.inf)
+    return Fits(b, residual, b2, residual2)
+
+
 def lambertian_fill(
     intensities: np.ndarray,
     lights: np.ndarray,
@@ -93,21 +140,14 @@ def lambertian_fill(
     seed: int = SEED,
 ) -> FillResult:
     """Append virtual Lambertian observations (module docstring) to every pixel whose lit
-    observations (value > 0, not masked) a least-squares fit explains to within
-    ``residual_max``; other pixels get the virtual lights masked out."""
+    observations (value > 0, not masked) one of the two least-squares fits explains to
+    within ``residual_max``; other pixels get the virtual lights masked out."""
     I = np.asarray(intensities, dtype=np.float32)
     L = np.asarray(lights, dtype=np.float64)
     P, m = I.shape
     present = np.ones((P, m), dtype=bool) if light_mask is None else np.asarray(light_mask, dtype=bool)
     V = virtual_lights(L, count, w, seed)
-    if m < 3 or np.linalg.matrix_rank(L) < 3:  # no Lambertian fit exists: nothing is filled
-        b = np.zeros((P, 3))
-        filled = np.zeros(P, dtype=bool)
-    else:
-        normals, albedo, valid = least_squares_masked(I, L, missing=~present, shadow_threshold=0.0, return_valid=True)
-        b = normals * albedo[:, None]
-        use = present & (I > 0)
-        filled = valid & (fit_residual(I, L, b, use) < float(residual_max))
+    b, filled = lambertian_fits(I, L, present).choose(float(residual_max))
     virtual = np.maximum(b @ V.T, 0.0).astype(np.float32)
     return FillResult(
         intensities=np.concatenate([I, virtual], axis=1),

@@ -41,10 +41,24 @@ def test_virtual_values_are_the_lambertian_fit_and_real_values_stay():
     np.testing.assert_allclose(out.intensities[lit, m:], want[lit], atol=1e-5)
 
 
-def test_pixels_a_lambertian_fit_does_not_explain_get_no_virtual_light():
+def test_one_bright_outlier_gets_the_second_fit_without_it():
+    n, albedo, I, L = _scene()
+    shiny = I.copy()
+    lit = (I > 0).sum(axis=1) >= 5
+    spike = np.where(lit)[0][::2]
+    shiny[spike, I[spike].argmax(axis=1)] += 3.0  # a specular spike on one light
+    out = lambertian_fill(shiny, L)
+    m = L.shape[0]
+    assert out.filled[spike].all()
+    np.testing.assert_array_equal(out.intensities[:, :m], shiny)  # the spike stays as measured
+    want = np.maximum((albedo[spike, None] * n[spike]) @ out.lights[m:].T, 0)
+    np.testing.assert_allclose(out.intensities[spike, m:], want, atol=1e-5)  # the fit without it
+
+
+def test_pixels_no_lambertian_fit_explains_get_no_virtual_light():
     n, _, I, L = _scene()
     shiny = I.copy()
-    shiny[::2, 0] += 3.0  # a specular spike on every other pixel's first light
+    shiny[::2, :2] += np.array([3.0, 2.0])  # two bright outliers: neither fit explains them
     out = lambertian_fill(shiny, L)
     m = L.shape[0]
     assert not out.filled[::2].any()
