@@ -18,8 +18,9 @@ import numpy as np
 from cnnps.core.lambertian import least_squares
 
 
-def _solve(I: np.ndarray, use: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Batched weighted normal equations: (b (n, 3), ok (n,) bool)."""
+def solve_weighted(I: np.ndarray, use: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched normal equations over each row's ``use``d lights: (b = albedo x normal (n, 3),
+    ok (n,) bool: at least 3 used, non-coplanar lights; b is 0 where not ok)."""
     LL = (L[:, :, None] * L[:, None, :]).reshape(-1, 9)
     W = use.astype(np.float64)
     A = (W @ LL).reshape(-1, 3, 3)
@@ -63,9 +64,9 @@ def least_squares_masked(
     if shadow_threshold is not None:
         peak = np.where(present, Ic, -np.inf).max(axis=1, keepdims=True)
         use &= Ic > float(shadow_threshold) * peak
-    b, ok = _solve(Ic, use, L)
+    b, ok = solve_weighted(Ic, use, L)
     if shadow_threshold is not None and not ok.all():
-        b2, ok2 = _solve(Ic[~ok], present[~ok], L)
+        b2, ok2 = solve_weighted(Ic[~ok], present[~ok], L)
         b[~ok] = b2
         fallback = np.flatnonzero(~ok)
         ok = ok.copy()

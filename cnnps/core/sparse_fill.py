@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cnnps.core.masked_lstsq import least_squares_masked
+from cnnps.core.masked_lstsq import least_squares_masked, solve_weighted
 from cnnps.core.obsmap import DEFAULT_WIDTH, light_cells
 
 FILL_BELOW = 50  # fill captures with fewer images than this (the dense training maps' minimum)
@@ -122,10 +122,8 @@ def lambertian_fits(intensities: np.ndarray, lights: np.ndarray, light_mask: np.
     brightest = np.zeros((P, m), dtype=bool)
     brightest[np.arange(P), np.where(present, I, -np.inf).argmax(axis=1)] = True
     kept = lit & ~brightest
-    normals2, albedo2, valid2 = least_squares_masked(I, L, missing=~present | brightest, shadow_threshold=0.0,
-                                                     return_valid=True)
-    b2 = normals2 * albedo2[:, None]
-    ok2 = valid2 & (kept.sum(axis=1) >= 4)
+    b2, ok2 = solve_weighted(I.astype(np.float64), kept, L)
+    ok2 &= kept.sum(axis=1) >= 4
     residual2 = np.where(ok2, fit_residual(I, L, b2, kept), np.inf)
     return Fits(b, residual, b2, residual2)
 

@@ -133,11 +133,12 @@ def predict_normals(
         raise ValueError(f"lights must be ({m}, 3) to match intensities, got {lights.shape}")
     from cnnps.core.sparse_fill import lambertian_fill, should_fill
 
-    light_mask = None
-    if should_fill(sparse_fill, m):
-        fill = lambertian_fill(intensities, lights, w=getattr(model, "w", 32))
-        intensities, lights, light_mask = fill.intensities, fill.lights, fill.light_mask
+    fill = should_fill(sparse_fill, m)
     predictor = MapPredictor(model, device=device, precision=precision, batch_size=batch_size)
+    light_mask = None
+    if fill:
+        f = lambertian_fill(intensities, lights, w=predictor.w)
+        intensities, lights, light_mask = f.intensities, f.lights, f.light_mask
     bar = None
     if progress:
         from tqdm.auto import tqdm
