@@ -15,7 +15,12 @@ CORE_VENV  := .venv-core
 CORE_PY    := $(CORE_VENV)/bin/python
 CORE_STAMP := $(CORE_VENV)/.installed
 
-.PHONY: setup setup-core demo test test-core bench clean-venv
+# build/venvs: for `make test-versions`, Python 3.12 and 3.13 with the core requirements
+# except torch and dvc.
+VERSION_VENVS ?= build/venvs
+NEWER_PYTHONS ?= 3.12 3.13
+
+.PHONY: setup setup-core demo test test-core test-versions bench clean-venv
 
 setup: $(STAMP)
 
@@ -51,8 +56,17 @@ test-core: setup-core
 	print("$(CORE_VENV): no bpy, numpy", numpy.__version__)'
 	$(CORE_PY) -m pytest -q
 
+# The core install on the newer Pythons (tests/test_python_versions.py): for each of
+# $(NEWER_PYTHONS) found on PATH or under pyenv, an environment in $(VERSION_VENVS) with the
+# core requirements except torch and dvc (from PyPI; torch is never installed there), then
+# the metadata and torch-free import checks with those interpreters. A version not found
+# is reported and its tests skip.
+test-versions: setup-core
+	pythons="$$($(CORE_PY) -m tests.support.pythons $(VERSION_VENVS) $(NEWER_PYTHONS))" && \
+	CNNPS_TEST_PYTHONS="$$pythons" $(CORE_PY) -m pytest -q -rs tests/test_python_versions.py
+
 bench: setup
 	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
 
 clean-venv:
-	rm -rf $(VENV) $(CORE_VENV)
+	rm -rf $(VENV) $(CORE_VENV) $(VERSION_VENVS)

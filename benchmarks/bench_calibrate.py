@@ -44,7 +44,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.machine import cpu_info  # noqa: E402
-from cnnps.core.atomic import write_text  # noqa: E402
+from cnnps.infra.atomic import write_text  # noqa: E402
 
 
 def _angles(a, b) -> np.ndarray:
@@ -54,14 +54,14 @@ def _angles(a, b) -> np.ndarray:
 
 
 def _predict_mean(capture: Path, out: Path) -> float:
-    from cnnps.pipeline.predict import predict_capture
+    from cnnps.api.prediction import predict_folder
 
-    res = predict_capture(capture, out, method="lambertian", shadow_threshold=0.05, progress=False)
+    res = predict_folder(capture, out, method="lambertian", shadow_threshold=0.05, progress=False)
     return float(res["mean_deg"])
 
 
 def _one(work: Path, radius: float, seed: int, L, E, args, object_means: dict) -> dict:
-    from cnnps.core.calibration import calibrate
+    from cnnps.api.calibration import calibrate
     from cnnps.synth.calibration_scenes import render_calibration_set
 
     root = work / f"seed{seed}_r{radius:g}"
@@ -153,7 +153,11 @@ def main() -> None:
     args = ap.parse_args()
 
     from cnnps.synth.blender_renderer import blender_version
-    from cnnps.synth.calibration_scenes import CHROME_ENVIRONMENT, CHROME_ROUGHNESS, random_intensities
+    from cnnps.synth.calibration_scenes import (
+        CHROME_ENVIRONMENT,
+        CHROME_ROUGHNESS,
+        random_intensities,
+    )
     from cnnps.synth.lights import hemisphere_lights
 
     tmp = None

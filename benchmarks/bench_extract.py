@@ -28,8 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.core.obsmap import observation_maps
-from cnnps.core.rotation import rotation_angles
+from cnnps.io.shards import SceneShardWriter, make_batch, shard_schema
+from cnnps.ps.obsmap import observation_maps
+from cnnps.ps.rotation import rotation_angles
 from cnnps.stages.extract import Params
 from cnnps.synth.training_samples import (
     STREAM_SPARSE,
@@ -39,8 +40,6 @@ from cnnps.synth.training_samples import (
     sample_light_masks,
     stream,
 )
-from cnnps.core.shards import SceneShardWriter, make_batch, shard_schema
-
 
 AUGMENT = dict(
     ambient_max=0.05, intensity_error=0.05, direction_error_deg=2.0, black_level_max=0.02, noise_max=0.05,

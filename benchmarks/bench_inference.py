@@ -15,9 +15,9 @@ Measures network inferences per second (maps prebuilt) for
   * bf16: ``FoldedCNNPS`` under ``torch.autocast(bfloat16)`` (what precision="bf16" runs);
 and the wall time of ``predict_normals`` for a whole object (``--pixels``, 96 lights,
 observation maps included) at K = 1 (best of ``--repeat``) and K = 10 (one run).
-``--precision auto`` (issue 15): the probe's choice on this machine for the shipped model
+``--precision auto``: the probe's choice on this machine for the shipped model
 (:func:`cnnps.models.precision_probe.probe`, uncached), and DiLiGenT BALL at K=10 end to
-end (``predict_capture`` in this process: images read, maps, network, rotations, outputs
+end (``predict_folder`` in this process: images read, maps, network, rotations, outputs
 written) with ``auto`` and with ``fp32``, against the naive eager forward pass of the same
 network (``CNNPS`` as trained, fp32, NCHW, batch 256) over the same number of maps, timed
 on 4,096 of BALL's own maps in the same run and scaled to all of them (the maps' values do
@@ -49,11 +49,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.machine import cpu_info  # noqa: E402
-from cnnps.core.atomic import write_text  # noqa: E402
-from cnnps.core.obsmap import observation_maps  # noqa: E402
+from cnnps.infra.atomic import write_text  # noqa: E402
 from cnnps.models.inference import MapPredictor, predict_normals  # noqa: E402
 from cnnps.models.network import CNNPS  # noqa: E402
-
+from cnnps.ps.obsmap import observation_maps  # noqa: E402
 
 
 def _scene(P: int, m: int = 96, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -86,11 +85,11 @@ def ball_k10(ball: Path, repeat: int) -> dict:
     import subprocess
     import tempfile
 
-    from cnnps.core.capture import load_capture
-    from cnnps.core.rotation import rotate_z, rotation_angles
+    from cnnps.io.capture import load_capture
     from cnnps.models.checkpoint import load_checkpoint
     from cnnps.models.precision_probe import probe
     from cnnps.models.shipped import weights_path
+    from cnnps.ps.rotation import rotate_z, rotation_angles
 
     net, _, _ = load_checkpoint(weights_path(), "cpu")
     choice = probe(net, torch.device("cpu"))

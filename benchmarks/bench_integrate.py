@@ -6,7 +6,7 @@ analytic height fields.
 
 Speed: a Gaussian bump on a tilted plane over an elliptical mask with two holes and a
 notch holding ``--megapixels`` million pixels; wall time of
-``cnnps.core.integrate.integrate`` (best and median of ``--repeat``) and of one whole
+``cnnps.ps.integrate.integrate`` (best and median of ``--repeat``) and of one whole
 ``write_surface_outputs`` (integration + mesh + depth.npy/png + surface.ply; the
 one-off ~1.5 s import of trimesh excluded).
 ``--discontinuities`` also times one robust (``discontinuities=True``) integration;
@@ -41,9 +41,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.machine import cpu_info  # noqa: E402
-from cnnps.core.atomic import write_text  # noqa: E402
-from cnnps.core.integrate import _grid, _laplacian, _rhs, gradients, integrate  # noqa: E402
-from cnnps.core.surface import write_surface_outputs  # noqa: E402
+from cnnps.infra.atomic import write_text  # noqa: E402
+from cnnps.io.surface import write_surface_outputs  # noqa: E402
+from cnnps.ps.integrate import _grid, _laplacian, _rhs, gradients, integrate  # noqa: E402
 from tests.support.surfaces import (  # noqa: E402
     analytic_fields,
     distorted_fraction,

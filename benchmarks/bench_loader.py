@@ -1,21 +1,21 @@
-"""The training loader alone, over real shards: samples per second (issue 13).
+"""The training loader alone, over real shards: samples per second.
 
     .venv/bin/python benchmarks/bench_loader.py [--shards data/cpu-train-v3/extract]
         [--seconds 15] [--batch-size 256] [--out benchmarks/results/loader.json]
 
 Reads the training shards an extract stage wrote (default: the first of
 ``data/cpu-train-v3/extract``, ``data/cpu-train/extract``, ``data/extract`` that exists)
-exactly as the train stage does (:class:`cnnps.core.shards.ShardStream`: row groups in
+exactly as the train stage does (:class:`cnnps.io.shards.ShardStream`: row groups in
 the epoch's seeded order, Parquet decoding, the finiteness check, the 65,536-row shuffle
 buffer) and times, for ``--seconds`` each, interleaved over two rounds (best kept):
 
 - ``stream``: the numpy batches (maps float16, normals float32): what a GPU run sends to
   the device (float16 is converted there);
-- ``dataset``: :class:`~cnnps.core.shards.ShardDataset`'s torch tensors, maps converted to
+- ``dataset``: :class:`~cnnps.models.shard_dataset.ShardDataset`'s torch tensors, maps converted to
   float32 on the CPU: what a CPU run consumes;
 
 each with ``prefetch`` 0 (row groups decoded in the consuming thread) and 2 (the
-default: decoded ahead in a background thread, :mod:`cnnps.core.prefetch`). Nothing else
+default: decoded ahead in a background thread, :mod:`cnnps.infra.prefetch`). Nothing else
 runs: no network. Results with the CPU model and load averages go to ``--out``.
 """
 
@@ -34,8 +34,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.machine import cpu_info  # noqa: E402
-from cnnps.core.atomic import write_text  # noqa: E402
-from cnnps.core.shards import ShardDataset, ShardStream, load_manifest, manifest_files  # noqa: E402
+from cnnps.infra.atomic import write_text  # noqa: E402
+from cnnps.io.shards import ShardStream, load_manifest, manifest_files  # noqa: E402
+from cnnps.models.shard_dataset import ShardDataset  # noqa: E402
 
 CANDIDATES = ("data/cpu-train-v3/extract", "data/cpu-train/extract", "data/extract")
 

@@ -14,7 +14,7 @@ Measures, with `cnnps predict` (images read included):
     benchmarks/image_lists/, drawn by benchmarks/image_subsets.py's seeded rule), CNN K=1
     and K=10 against least squares on the same images and pixels, each with the network
     alone (``cnn_k*_fp32``) and with the Lambertian fill (``cnn_k*_fp32_fill``, what
-    ``cnnps predict`` does below 50 images; cnnps.core.sparse_fill). ``--only-subsets``
+    ``cnnps predict`` does below 50 images; cnnps.ps.sparse_fill). ``--only-subsets``
     measures just that (results under ``ball_subsets``, merged into an existing --out file).
 Skips the parts whose data is absent. Published on BALL: least squares 4.10°, PS-FCN 2.82°,
 CNN-PS 2.7° (K=1) / 2.2° (K=10).
@@ -32,19 +32,18 @@ import tempfile
 import time
 from pathlib import Path
 
-
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from cnnps.core.atomic import write_text  # noqa: E402
-from cnnps.pipeline.predict import predict_capture  # noqa: E402
+from cnnps.api.prediction import predict_folder  # noqa: E402
+from cnnps.infra.atomic import write_text  # noqa: E402
 
 
 def _predict(capture: Path, tmp: Path, **kw) -> tuple[dict, float, Path]:
     out = tmp / f"out-{len(list(tmp.iterdir()))}"
     t = time.perf_counter()
     # saturated observations kept, as published methods score DiLiGenT (and as v2 was measured)
-    result = predict_capture(capture, out, progress=False, saturated="keep", **kw)
+    result = predict_folder(capture, out, progress=False, saturated="keep", **kw)
     return result, time.perf_counter() - t, out
 
 

@@ -26,7 +26,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from cnnps.core.obsmap import observation_maps  # noqa: E402
+from cnnps.ps.obsmap import observation_maps  # noqa: E402
 
 
 def _best(fn, repeat: int) -> float:
@@ -59,7 +59,7 @@ def bench_maps(P: int, m: int, repeat: int, chunk: int = 8192) -> dict:
 
 
 def bench_lambertian(P: int, m: int, repeat: int) -> dict:
-    from cnnps.core.lambertian import least_squares
+    from cnnps.ps.least_squares import least_squares
 
     rng = np.random.default_rng(0)
     I = rng.uniform(0, 1, (P, m))
@@ -73,8 +73,8 @@ def bench_ball(repeat: int) -> dict | None:
     ball = Path(os.environ.get("CNNPS_SHARED", REPO.parent / "shared")) / "data" / "diligent" / "ballPNG"
     if not ball.is_dir():
         return None
-    from cnnps.core.capture import load_capture
-    from cnnps.pipeline.predict import predict_capture
+    from cnnps.api.prediction import predict_folder
+    from cnnps.io.capture import load_capture
 
     load = _best(lambda: load_capture(ball), repeat)
     cap = load_capture(ball)
@@ -82,7 +82,7 @@ def bench_ball(repeat: int) -> dict | None:
     maps = _best(lambda: observation_maps(I, cap.lights), repeat)
     with tempfile.TemporaryDirectory() as tmp:
         t = time.perf_counter()
-        res = predict_capture(ball, Path(tmp) / "out", method="lambertian", progress=False)
+        res = predict_folder(ball, Path(tmp) / "out", method="lambertian", progress=False)
         predict_s = time.perf_counter() - t
     return {
         "images": cap.n_images,
@@ -127,7 +127,7 @@ def main(argv=None) -> int:
         "repeat": args.repeat,
         "note": "best of repeat runs; machine shared with other work, timings noisy",
     }
-    from cnnps.core.atomic import write_text
+    from cnnps.infra.atomic import write_text
 
     write_text(args.out, json.dumps(result, indent=2) + "\n")
     print(f"wrote {args.out}")

@@ -1,4 +1,4 @@
-"""Peak memory and time of ``cnnps predict`` against image size (tiles, issue 10 part 3).
+"""Peak memory and time of ``cnnps predict`` against image size (tiled prediction).
 
 Writes a synthetic capture per size itself (a textured Lambertian sphere, 16-bit RGB PNGs,
 a disk mask, DiLiGenT layout: filenames.txt, light_directions.txt, light_intensities.txt,

@@ -1,5 +1,5 @@
 """K = 10 rotations on BALL pixels: one-pass map building with and without read-ahead,
-the former per-rotation loop, and the network batch size, in one process (issue 15).
+the former per-rotation loop, and the network batch size, in one process.
 
     .venv/bin/python benchmarks/bench_rotations.py [--pixels 4000] [--rounds 3]
         [--out benchmarks/results/rotations.json]
@@ -25,7 +25,7 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 
 from benchmarks.machine import cpu_info  # noqa: E402
-from cnnps.core.atomic import write_text  # noqa: E402
+from cnnps.infra.atomic import write_text  # noqa: E402
 
 
 def main() -> None:
@@ -35,12 +35,12 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "rotations.json")
     args = ap.parse_args()
-    from cnnps.core.capture import load_capture
-    from cnnps.core.obsmap import observation_maps
-    from cnnps.core.rotation import average_rotated_predictions, rotate_z, rotation_angles
+    from cnnps.io.capture import load_capture
     from cnnps.models.checkpoint import load_checkpoint
     from cnnps.models.inference import MapPredictor, rotated_normals
     from cnnps.models.shipped import shipped_model_path
+    from cnnps.ps.obsmap import observation_maps
+    from cnnps.ps.rotation import average_rotated_predictions, rotate_z, rotation_angles
 
     cap = load_capture(args.ball)
     I, L = cap.pixel_intensities()[: args.pixels], cap.lights
@@ -48,7 +48,7 @@ def main() -> None:
     preds = {bs: MapPredictor(net, device="cpu", precision="fp32", batch_size=bs) for bs in (128, 256, 512)}
     angles = rotation_angles(10)
 
-    def per_rotation_loop(pred):  # before issue 15: K separate observation_maps calls per chunk
+    def per_rotation_loop(pred):  # the former way: K separate observation_maps calls per chunk
         rot = [rotate_z(L, a) for a in angles]
         out = np.empty((len(I), 3), np.float32)
         for s in range(0, len(I), 4096):

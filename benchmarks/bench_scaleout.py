@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     os.environ.setdefault("TQDM_DISABLE", "1")  # tqdm >= 4.66: no bars in the timings
 
-    from cnnps.core.executor import LocalExecutor, RayExecutor, cores, ray_available
+    from cnnps.infra.executor import LocalExecutor, RayExecutor, cores, ray_available
     from cnnps.stages import render
 
     params = render.Params(size=args.size, samples=args.samples, lights=args.lights, jitter_deg=2.0)
@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> dict:
         date=time.strftime("%Y-%m-%d %H:%M:%S"),
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    from cnnps.core.atomic import write_text
+    from cnnps.infra.atomic import write_text
 
     write_text(args.out, json.dumps(result, indent=2) + "\n")
     print(f"wrote {args.out}")

@@ -1,4 +1,4 @@
-"""The Lambertian fill (cnnps.core.sparse_fill): does it pay, and which residual gate.
+"""The Lambertian fill (cnnps.ps.sparse_fill): does it pay, and which residual gate.
 
     .venv/bin/python benchmarks/bench_sparse_fill.py [--model M] [--rotations 1 10] [--gates 0.03 0.06 0.1 0.2]
         [--counts 90] [--testset data/eval-v2/eval/testset] [--out benchmarks/results/sparse_fill.json]
@@ -34,14 +34,20 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from cnnps.core.atomic import write_text  # noqa: E402
-from cnnps.core.capture import load_capture  # noqa: E402
-from cnnps.core.masked_lstsq import least_squares_masked  # noqa: E402
-from cnnps.core.metrics import angular_error_deg  # noqa: E402
-from cnnps.core.sparse_fill import RESIDUAL_MAX, VIRTUAL_LIGHTS, lambertian_fits, virtual_lights  # noqa: E402
+from machine import cpu_info  # noqa: E402
+
+from cnnps.infra.atomic import write_text  # noqa: E402
+from cnnps.io.capture import load_capture  # noqa: E402
 from cnnps.models.checkpoint import load_checkpoint  # noqa: E402
 from cnnps.models.inference import predict_normals  # noqa: E402
-from machine import cpu_info  # noqa: E402
+from cnnps.ps.least_squares import least_squares_masked  # noqa: E402
+from cnnps.ps.metrics import angular_error_deg  # noqa: E402
+from cnnps.ps.sparse_fill import (  # noqa: E402
+    RESIDUAL_MAX,
+    VIRTUAL_LIGHTS,
+    lambertian_fits,
+    virtual_lights,
+)
 
 
 def _cases(testset: Path, shared: Path):

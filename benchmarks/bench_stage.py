@@ -1,4 +1,4 @@
-"""The train stage against the bare training step, on one device, in one run (issue 13).
+"""The train stage against the bare training step, on one device, in one run.
 
     .venv/bin/python benchmarks/bench_stage.py [--device auto] [--batch-size 128] [--steps 600]
         [--shards data/cpu-train-v3/extract | --synthetic 12] [--seconds 20] [--out PATH]
@@ -50,8 +50,9 @@ import torch  # noqa: E402
 
 from benchmarks.bench_inference import cpu_kind  # noqa: E402
 from benchmarks.machine import cpu_info  # noqa: E402
-from cnnps.core.atomic import write_text  # noqa: E402
-from cnnps.core.shards import ShardDataset, ShardStream, load_manifest, manifest_files  # noqa: E402
+from cnnps.infra.atomic import write_text  # noqa: E402
+from cnnps.io.shards import ShardStream, load_manifest, manifest_files  # noqa: E402
+from cnnps.models.shard_dataset import ShardDataset  # noqa: E402
 
 CANDIDATES = ("data/cpu-train-v3/extract", "data/cpu-train/extract")
 DEFAULT_VAL_EVERY, DEFAULT_CKPT_EVERY = 2000, 1000

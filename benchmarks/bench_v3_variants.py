@@ -43,7 +43,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from cnnps.core.atomic import write_text  # noqa: E402
+from cnnps.infra.atomic import write_text  # noqa: E402
 
 DATA = REPO / "data" / "cpu-train"
 OUT_ROOT = REPO / "data" / "v3var"
@@ -119,7 +119,7 @@ def preset_extract_params():
 
 
 def validation_maps() -> tuple[np.ndarray, np.ndarray]:
-    from cnnps.core.shards import ShardStream, load_manifest, manifest_files
+    from cnnps.io.shards import ShardStream, load_manifest, manifest_files
 
     d = DATA / "extract"
     man = load_manifest(d)
@@ -135,10 +135,10 @@ def _stats(e: np.ndarray) -> dict:
 
 def score(model_path: Path, val: tuple[np.ndarray, np.ndarray], shared: Path) -> dict:
     from benchmarks.image_subsets import drop_for, list_path, read_list
-    from cnnps.core.capture import load_capture
-    from cnnps.core.metrics import angular_error_deg
+    from cnnps.io.capture import load_capture
     from cnnps.models.checkpoint import load_checkpoint
     from cnnps.models.inference import MapPredictor, predict_normals
+    from cnnps.ps.metrics import angular_error_deg
 
     net, _, meta = load_checkpoint(model_path, "cpu")
     out: dict = {"val": {"maps": len(val[0]), **_stats(angular_error_deg(MapPredictor(net, device="cpu")(val[0]), val[1]))}}

@@ -50,7 +50,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from cnnps.core.atomic import write_text  # noqa: E402
+from cnnps.infra.atomic import write_text  # noqa: E402
 
 VARIANTS = {
     "init": None,
@@ -65,7 +65,7 @@ COMMON_VAL = "data/var-views1/extract"  # its val split: the view-0 validation s
 
 
 def common_val(max_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    from cnnps.core.shards import ShardStream, load_manifest, manifest_files
+    from cnnps.io.shards import ShardStream, load_manifest, manifest_files
 
     d = REPO / COMMON_VAL
     man = load_manifest(d)
@@ -81,11 +81,11 @@ def common_val(max_rows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def score(model_path: Path, val: tuple[np.ndarray, np.ndarray], shared: Path) -> dict:
-    from cnnps.core.capture import load_capture
-    from cnnps.core.metrics import angular_error_deg
-    from cnnps.core.obsmap import observation_maps
+    from cnnps.io.capture import load_capture
     from cnnps.models.checkpoint import load_checkpoint
     from cnnps.models.inference import MapPredictor, predict_normals
+    from cnnps.ps.metrics import angular_error_deg
+    from cnnps.ps.obsmap import observation_maps
 
     net, _, _ = load_checkpoint(model_path, "cpu")
     out: dict = {}

@@ -1,4 +1,4 @@
-"""v2, v3, v3.1 and v3.1 with the Lambertian fill (cnnps.core.sparse_fill), side by side: the README's model table, from measured results only.
+"""v2, v3, v3.1 and v3.1 with the Lambertian fill (cnnps.ps.sparse_fill), side by side: the README's model table, from measured results only.
 
     .venv/bin/python benchmarks/compare_models.py --eval v2=data/eval-v2/eval/metrics.json \
         --eval v3=data/cpu-train-v3-polish/eval/metrics.json --eval v3.1=data/eval-v3.1/eval/metrics.json \
@@ -25,7 +25,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from cnnps.core.atomic import write_text  # noqa: E402
+from cnnps.infra.atomic import write_text  # noqa: E402
 
 
 def eval_summary(metrics: dict) -> dict:

@@ -15,8 +15,8 @@ table). Inputs:
 - render disk: bytes per rendered pixel of the v3 training renders (EXR as written);
 - extract: maps/s and bytes per Parquet row at 1,300 lights, ``benchmarks/results/extract.json``;
 - train: samples = epochs x maps; the rates are the train stage's and the bare step's from
-  ``benchmarks/results/stage/*.json`` on CPU and, on an H100, issue 13's own
-  measurements (stage 25,000 samples/s at batch 256 before the loader work; bare step
+  ``benchmarks/results/stage/*.json`` on CPU and, on an H100, the figures measured when
+  the loader was reworked (stage 25,000 samples/s at batch 256 before that work; bare step
   120,000 / 144,000 at batch 4,096 in fp32 / bf16). N GPUs: DDP at N x one GPU's rate,
   which holds only while each rank's loader keeps up (loader alone: ``loader.json``).
 """
@@ -97,7 +97,7 @@ def main() -> None:
             est["train"][f"h100_x{n}_{name}"] = {"samples_per_s": rate * n, "hours": _hours(samples / (rate * n))}
     est["paper_scale_note"] = ("the paper trained on ~75 M maps for 10 epochs (750 M samples): "
                                f"{_hours(750e6 / H100['bare_bs4096_fp32'])} h at one H100's bare fp32 step, "
-                               f"{_hours(750e6 / H100['stage_bs256_before'])} h at the stage's rate before issue 13")
+                               f"{_hours(750e6 / H100['stage_bs256_before'])} h at the stage's rate before the loader work")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(est, indent=2) + "\n")
     print(json.dumps(est, indent=2))

@@ -25,7 +25,7 @@ sys.path.insert(0, str(REPO))
 
 def usable_images(capture: Path) -> list[str]:
     """Image names in light order, after the benchmark's default drops."""
-    from cnnps.core.capture import DEFAULT_DROPS
+    from cnnps.io.capture import DEFAULT_DROPS
 
     names = [n.strip() for n in (capture / "filenames.txt").read_text().splitlines() if n.strip()]
     drop = set(DEFAULT_DROPS.get(capture.name, ()))

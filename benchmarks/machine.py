@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from cnnps.core.machine import CPU_FLAGS, cpu_model_and_flags, logical_cpus  # noqa: F401 (CPU_FLAGS: API)
+from cnnps.infra.machine import CPU_FLAGS, cpu_model_and_flags, logical_cpus  # noqa: F401 (CPU_FLAGS: API)
 
 
 def cpu_info() -> dict:

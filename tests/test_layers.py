@@ -1,6 +1,6 @@
 """The layering contract of docs/ARCHITECTURE.md, read from the source.
 
-core -> models -> synth -> stages -> pipeline: a module imports its own layer or a lower
+infra -> ps -> io -> models -> synth -> stages -> api -> pipeline: a module imports its own layer or a lower
 one, never a higher one, lazily inside a function included; no two modules import each
 other, directly or round a loop; only the Blender renderer imports bpy.
 """
@@ -74,17 +74,23 @@ def tree(tmp_path):
     """A small clean package, one module a layer, each importing the layer below, to break on purpose."""
     files = {
         "cnnps/__init__.py": "",
-        "cnnps/core/__init__.py": "",
-        "cnnps/core/obsmap.py": "import numpy\n",
-        "cnnps/core/rotation.py": "from . import obsmap\n",
+        "cnnps/infra/__init__.py": "",
+        "cnnps/infra/errors.py": "import os\n",
+        "cnnps/ps/__init__.py": "",
+        "cnnps/ps/obsmap.py": "import numpy\nfrom cnnps.infra import errors\n",
+        "cnnps/ps/rotation.py": "from . import obsmap\n",
+        "cnnps/io/__init__.py": "",
+        "cnnps/io/images.py": "from cnnps.ps import rotation\n",
         "cnnps/models/__init__.py": "",
-        "cnnps/models/network.py": "from cnnps.core.rotation import rotate_z\n",
+        "cnnps/models/network.py": "from cnnps.ps.rotation import rotate_z\nfrom cnnps.io import images\n",
         "cnnps/synth/__init__.py": "",
         "cnnps/synth/raster.py": "from ..models import network\n",
         "cnnps/stages/__init__.py": "",
         "cnnps/stages/train.py": "import cnnps.synth.raster\n",
+        "cnnps/api/__init__.py": "",
+        "cnnps/api/prediction.py": "from cnnps.stages import train\n",
         "cnnps/pipeline/__init__.py": "",
-        "cnnps/pipeline/config.py": "def f():\n    from cnnps.stages import train\n",
+        "cnnps/pipeline/config.py": "def f():\n    from cnnps.api import prediction\n",
     }
     for name, text in files.items():
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
@@ -98,9 +104,9 @@ def _append(path: Path, text: str) -> None:
 
 def test_checker_fails_on_an_upward_import_even_a_lazy_one(tree):
     assert upward_imports(read_imports(tree)) == []
-    _append(tree / "cnnps/core/obsmap.py", "\n\ndef _oops():\n    from cnnps.pipeline import config  # noqa\n")
+    _append(tree / "cnnps/ps/obsmap.py", "\n\ndef _oops():\n    from cnnps.pipeline import config  # noqa\n")
     bad = upward_imports(read_imports(tree))
-    assert len(bad) == 1 and "cnnps.core.obsmap (cnnps.core) imports cnnps.pipeline.config (cnnps.pipeline)" in bad[0]
+    assert len(bad) == 1 and "cnnps.ps.obsmap (cnnps.ps) imports cnnps.pipeline.config (cnnps.pipeline)" in bad[0]
 
 
 def test_checker_fails_on_a_relative_upward_import(tree):
@@ -111,6 +117,18 @@ def test_checker_fails_on_a_relative_upward_import(tree):
 
 def test_checker_fails_on_a_cycle_within_a_layer(tree):
     assert cycles(read_imports(tree)) == []
-    _append(tree / "cnnps/core/rotation.py", "\nfrom cnnps.core import obsmap  # noqa\n")
-    _append(tree / "cnnps/core/obsmap.py", "\nimport cnnps.core.rotation  # noqa\n")
-    assert ["cnnps.core.obsmap", "cnnps.core.rotation"] in cycles(read_imports(tree))
+    _append(tree / "cnnps/ps/rotation.py", "\nfrom cnnps.ps import obsmap  # noqa\n")
+    _append(tree / "cnnps/ps/obsmap.py", "\nimport cnnps.ps.rotation  # noqa\n")
+    assert ["cnnps.ps.obsmap", "cnnps.ps.rotation"] in cycles(read_imports(tree))
+
+
+def test_checker_fails_when_the_maths_imports_file_io(tree):
+    _append(tree / "cnnps/ps/obsmap.py", "\nfrom cnnps.io import images  # noqa\n")
+    bad = upward_imports(read_imports(tree))
+    assert len(bad) == 1 and "cnnps.ps.obsmap (cnnps.ps) imports cnnps.io.images (cnnps.io)" in bad[0]
+
+
+def test_the_grab_bag_core_is_gone():
+    assert not (ROOT / "cnnps/core").exists()
+    old = [f"{i.path}:{i.line}: {i.imported}" for i in read_imports(ROOT) if i.imported.startswith("cnnps.core")]
+    assert not old, "imports of cnnps.core:\n" + "\n".join(old)

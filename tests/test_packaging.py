@@ -1,5 +1,6 @@
-"""How cnnps installs: one top-level package, Blender only in the `render` extra, and the
-presets and shipped weights inside the wheel.
+"""How cnnps installs: one top-level package, Blender only in the `render` extra (and
+only on Python 3.11), and the presets and shipped weights inside the wheel. The metadata on
+Python 3.12 / 3.13 is checked by tests/test_python_versions.py.
 
 These run in both test environments: `make test` (.venv: core + render + dev) and
 `make test-core` (.venv-core: the core install, no bpy, numpy 2).
@@ -37,7 +38,7 @@ def test_only_the_cnnps_namespace_imports():
         "        assert exc.name == old, exc\n"
         "    else:\n"
         "        sys.exit(f'import {old} worked: {sys.modules[old].__file__}')\n"
-        "import cnnps.core, cnnps.models, cnnps.synth, cnnps.stages, cnnps.pipeline\n"
+        "import cnnps.infra, cnnps.ps, cnnps.io, cnnps.models, cnnps.synth, cnnps.stages, cnnps.api, cnnps.pipeline\n"
         "print('ok')\n"
     )
     res = _run([sys.executable, "-c", code], cwd=REPO)  # the checkout's root is on sys.path too
@@ -52,8 +53,9 @@ def _core(reqs: list[Requirement]) -> dict[str, Requirement]:
     return {r.name.lower(): r for r in reqs if r.marker is None or r.marker.evaluate({"extra": ""})}
 
 
-def _extra(reqs: list[Requirement], extra: str) -> dict[str, Requirement]:
-    return {r.name.lower(): r for r in reqs if r.marker is not None and r.marker.evaluate({"extra": extra})}
+def _extra(reqs: list[Requirement], extra: str, env: dict | None = None) -> dict[str, Requirement]:
+    return {r.name.lower(): r for r in reqs
+            if r.marker is not None and r.marker.evaluate({**(env or {}), "extra": extra})}
 
 
 def test_installed_metadata_keeps_blender_out_of_the_core_install():
@@ -61,14 +63,18 @@ def test_installed_metadata_keeps_blender_out_of_the_core_install():
     core = _core(reqs)
     assert "bpy" not in core, "bpy must not be a requirement of `pip install .`"
     bpy = [r for r in reqs if r.name.lower() == "bpy"]
-    assert len(bpy) == 1 and str(bpy[0].marker) == 'extra == "render"', [str(r) for r in bpy]
-    assert str(bpy[0].specifier) == "==5.0.1"
+    assert len(bpy) == 1 and str(bpy[0].specifier) == "==5.0.1", [str(r) for r in bpy]
+    # with the render extra on Python 3.11 only (bpy 5.0.1 wheels exist for 3.11 alone)
+    assert bpy[0].marker.evaluate({"extra": "render", "python_version": "3.11"})
+    for extra, python in [("", "3.11"), ("render", "3.12"), ("render", "3.13")]:
+        assert not bpy[0].marker.evaluate({"extra": extra, "python_version": python}), (extra, python)
     # the core install allows numpy 2; the render extra holds it (and what needs it) below 2
     assert Version("2.2.0") in core["numpy"].specifier
     render = _extra(reqs, "render")
     assert Version("2.0.0") not in render["numpy"].specifier and Version("1.26.4") in render["numpy"].specifier
     assert Version("26.0.0") not in render["pyarrow"].specifier
     assert Version("4.12.0.88") not in render["opencv-python-headless"].specifier
+    assert not _extra(reqs, "render", {"python_version": "3.12"}), "the render extra's bounds apply on 3.11 only"
     # torch: never asks for more than the pinned CPU build the Makefile installs first
     assert Version("2.13.0") in core["torch"].specifier
     # every third-party module the code imports at run time is declared
@@ -97,11 +103,11 @@ def test_wheel_ships_presets_and_weights_and_runs_outside_the_checkout(tmp_path)
     weights = {f"cnnps/models/weights/{p.name}" for p in (REPO / "cnnps" / "models" / "weights").iterdir() if p.is_file()}
     assert "cnnps/presets/demo.yaml" in presets and "cnnps/models/weights/cnnps_default.pt" in weights
     assert presets <= names and weights <= names, sorted((presets | weights) - names)
-    for pkg in ("core", "models", "synth", "stages", "pipeline"):
+    for pkg in ("infra", "ps", "io", "models", "synth", "stages", "api", "pipeline"):
         assert f"cnnps/{pkg}/__init__.py" in names
     meta = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith(".dist-info/METADATA"))).decode()
     bpy = [line for line in meta.splitlines() if line.startswith("Requires-Dist: bpy")]
-    assert bpy == ['Requires-Dist: bpy==5.0.1; extra == "render"'], bpy
+    assert bpy == ['Requires-Dist: bpy==5.0.1; python_version == "3.11" and extra == "render"'], bpy
 
     # unpacked (what pip install does with a pure-Python wheel) and run from elsewhere: the
     # unpacked copy comes first on sys.path, before this environment's own cnnps

@@ -36,9 +36,9 @@ from typing import Any
 
 import torch
 
-from cnnps.core.atomic import atomic_path, write_text
-from cnnps.core.errors import CnnpsError, InputError
-from cnnps.core.hashing import file_sha256
+from cnnps.infra.atomic import atomic_path, write_text
+from cnnps.infra.errors import CnnpsError, InputError
+from cnnps.infra.hashing import file_sha256
 from cnnps.models.network import ARCH_VERSION, CNNPS
 
 FORMAT = "cnnps-checkpoint"

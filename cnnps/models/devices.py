@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from cnnps.core.errors import CnnpsError
+from cnnps.infra.errors import CnnpsError
 
 
 def resolve_device(name: str | torch.device | None = "auto") -> torch.device:

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import torch
 
-from cnnps.core.errors import CnnpsError, ConfigError
-from cnnps.core.shards import ShardStream
+from cnnps.infra.errors import CnnpsError, ConfigError
+from cnnps.io.shards import ShardStream
 from cnnps.models.devices import resolve_device
 
 
@@ -87,7 +87,7 @@ def set_threads(threads: int, info: DistInfo) -> None:
     if threads:
         torch.set_num_threads(threads)
     elif info.enabled:  # processes of this node share its cores
-        from cnnps.core.executor import cores
+        from cnnps.infra.executor import cores
 
         torch.set_num_threads(max(1, cores() // info.local_world_size))
 

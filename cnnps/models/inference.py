@@ -3,7 +3,7 @@
 ``predict_normals`` streams pixels: for each chunk of pixels and each of the K rotation
 angles theta_k it builds the observation maps under the lights rotated by +theta_k, runs
 the network in small batches, and finally rotates each prediction back by -theta_k and
-averages (``cnnps.core.rotation.average_rotated_predictions``). Only one chunk's maps exist
+averages (``cnnps.ps.rotation.average_rotated_predictions``). Only one chunk's maps exist
 at a time, so memory stays bounded for any image size.
 
 Speed (see ``benchmarks/bench_inference.py``): a CNNPS model is never run as trained.
@@ -26,10 +26,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from cnnps.core.errors import CnnpsError
-from cnnps.core.rotation import average_rotated_predictions, rotate_z, rotation_angles
+from cnnps.infra.errors import CnnpsError
 from cnnps.models.devices import resolve_device  # also part of this module's API
 from cnnps.models.network import CNNPS, fast_cpu_model, fold_for_inference
+from cnnps.ps.rotation import average_rotated_predictions, rotate_z, rotation_angles
 
 PRECISIONS = ("fp32", "bf16")
 # Maps built at once (all K rotations of PIXEL_CHUNK // K pixels): 4096 x 32 x 32 float32 = 16 MB.
@@ -122,7 +122,7 @@ def predict_normals(
     batch_size: maps per network call (default ``DEFAULT_BATCH_CPU`` = 256 on CPU,
     ``DEFAULT_BATCH_CUDA`` = 4096 on CUDA).
     sparse_fill: 'auto' | 'on' | 'off': virtual Lambertian observations for sparse captures
-    (:mod:`cnnps.core.sparse_fill`; 'auto' = below ``FILL_BELOW`` = 50 images).
+    (:mod:`cnnps.ps.sparse_fill`; 'auto' = below ``FILL_BELOW`` = 50 images).
     """
     intensities = np.asarray(intensities, dtype=np.float32)
     lights = np.asarray(lights, dtype=np.float64)
@@ -131,7 +131,7 @@ def predict_normals(
     P, m = intensities.shape
     if lights.shape != (m, 3):
         raise ValueError(f"lights must be ({m}, 3) to match intensities, got {lights.shape}")
-    from cnnps.core.sparse_fill import lambertian_fill, should_fill
+    from cnnps.ps.sparse_fill import lambertian_fill, should_fill
 
     fill = should_fill(sparse_fill, m)
     predictor = MapPredictor(model, device=device, precision=precision, batch_size=batch_size)
@@ -141,9 +141,9 @@ def predict_normals(
         intensities, lights, light_mask = f.intensities, f.lights, f.light_mask
     bar = None
     if progress:
-        from tqdm.auto import tqdm
+        from cnnps.infra.progress import progress_bar
 
-        bar = tqdm(total=P * int(rotations), unit="map", unit_scale=True, desc="cnn-ps", leave=False)
+        bar = progress_bar(total=P * int(rotations), unit="map", unit_scale=True, desc="cnn-ps", leave=False)
     try:
         return rotated_normals(predictor, intensities, lights, rotations, light_mask=light_mask, progress=bar,
                                pixel_chunk=pixel_chunk)
@@ -165,15 +165,15 @@ def rotated_normals(
     """(P, 3) float32 normals: K-rotation test-time averaging, pixels in chunks.
 
     The maps of a chunk's pixels under all K rotated light sets are built in one pass
-    (:func:`cnnps.core.obsmap.observation_maps_multi`: the values are masked and laid out
+    (:func:`cnnps.ps.obsmap.observation_maps_multi`: the values are masked and laid out
     once, not K times; identical maps), about ``pixel_chunk`` maps per chunk in all
     (``pixel_chunk // K`` pixels), and ``read_ahead`` chunks ahead in a background thread
-    (:func:`cnnps.core.prefetch.prefetched`; numpy releases the GIL), so building the next
+    (:func:`cnnps.infra.prefetch.prefetched`; numpy releases the GIL), so building the next
     chunk's maps overlaps the network on this one. ``light_mask`` (P, m): False drops an
     observation (e.g. saturated). ``progress``: a tqdm bar updated per map.
     """
-    from cnnps.core.obsmap import observation_maps_multi
-    from cnnps.core.prefetch import prefetched
+    from cnnps.infra.prefetch import prefetched
+    from cnnps.ps.obsmap import observation_maps_multi
 
     angles = rotation_angles(int(rotations))
     rotated = np.stack([rotate_z(lights, a) for a in angles])

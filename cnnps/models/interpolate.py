@@ -19,8 +19,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from cnnps.core.errors import CnnpsError
-from cnnps.core.hashing import file_sha256
+from cnnps.infra.errors import CnnpsError
+from cnnps.infra.hashing import file_sha256
 
 
 def interpolate(a: str | Path, b: str | Path, alpha: float):

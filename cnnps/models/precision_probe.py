@@ -27,19 +27,41 @@ EPYC bf16 has no hardware support at all. So the default is measured, once per m
    answer comes from the cache). Inter-op threads are not tuned: the network is one chain
    of operators, with nothing to run side by side.
 
+5. **Load**: timings taken while other work shares the CPUs decide wrongly (a probe
+   measured beside another job once found 1 thread faster than 2, 1,957 against 1,153
+   maps/s, where the quiet machine gives 2 threads 2,987, and the cached pick halved every
+   later run's speed). Every timed pass records the process's CPU time beside its wall
+   time (:class:`TimedPass`); :func:`judge_load` calls the probe *under load* when, at
+   some thread count, the threads got less than :data:`LOAD_SHARE` of their CPUs' time
+   (CPU seconds / (wall seconds x threads): a quiet machine gives about 1, since the
+   intra-op threads keep their CPUs busy through a pass, and a job sharing the CPUs takes
+   its part of them away), or when two passes of the same candidate disagree by more than
+   :data:`PASS_SPREAD` (a load that came or went). A probe under load is used for this run
+   only: not cached, and its reason says why. The CPU share is used rather than
+   ``os.getloadavg()``: the load average counts the whole host (in a container, other
+   tenants' CPUs too), lags by a minute and counts this process's own threads; the CPU
+   share measures what the timed passes themselves got. It cannot see a job on a
+   hyperthread sibling (the threads keep their CPU time but run slower): a run that is then
+   far slower than the probe is the second guard (:func:`report_rate`).
+
 The probe takes about a second (384 maps; a candidate that is clearly slower is stopped
 after 64). Its
 answer is cached per (CPU model and flags, logical CPUs, torch version, device, model
 SHA-256) in ``$CNNPS_CACHE_DIR`` or ``$XDG_CACHE_HOME/cnnps`` (default
 ``~/.cache/cnnps``), file ``precision.json``, written atomically; a cache that cannot be
-read or written is ignored (the probe just runs again). ``--precision fp32|bf16`` never
-probes. :class:`Choice` says which path runs and why; ``cnnps predict -v`` prints it and
-``prediction.json`` records it.
+read or written is ignored (the probe just runs again). A cached answer is used for
+:data:`CACHE_MAX_AGE_S` (30 days) after its probe, then probed again (a machine's load,
+firmware and neighbours change); :func:`report_rate`, called after a run with the rate the
+run reached, drops the answer when that rate is under :data:`SLOW_RUN_FACTOR` (half) of
+the probe's, so the next run probes again. ``--precision fp32|bf16`` never probes.
+:class:`Choice` says which path runs and why (and, when cached, how old it is);
+``cnnps predict -v`` prints it and ``prediction.json`` records it.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from dataclasses import asdict, dataclass, field
@@ -49,10 +71,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from cnnps.core.atomic import write_text
-from cnnps.core.machine import cpu_model_and_flags, logical_cpus
-from cnnps.core.metrics import angular_error_deg
-from cnnps.core.obsmap import observation_maps
+from cnnps.infra.atomic import write_text
+from cnnps.infra.machine import cpu_model_and_flags, logical_cpus
+from cnnps.ps.metrics import angular_error_deg
+from cnnps.ps.obsmap import observation_maps
 
 CANDIDATES = ("fp32", "bf16")
 TOLERANCE_DEG = 0.05
@@ -63,7 +85,57 @@ PROBE_REPEATS = 2
 PROBE_BUDGET_S = 0.5  # per timed pass of one candidate
 PROBE_SEED = 20261123
 CACHE_FILE = "precision.json"
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: entries carry ``probed_at``; version-1 entries (maybe probed under load) are dropped
+LOAD_SHARE = 0.75  # threads that got less of their CPUs' time than this during the timed passes ran under load
+PASS_SPREAD = 1.3  # two passes of the same candidate farther apart than this (slower / faster): load changed
+CACHE_MAX_AGE_S = 30 * 24 * 3600.0  # a cached answer is probed again after 30 days
+SLOW_RUN_FACTOR = 0.5  # a run under half the probe's rate drops the cached answer (report_rate)
+
+# clocks, read through the module so that tests can drive them
+wall_clock = time.perf_counter
+cpu_clock = time.process_time  # CPU seconds of every thread of this process
+now = time.time  # when an answer was probed (cache ages)
+
+
+@dataclass(frozen=True)
+class TimedPass:
+    """One timed call of a candidate over ``maps`` maps: its wall time and the process's
+    CPU time over the same interval, with ``threads`` intra-op threads (None: on a GPU)."""
+
+    candidate: str
+    threads: int | None
+    maps: int
+    wall_s: float
+    cpu_s: float
+
+
+def judge_load(passes: list[TimedPass]) -> str | None:
+    """Why the timings in ``passes`` may have been decided by other work on the machine
+    (one line), or None when they look quiet (see the module docstring, step 5)."""
+    notes = []
+    for threads, share in cpu_shares(passes).items():
+        if share < LOAD_SHARE:
+            notes.append(f"{threads} thread{'s' if threads != 1 else ''} got {share:.0%} of their CPUs' time")
+    groups: dict[tuple, list[float]] = {}
+    for p in passes:
+        groups.setdefault((p.candidate, p.threads, p.maps), []).append(p.wall_s)
+    for (candidate, threads, _), walls in groups.items():
+        if len(walls) > 1 and max(walls) > PASS_SPREAD * max(min(walls), 1e-9):
+            at = f" at {threads} threads" if threads else ""
+            notes.append(f"{candidate}{at}: passes {max(walls) / max(min(walls), 1e-9):.2f}x apart")
+    return "; ".join(notes) or None
+
+
+def cpu_shares(passes: list[TimedPass]) -> dict[int, float]:
+    """{threads: CPU seconds / (wall seconds x threads)} over the CPU passes at each thread
+    count: about 1 when the threads had their CPUs to themselves."""
+    cpu: dict[int, float] = {}
+    capacity: dict[int, float] = {}
+    for p in passes:
+        if p.threads and p.wall_s > 0:
+            cpu[p.threads] = cpu.get(p.threads, 0.0) + p.cpu_s
+            capacity[p.threads] = capacity.get(p.threads, 0.0) + p.wall_s * p.threads
+    return {t: cpu[t] / capacity[t] for t in cpu if capacity[t] > 0}
 
 
 @dataclass
@@ -80,6 +152,10 @@ class Choice:
     probe_seconds: float = 0.0
     threads: int | None = None  # torch intra-op threads to run with (CPU; None: leave as is)
     thread_rates: dict = field(default_factory=dict)  # threads -> maps/s of the pick
+    probed_at: float | None = None  # when the probe ran (seconds since the epoch)
+    age_seconds: float | None = None  # how old a cached answer is (None: probed now)
+    under_load: bool = False  # the probe's timings may have been decided by other work: not cached
+    cpu_share: dict = field(default_factory=dict)  # threads -> share of their CPUs' time while timed
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -141,25 +217,32 @@ def _mean_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _time_candidate(predictor, maps: np.ndarray, floor: float | None,
-                    stoppable: bool = True) -> tuple[float, np.ndarray | None]:
+                    stoppable: bool = True, passes: list | None = None) -> tuple[float, np.ndarray | None]:
     """(maps/s, normals) of one candidate: a small warm-up call, a timed estimate on
     :data:`WARM_MAPS` maps, then the best of :data:`PROBE_REPEATS` passes over all maps.
     Stopped after the estimate, with normals None, when it shows the candidate would take
     more than :data:`PROBE_BUDGET_S` or runs at under half of ``floor`` (the fastest rate so
     far): it cannot be the pick. The reference (fp32, ``stoppable=False``) always runs to
-    the end, however slow the machine: the others are judged against its normals."""
+    the end, however slow the machine: the others are judged against its normals. Each
+    timed call is appended to ``passes`` (:class:`TimedPass`) when given."""
+    threads = torch.get_num_threads() if getattr(predictor, "device", torch.device("cpu")).type == "cpu" else None
+
+    def timed(batch: np.ndarray) -> tuple[float, np.ndarray]:
+        w0, c0 = wall_clock(), cpu_clock()
+        out = predictor(batch)
+        wall, cpu = wall_clock() - w0, cpu_clock() - c0
+        if passes is not None:
+            passes.append(TimedPass(predictor.precision, threads, len(batch), wall, cpu))
+        return max(wall, 1e-9), out
+
     predictor(maps[:16])  # first call: kernels chosen, caches filled
     warm = maps[:WARM_MAPS]
-    t0 = time.perf_counter()
-    predictor(warm)
-    estimate = len(warm) / max(time.perf_counter() - t0, 1e-9)
+    estimate = len(warm) / timed(warm)[0]
     if stoppable and (len(maps) / estimate > PROBE_BUDGET_S or (floor is not None and estimate < 0.5 * floor)):
         return estimate, None
     best, out = None, None
     for _ in range(PROBE_REPEATS):
-        t0 = time.perf_counter()
-        out = predictor(maps)
-        dt = time.perf_counter() - t0
+        dt, out = timed(maps)
         best = dt if best is None else min(best, dt)
     return len(maps) / best, out
 
@@ -168,7 +251,8 @@ def probe(model: nn.Module, device: torch.device, batch_size: int | None = None)
     """Time and check every candidate (see the module docstring); no cache."""
     from cnnps.models.inference import MapPredictor
 
-    t_start = time.perf_counter()
+    t_start, probed_at = time.perf_counter(), now()
+    passes: list[TimedPass] = []
     maps, truth = probe_maps(w=int(getattr(model, "w", 32)))
     threads = thread_candidates() if device.type == "cpu" else []
     if threads:
@@ -178,7 +262,7 @@ def probe(model: nn.Module, device: torch.device, batch_size: int | None = None)
         try:
             predictor = MapPredictor(model, device=device, precision=c, batch_size=batch_size)
             floor = max((r for r in rates.values() if isinstance(r, float)), default=None)
-            rates[c], outs[c] = _time_candidate(predictor, maps, floor, stoppable=c != "fp32")
+            rates[c], outs[c] = _time_candidate(predictor, maps, floor, stoppable=c != "fp32", passes=passes)
         except RuntimeError as exc:  # e.g. a device or build without bf16 kernels
             if c == "fp32":
                 raise  # the reference path itself fails: nothing to choose from
@@ -207,9 +291,12 @@ def probe(model: nn.Module, device: torch.device, batch_size: int | None = None)
             tail = "" if c == "fp32" else f", mean error {change[c]:+.3f} deg vs fp32"
             parts.append(f"{c} {r:,.0f} maps/s{tail}")
     why = ("fastest within %.2f deg of fp32" % TOLERANCE_DEG) if best != "fp32" else "no faster path within %.2f deg of fp32" % TOLERANCE_DEG
-    pick_threads, thread_rates = _choose_threads(model, device, best, batch_size, maps, rates[best], threads)
+    pick_threads, thread_rates = _choose_threads(model, device, best, batch_size, maps, rates[best], threads, passes)
     if len(thread_rates) > 1:
         why += "; " + ", ".join(f"{n} threads {r:,.0f}" for n, r in thread_rates.items()) + f": {pick_threads} threads"
+    load = judge_load(passes)
+    if load:
+        why += f"; under load ({load}): not cached"
     return Choice(
         precision=best,
         reason=f"probe: {'; '.join(parts)}: {why}",
@@ -219,10 +306,14 @@ def probe(model: nn.Module, device: torch.device, batch_size: int | None = None)
         probe_seconds=round(time.perf_counter() - t_start, 3),
         threads=pick_threads,
         thread_rates={str(k): round(v, 1) for k, v in thread_rates.items()},
+        probed_at=round(probed_at, 3),
+        under_load=load is not None,
+        cpu_share={str(k): round(v, 3) for k, v in cpu_shares(passes).items()},
     )
 
 
-def _choose_threads(model, device, precision, batch_size, maps, rate_all, threads) -> tuple[int | None, dict]:
+def _choose_threads(model, device, precision, batch_size, maps, rate_all, threads,
+                    passes: list | None = None) -> tuple[int | None, dict]:
     """(threads, {threads: maps/s}): the picked path timed at each candidate thread count
     (the first, all CPUs, was timed with the precisions); fewer threads win only by more
     than :data:`MIN_GAIN`. torch is left at the pick."""
@@ -234,7 +325,7 @@ def _choose_threads(model, device, precision, batch_size, maps, rate_all, thread
     predictor = MapPredictor(model, device=device, precision=precision, batch_size=batch_size)
     for n in threads[1:]:
         torch.set_num_threads(n)
-        rates[n] = _time_candidate(predictor, maps, None, stoppable=False)[0]
+        rates[n] = _time_candidate(predictor, maps, None, stoppable=False, passes=passes)[0]
     pick = threads[0]
     for n in threads[1:]:
         if rates[n] > rates[pick] * (1 + MIN_GAIN):
@@ -253,27 +344,76 @@ def _read_cache(path: Path) -> dict:
     return data
 
 
+def _pick_rate(entry: dict) -> float | None:
+    """The maps/s the probe measured for its pick at its thread count."""
+    rate = (entry.get("thread_rates") or {}).get(str(entry.get("threads")))
+    if rate is None:
+        rate = (entry.get("rates") or {}).get(entry.get("precision"))
+    return float(rate) if isinstance(rate, (int, float)) and rate > 0 else None
+
+
+def _write_cache(path: Path, data: dict) -> None:
+    try:
+        write_text(path, json.dumps(data, indent=1) + "\n")
+    except OSError:
+        pass  # a read-only home: probe again next time
+
+
 def choose_precision(model: nn.Module, device: torch.device, model_sha256: str,
                      batch_size: int | None = None, use_cache: bool = True) -> Choice:
     """The precision ``--precision auto`` runs with on ``device`` for this model: the cached
-    answer for this machine, torch and model, else a fresh :func:`probe` (then cached)."""
+    answer for this machine, torch and model when it is under :data:`CACHE_MAX_AGE_S` old,
+    else a fresh :func:`probe`, cached unless it ran under load."""
     key = cache_key(device, model_sha256)
     path = cache_dir() / CACHE_FILE
+    stale = ""
     if use_cache:
         hit = _read_cache(path).get("choices", {}).get(key)
         if isinstance(hit, dict) and hit.get("precision") in CANDIDATES:
-            fields = {k: hit[k] for k in Choice.__dataclass_fields__ if k in hit}
-            choice = Choice(**{**fields, "cached": True, "key": key})
-            if choice.threads:
-                torch.set_num_threads(int(choice.threads))
-            return choice
+            probed_at = hit.get("probed_at")
+            age = now() - probed_at if isinstance(probed_at, (int, float)) else None
+            if age is not None and 0 <= age <= CACHE_MAX_AGE_S:
+                fields = {k: hit[k] for k in Choice.__dataclass_fields__ if k in hit}
+                choice = Choice(**{**fields, "cached": True, "key": key, "age_seconds": round(age, 1),
+                                   "under_load": False})
+                if choice.threads:
+                    torch.set_num_threads(int(choice.threads))
+                return choice
+            stale = (f"; probed again: the cached answer was {age / 86400:.1f} days old" if age is not None and age > 0
+                     else "; probed again: the cached answer had no valid probe time")
     choice = probe(model, device, batch_size)
     choice.key = key
-    if use_cache:
+    choice.reason += stale
+    if use_cache and not choice.under_load:
         data = _read_cache(path) or {"version": CACHE_VERSION, "choices": {}}
-        data["choices"][key] = {k: v for k, v in choice.as_dict().items() if k not in ("cached", "key")}
-        try:
-            write_text(path, json.dumps(data, indent=1) + "\n")
-        except OSError:
-            pass  # a read-only home: probe again next time
+        entry = {k: v for k, v in choice.as_dict().items() if k not in ("cached", "key", "age_seconds", "under_load")}
+        data["choices"][key] = {**entry, "device": device.type}
+        _write_cache(path, data)
     return choice
+
+
+def report_rate(key: str, maps_per_second: float) -> bool:
+    """After a run with an ``--precision auto`` answer (``key``: :attr:`Choice.key`): the
+    rate the run's network reached, in observation maps per second. When it is under
+    :data:`SLOW_RUN_FACTOR` of the rate the probe measured for its pick, the cached answer
+    is dropped (the machine is no longer the one probed, or the probe was misled) and the
+    next run probes again; True when it was dropped. Answers for a GPU are kept (384 maps do
+    not fill a GPU, so the probe's rate is no yardstick for a run); so are rates that are
+    not positive numbers. Only meaningful for runs of many maps (a few seconds of work)."""
+    try:
+        rate = float(maps_per_second)
+    except (TypeError, ValueError):
+        return False
+    if not math.isfinite(rate) or rate <= 0:
+        return False
+    path = cache_dir() / CACHE_FILE
+    data = _read_cache(path)
+    entry = data.get("choices", {}).get(key) if data else None
+    if not isinstance(entry, dict) or entry.get("device", "cpu") != "cpu":
+        return False
+    probed = _pick_rate(entry)
+    if probed is None or rate >= SLOW_RUN_FACTOR * probed:
+        return False
+    del data["choices"][key]
+    _write_cache(path, data)
+    return True

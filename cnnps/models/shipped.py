@@ -13,9 +13,9 @@ import json
 import subprocess
 from pathlib import Path
 
-from cnnps.core.atomic import write_text
-from cnnps.core.errors import CnnpsError
-from cnnps.core.hashing import file_sha256
+from cnnps.infra.atomic import write_text
+from cnnps.infra.errors import CnnpsError
+from cnnps.infra.hashing import file_sha256
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_NAME = "cnnps_default"

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-from cnnps.core.atomic import atomic_path
+from cnnps.infra.atomic import atomic_path
 
 CKPT_FORMAT = 1
 

@@ -30,12 +30,12 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from cnnps.core import storage
-from cnnps.core.atomic import write_text
-from cnnps.core.errors import ConfigError, InputError
-from cnnps.core.shards import (
+from cnnps.infra import storage
+from cnnps.infra.atomic import write_text
+from cnnps.infra.errors import ConfigError, InputError
+from cnnps.infra.progress import progress_bar
+from cnnps.io.shards import (
     MANIFEST,
-    ShardDataset,
     ShardStream,
     load_manifest,
     manifest_digest,
@@ -43,7 +43,12 @@ from cnnps.core.shards import (
     shard_path,
     verify_shards,
 )
-from cnnps.models.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint, write_sha256_file
+from cnnps.models.checkpoint import (
+    load_checkpoint,
+    read_checkpoint,
+    save_checkpoint,
+    write_sha256_file,
+)
 from cnnps.models.device_feed import fed
 from cnnps.models.distributed import (
     DistInfo,
@@ -58,6 +63,7 @@ from cnnps.models.distributed import (
     set_threads,
 )
 from cnnps.models.optimiser import compile_model, lr_at, make_model, set_lr, train_step
+from cnnps.models.shard_dataset import ShardDataset
 from cnnps.models.step_clock import StepClock
 from cnnps.models.train_state import (
     CKPT_FORMAT,
@@ -343,9 +349,9 @@ class Trainer:
         p, info = self.params, self.info
         ds = ShardDataset(self.stream, float32=self.device.type != "cuda")  # a GPU converts float16 itself
         loader = self._loader(ds)
-        bar = tqdm(total=self.total_steps * p.batch_size, initial=self.step * p.batch_size, unit="sample",
-                   unit_scale=True, desc="train" if not info.enabled else f"train ({info.world_size} processes)",
-                   disable=not p.progress or not self.main)
+        bar = progress_bar(total=self.total_steps * p.batch_size, initial=self.step * p.batch_size,
+                           desc="train" if not info.enabled else f"train ({info.world_size} processes)",
+                           unit="sample", unit_scale=True, disable=not p.progress or not self.main, leave=True)
         step_model = compile_model(self.model, p)
         t0, self.step0 = time.perf_counter(), self.step
         clock = self.clock = StepClock(self.device)

@@ -13,9 +13,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from cnnps.core.metrics import angular_error_deg
-from cnnps.core.shards import ShardStream
+from cnnps.io.shards import ShardStream
 from cnnps.models.inference import MapPredictor
+from cnnps.ps.metrics import angular_error_deg
 
 
 def load_val(files: Sequence, w: int, max_rows: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -2,7 +2,7 @@
 
 Each command lives in its own ``pipeline/cli_*.py`` module and imports heavy
 libraries (torch, bpy) only inside the command, so ``cnnps --help`` is fast.
-User-facing errors (:class:`cnnps.core.errors.CnnpsError`), operating-system errors
+User-facing errors (:class:`cnnps.infra.errors.CnnpsError`), operating-system errors
 (permission denied, disk full, ...) and a dead worker process become one line on stderr
 and exit status 2; Ctrl-C exits with status 130.
 """
@@ -12,15 +12,18 @@ from __future__ import annotations
 import sys
 from concurrent.futures.process import BrokenProcessPool
 
-from cnnps.core.errors import CnnpsError, one_line
-from cnnps.pipeline.app import app
+from cnnps.infra.errors import CnnpsError, one_line
+from cnnps.infra.options import spelled_as_flags
 
 # Command modules register their commands on ``app`` when imported.
-from cnnps.pipeline import cli_calibrate  # noqa: E402,F401
-from cnnps.pipeline import cli_integrate  # noqa: E402,F401
-from cnnps.pipeline import cli_predict  # noqa: E402,F401
-from cnnps.pipeline import cli_render  # noqa: E402,F401
-from cnnps.pipeline import cli_stages  # noqa: E402,F401
+from cnnps.pipeline import (
+    cli_calibrate,  # noqa: E402,F401
+    cli_integrate,  # noqa: E402,F401
+    cli_predict,  # noqa: E402,F401
+    cli_render,  # noqa: E402,F401
+    cli_stages,  # noqa: E402,F401
+)
+from cnnps.pipeline.app import app
 
 
 def describe_os_error(exc: OSError) -> str:
@@ -43,7 +46,8 @@ def _fail(message: str, exc: BaseException | None = None) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     try:
-        app(args=argv, prog_name="cnnps")
+        with spelled_as_flags():  # the API's option errors name --flags here
+            app(args=argv, prog_name="cnnps")
     except CnnpsError as exc:
         _fail(str(exc), exc)
     except BrokenProcessPool as exc:

@@ -24,7 +24,8 @@ def calibrate(
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
     """Calibrate the lights from photos of a chrome ball (directions) and a matte ball (intensities)."""
-    from cnnps.core.calibration import SCALE_NOTE, calibrate as run, check_out_dir, write_calibration
+    from cnnps.api.calibration import SCALE_NOTE, check_out_dir, write_calibration
+    from cnnps.api.calibration import calibrate as run
 
     check_out_dir(out, chrome_dir, matte)
     cal = run(chrome_dir, matte, progress=progress, linearize=linearize)

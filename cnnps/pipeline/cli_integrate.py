@@ -6,19 +6,7 @@ from pathlib import Path
 
 import typer
 
-from cnnps.core.errors import ConfigError
 from cnnps.pipeline.app import app
-
-
-def _positive_float(name: str, text: str, upper: float | None = None) -> float:
-    try:
-        value = float(text)
-    except (TypeError, ValueError):
-        value = float("nan")
-    if not (value > 0 and value < float("inf")) or (upper is not None and value > upper):
-        bound = f"in (0, {upper:g}]" if upper is not None else "> 0"
-        raise ConfigError(f"{name} must be a number {bound}, got {text!r}")
-    return value
 
 
 @app.command("integrate")
@@ -31,22 +19,24 @@ def integrate(
     nz_min: str = typer.Option("0.05", "--nz-min", metavar="NZ", help="Smallest n_z used: steeper normals are clamped (slope <= 1/NZ) and down-weighted."),
 ) -> None:
     """Integrate a normal map into a height map and a triangle mesh."""
-    from cnnps.core.errors import InputError
-    from cnnps.core.images import read_mask
-    from cnnps.core.integrate import check_inputs
-    from cnnps.core.surface import read_normals, write_surface_outputs
+    import typing
 
-    nz = _positive_float("--nz-min", nz_min, upper=1.0)
-    s = _positive_float("--sigma", sigma)
+    from cnnps.api.surfaces import integrate as integrate_normals
+    from cnnps.infra.errors import InputError
+    from cnnps.infra.options import parse
+    from cnnps.io.images import read_mask
+    from cnnps.io.surface import read_normals
+    from cnnps.ps.integrate import check_inputs
+
+    hints = typing.get_type_hints(integrate_normals, include_extras=True)
+    nz = parse("--nz-min", nz_min, hints["nz_min"])
+    s = parse("--sigma", sigma, hints["sigma"])
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
     n = read_normals(normals)
     m = read_mask(mask)
     n, m = check_inputs(n, m, normals, mask)  # everything checked before anything is written
-    options = {"nz_min": nz, "discontinuities": discontinuities}
-    if discontinuities:
-        options["sigma"] = s
-    report = write_surface_outputs(out, n, m, **options)
+    report = integrate_normals(n, m, nz_min=nz, discontinuities=discontinuities, sigma=s).write(out)
     if report["clamped_pixels"]:
         typer.echo(f"note: {report['clamped_pixels']} pixels had n_z < {nz:g} (grazing normals); "
                    "their slopes were clamped and down-weighted")

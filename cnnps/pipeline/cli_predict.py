@@ -3,22 +3,28 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import typer
 
-from cnnps.core.errors import ConfigError
+from cnnps.infra.errors import ConfigError
 from cnnps.pipeline.app import app
 
 
 def _parse_int(name: str, text: str, minimum: int) -> int:
-    try:
-        value = int(text)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{name} must be an integer >= {minimum}, got {text!r}") from None
-    if value < minimum:
-        raise ConfigError(f"{name} must be an integer >= {minimum}, got {text!r}")
-    return value
+    from cnnps.infra.options import Range, parse
+
+    return parse(name, text, Annotated[int, Range(ge=minimum)])
+
+
+def _default(name: str):
+    """The default of :func:`cnnps.predict`'s option ``name``: shown in the help, never
+    repeated here (an option left unset is not passed on)."""
+    import inspect
+
+    from cnnps.api.prediction import predict
+
+    return inspect.signature(predict).parameters[name].default
 
 
 def parse_drop(text: Optional[str]) -> Optional[list[int]]:
@@ -48,62 +54,57 @@ def predict(
     capture_dir: Path = typer.Argument(..., help="Capture folder (DiLiGenT layout: filenames.txt, light_directions.txt, light_intensities.txt, mask.png, images)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (written atomically): normal.npy, normal.png, and error.png + metrics.json when ground truth exists."),
     model: Optional[Path] = typer.Option(None, "--model", help="CNN-PS checkpoint (default: the shipped cnnps/models/weights/cnnps_default.pt)."),
-    method: str = typer.Option("cnn", "--method", help="cnn | lambertian (least-squares baseline)."),
-    rotations: str = typer.Option("10", "--rotations", metavar="K", help="Test-time rotations averaged (cnn; 10 = the paper)."),
-    device: str = typer.Option("auto", "--device", help="auto | cpu | cuda."),
-    precision: str = typer.Option("auto", "--precision", help="auto | fp32 | bf16. auto: the fastest path within 0.05 deg of fp32 on this machine, measured once (about 1 s) and cached."),
+    method: Optional[str] = typer.Option(None, "--method", metavar="cnn|lambertian", help=f"cnn, or lambertian (least-squares baseline). [default: {_default('method')}]"),
+    rotations: Optional[str] = typer.Option(None, "--rotations", metavar="K", help=f"Test-time rotations averaged (cnn; 10 = the paper). [default: {_default('rotations')}]"),
+    device: Optional[str] = typer.Option(None, "--device", metavar="auto|cpu|cuda", help=f"Where the network runs; auto = CUDA when available. [default: {_default('device')}]"),
+    precision: Optional[str] = typer.Option(None, "--precision", metavar="auto|fp32|bf16", help=f"auto: the fastest path within 0.05 deg of fp32 on this machine, measured once (about 1 s) and cached. [default: {_default('precision')}]"),
     batch_size: Optional[str] = typer.Option(None, "--batch-size", metavar="N", help="Observation maps per network batch (default 256 on a CPU, 4096 on CUDA)."),
     drop: Optional[str] = typer.Option(None, "--drop", metavar="INDICES", help="Image indices to leave out, 0-based, e.g. '0,1,2' or '0-19'; 'none' drops nothing (bearPNG drops its first 20 by default)."),
     shadow_threshold: Optional[str] = typer.Option(None, "--shadow-threshold", metavar="T", help="lambertian: per pixel, use only lights brighter than this fraction of its brightest, in [0, 1)."),
-    grey: str = typer.Option("mean", "--grey", help="mean | luminance: how RGB becomes grey."),
+    grey: Optional[str] = typer.Option(None, "--grey", metavar="mean|luminance", help=f"How RGB becomes grey. [default: {_default('grey')}]"),
     linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none", help="How 8/16-bit images become linear: srgb = decode the sRGB curve (camera JPEG/PNG), none = already linear (DiLiGenT, raw converters). Unset: taken as linear, with a note when images are 8-bit."),
-    saturated: str = typer.Option("exclude", "--saturated", metavar="exclude|keep", help="exclude: observations with a channel >= 0.99 of the format's maximum are left out (missing); keep: use them as stored."),
-    sparse_fill: str = typer.Option("auto", "--sparse-fill", metavar="auto|on|off", help="cnn: add virtual Lambertian observations to sparse maps, per pixel only where a Lambertian fit explains its observations; auto = with fewer than 50 images."),
+    saturated: Optional[str] = typer.Option(None, "--saturated", metavar="exclude|keep", help=f"exclude: observations with a channel >= 0.99 of the format's maximum are left out (missing); keep: use them as stored. [default: {_default('saturated')}]"),
+    sparse_fill: Optional[str] = typer.Option(None, "--sparse-fill", metavar="auto|on|off", help=f"cnn: add virtual Lambertian observations to sparse maps, per pixel only where a Lambertian fit explains its observations; auto = with fewer than 50 images. [default: {_default('sparse_fill')}]"),
     depth: bool = typer.Option(False, "--depth", help="Also integrate the normals into depth.npy, depth.png and surface.ply."),
-    tile_pixels: str = typer.Option("65536", "--tile-pixels", metavar="N", help="Mask pixels processed at a time (memory ~ N x images x 8 bytes)."),
+    tile_pixels: Optional[str] = typer.Option(None, "--tile-pixels", metavar="N", help=f"Mask pixels processed at a time (memory ~ N x images x 8 bytes). [default: {_default('tile_pixels')}]"),
     scratch: Optional[Path] = typer.Option(None, "--scratch", metavar="DIR", help="Folder for the temporary pixel stack of large captures (default: next to --out; about pixels x images x 4 bytes)."),
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars (one line per bar when the output is not a terminal)."),
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Say which inference path ran and why."),
 ) -> None:
     """Predict surface normals for a capture folder."""
-    from cnnps.pipeline.predict import DEFAULT_BATCH_SIZE, predict_capture
+    from cnnps.api.prediction import predict_folder
+    from cnnps.infra.options import Count, UnitFraction, parse
 
-    k = _parse_int("--rotations", rotations, 1)
-    bs = DEFAULT_BATCH_SIZE if batch_size is None else _parse_int("--batch-size", batch_size, 1)
-    tiles = _parse_int("--tile-pixels", tile_pixels, 1)
-    if linearize is not None and linearize not in ("srgb", "none"):
-        raise ConfigError(f"--linearize must be srgb or none, got {linearize!r}")
-    t = None
-    if shadow_threshold is not None:
-        try:
-            t = float(shadow_threshold)
-        except ValueError:
-            raise ConfigError(f"--shadow-threshold must be a number in [0, 1), got {shadow_threshold!r}") from None
-    if grey not in ("mean", "luminance"):
-        raise ConfigError(f"--grey must be mean or luminance, got {grey!r}")
-    result = predict_capture(
-        capture_dir,
-        out,
-        method=method,
-        model=model,
-        rotations=k,
-        device=device,
-        precision=precision,
-        batch_size=bs,
-        drop=parse_drop(drop),
-        shadow_threshold=t,
-        grey=grey,
-        progress=progress,
-        linearize=linearize,
-        depth=depth,
-        tile_pixels=tiles,
-        scratch_dir=scratch,
-        saturated=saturated,
-        sparse_fill=sparse_fill,
-    )
+    given = {"method": method, "device": device, "precision": precision, "grey": grey, "linearize": linearize,
+             "saturated": saturated, "sparse_fill": sparse_fill, "model": model,
+             "rotations": None if rotations is None else parse("--rotations", rotations, Count),
+             "batch_size": None if batch_size is None else parse("--batch-size", batch_size, Count),
+             "tile_pixels": None if tile_pixels is None else parse("--tile-pixels", tile_pixels, Count),
+             "shadow_threshold": (None if shadow_threshold is None
+                                  else parse("--shadow-threshold", shadow_threshold, UnitFraction))}
+    result = predict_folder(capture_dir, out, drop=parse_drop(drop), depth=depth, scratch_dir=scratch,
+                            progress=progress, **{k: v for k, v in given.items() if v is not None})
+    _report(result, capture_dir, out, verbose)
+
+
+def _age(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 2 * 86400:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 86400:.1f} days"
+
+
+def _report(result: dict, capture_dir: Path, out: Path, verbose: bool) -> None:
+    """The run's lines: -v details and notices on stderr, notes and the summary on stdout."""
     if verbose and result.get("precision_choice"):
         how = result["precision_choice"]
-        cached = " (cached)" if how.get("cached") else ""
+        cached = ""
+        if how.get("cached"):
+            age = how.get("age_seconds")
+            cached = " (cached)" if age is None else f" (cached, measured {_age(age)} ago)"
         typer.echo(f"cnnps: precision {result['precision']}{cached}: {how['reason']}", err=True)
     fill = result.get("sparse_fill")
     if verbose and fill and fill["used"]:
@@ -115,7 +116,7 @@ def predict(
         typer.echo(f"cnnps: note: {notice}", err=True)
     for warning in result.get("warnings", []):
         typer.echo(f"cnnps: warning: {warning}", err=True)
-    how = method if method == "lambertian" else f"cnn, K={k}"
+    how = result["method"] if result["method"] == "lambertian" else f"cnn, K={result['rotations']}"
     line = f"{Path(capture_dir).name} ({how}, {result['n_images']} images, {result['pixels']} pixels)"
     if "mean_deg" in result:
         line += f": mean {result['mean_deg']:.2f} deg, median {result['median_deg']:.2f} deg"

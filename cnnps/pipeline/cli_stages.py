@@ -4,7 +4,7 @@ Every command validates the parameters of *all* stages before any work starts, s
 typo in the ``eval`` section fails in seconds, not after an hour of rendering.
 
 One writer per data folder: ``run-stage`` and ``demo`` hold the data folder's lock
-(:mod:`cnnps.core.lock`) while they write, so a second run on the same folder stops at
+(:mod:`cnnps.pipeline.lock`) while they write, so a second run on the same folder stops at
 once with one line naming the first (its command, PID, host and start time). ``demo``
 holds it for the whole pipeline and hands it to the ``cnnps run-stage`` processes its
 ``dvc repro`` starts; under torchrun only rank 0 takes it. ``stages`` only reads.
@@ -24,7 +24,7 @@ from typing import Optional
 
 import typer
 
-from cnnps.core.errors import CnnpsError, ConfigError
+from cnnps.infra.errors import CnnpsError, ConfigError
 from cnnps.pipeline.app import app
 
 PARAMS_HELP = "Params file (default: params.yaml in the current folder)."
@@ -60,9 +60,9 @@ def _config(
 
 
 def _data_lock(data_dir: Path, command: str):
-    """The data folder's lock (:class:`cnnps.core.lock.DataFolderLock`) for ``command``;
+    """The data folder's lock (:class:`cnnps.pipeline.lock.DataFolderLock`) for ``command``;
     a no-op in the ranks > 0 of a torchrun job (rank 0 holds it; the others write nothing)."""
-    from cnnps.core.lock import DataFolderLock
+    from cnnps.pipeline.lock import DataFolderLock
 
     if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1 and os.environ.get("RANK", "0") not in ("", "0"):
         return contextlib.nullcontext()
@@ -176,8 +176,12 @@ def demo_cmd(
     report_path = conf.data_dir / "eval" / "report.md"
     if not metrics_path.is_file():
         raise CnnpsError(f"{metrics_path}: the eval stage wrote no metrics")
-    from cnnps.core.eval_report import format_table
+    from cnnps.stages.eval_report import format_table
+    from cnnps.stages.evaluate import score_shipped
 
-    typer.echo(format_table(json.loads(metrics_path.read_text())))
+    metrics = json.loads(metrics_path.read_text())
+    typer.echo("cnnps: scoring the shipped model on the same test captures ...", err=True)
+    shipped = score_shipped(metrics, all_params["eval"])  # the demo's short model next to the real one
+    typer.echo(format_table(metrics, shipped))
     typer.echo(f"\nreport: {report_path}")
     typer.echo(f"pipeline finished in {_fmt_time(elapsed)}")

@@ -7,7 +7,7 @@ A params file has one section per stage (``meshes``, ``materials``, ``render``,
   ``seed`` field and whose section does not set one;
 - ``data_dir``: where stage outputs go (default ``data``); the command line's
   ``--data-dir`` overrides it;
-- ``executor``: ``{kind, workers, address}`` (:class:`cnnps.core.executor.ExecutorParams`),
+- ``executor``: ``{kind, workers, address}`` (:class:`cnnps.infra.executor.ExecutorParams`),
   copied into every stage whose ``Params`` has an ``executor`` field, and handed to the
   ``run(params, data_dir, executor=...)`` of stages that take one, unless their section
   sets its own ``workers``.
@@ -16,7 +16,7 @@ Each section is turned into the stage's frozen dataclass generically, from the
 dataclass fields and their type hints (int, float, str, bool, Path, list, tuple,
 dict, Literal, nested dataclasses, Optional). A nested dataclass with a ``from_dict``
 classmethod builds itself from its mapping (it knows its own defaults). Unknown keys and wrong types are
-:class:`cnnps.core.errors.ConfigError` naming the file, stage and key; value checks
+:class:`cnnps.infra.errors.ConfigError` naming the file, stage and key; value checks
 (negative counts, reversed bounds, ...) are the stages' own ``__post_init__``.
 :func:`load_all` validates every stage before any work starts.
 
@@ -37,8 +37,9 @@ from typing import Any
 
 import yaml
 
-from cnnps.core.errors import ConfigError
-from cnnps.core.executor import ExecutorParams
+from cnnps.infra import options as declared
+from cnnps.infra.errors import ConfigError
+from cnnps.infra.executor import ExecutorParams
 
 STAGES = ["meshes", "materials", "render", "extract", "train", "eval"]
 STAGE_MODULES = {name: f"cnnps.stages.{name}" for name in STAGES}
@@ -191,9 +192,7 @@ def convert(value: Any, tp: Any, where: str) -> Any:
         _fail(where, tp, value)
 
     if origin is typing.Literal:
-        if value not in args:
-            raise ConfigError(f"{where}: must be one of {', '.join(repr(a) for a in args)}, got {value!r}")
-        return value
+        return declared.check(where, value, tp)  # "<where> must be one of a, b, got 'x'", as the API and CLI say it
 
     if origin in (list, tuple, set, frozenset) or tp in (list, tuple):
         if not isinstance(value, (list, tuple)):
@@ -355,7 +354,7 @@ def run_stage(name: str, config: Config, all_params: dict[str, Any] | None = Non
     # Stages with per-scene jobs take an executor: the shared one (params.yaml `executor`)
     # unless their own section sets `workers`.
     if "executor" in inspect.signature(module.run).parameters and "workers" not in config.sections[name]:
-        from cnnps.core.executor import get_executor
+        from cnnps.infra.executor import get_executor
 
         kwargs["executor"] = get_executor(config.executor)
     try:

@@ -12,10 +12,10 @@ and a stage with only ``real_captures`` never needs it.
 
 Every capture (synthetic ones and the optional ``real_captures``, DiLiGenT layout) is
 scored on the same pixels (mask pixels with a ground-truth normal,
-:func:`cnnps.core.metrics.score_normals`) by:
+:func:`cnnps.ps.metrics.score_normals`) by:
 
 - CNN-PS with each ``rotations`` K (default K=1 and K=10),
-- the least-squares Lambertian baseline (:func:`cnnps.core.lambertian.least_squares`).
+- the least-squares Lambertian baseline (:func:`cnnps.ps.least_squares.least_squares`).
 
 Outputs (the report and pictures are replaced together at the end):
 
@@ -40,14 +40,17 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.core.errors import ConfigError, InputError
-from cnnps.core.eval_report import (  # noqa: F401 (format_table: part of this stage's API)
+from cnnps.infra.errors import ConfigError, InputError
+from cnnps.infra.machine import Device
+from cnnps.infra.options import UnitFraction, check_fields
+from cnnps.ps.sparse_fill import SparseFill
+from cnnps.stages.eval_report import (  # noqa: F401 (format_table: part of this stage's API)
     LAMBERTIAN,
     PICTURE_MIN_SIZE,
-    input_picture,
-    summarize,
     format_table,
+    input_picture,
     method_name,
+    summarize,
     write_report,
 )
 
@@ -76,10 +79,10 @@ class Params:
     rotations: tuple[int, ...] = (1, 10)
     real_captures: tuple[str, ...] = ()
     model: str | None = None
-    device: str = "auto"
+    device: Device = "auto"
     batch_size: int = 0  # maps per network call (0 = the inference default: 256 on a CPU, 4096 on CUDA)
-    lambertian_shadow_threshold: float | None = None
-    sparse_fill: str = "auto"  # CNN: auto | on | off, as `cnnps predict --sparse-fill` (cnnps.core.sparse_fill)
+    lambertian_shadow_threshold: UnitFraction | None = None
+    sparse_fill: SparseFill = "auto"  # CNN, as `cnnps predict --sparse-fill` (cnnps.ps.sparse_fill)
     seed: int = 0
 
     def __post_init__(self):
@@ -112,17 +115,9 @@ class Params:
             raise ConfigError(f"eval.samples must be >= 1, got {self.samples}")
         if not self.rotations or any(k < 1 for k in self.rotations):
             raise ConfigError(f"eval.rotations must be a non-empty list of integers >= 1, got {list(self.rotations)}")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise ConfigError(f"eval.device must be auto, cpu or cuda, got {self.device!r}")
         if self.batch_size < 0:
             raise ConfigError(f"eval.batch_size must be >= 0 (0 = default), got {self.batch_size}")
-        from cnnps.core.sparse_fill import MODES as FILL_MODES
-
-        if self.sparse_fill not in FILL_MODES:
-            raise ConfigError(f"eval.sparse_fill must be one of {', '.join(FILL_MODES)}, got {self.sparse_fill!r}")
-        t = self.lambertian_shadow_threshold
-        if t is not None and not 0.0 <= t < 1.0:
-            raise ConfigError(f"eval.lambertian_shadow_threshold must be in [0, 1), got {t}")
+        check_fields(self, "eval.")  # device, sparse_fill, lambertian_shadow_threshold: their declared types
         if self.seed < 0:
             raise ConfigError(f"eval.seed must be >= 0, got {self.seed}")
 
@@ -154,10 +149,10 @@ def evaluate_capture(capture_dir: Path, predict, params: Params) -> dict:
     "errors": {method: (H,W)}, "scores": {method: GroundTruthScore}, "methods": {method: stats},
     "mask", "gt", "scored", "input"}`` (scores, errors, stats and scored only with ground truth).
     """
-    from cnnps.core.capture import load_capture
-    from cnnps.core.lambertian import least_squares
-    from cnnps.core.metrics import score_normals
-    from cnnps.core.rotation import normalize
+    from cnnps.io.capture import load_capture
+    from cnnps.ps.least_squares import least_squares
+    from cnnps.ps.metrics import score_normals
+    from cnnps.ps.rotation import normalize
 
     cap = load_capture(capture_dir)
     I = cap.pixel_intensities()
@@ -197,7 +192,7 @@ def evaluate_capture(capture_dir: Path, predict, params: Params) -> dict:
 
 def testset_plan(params: Params) -> list[dict]:
     """The synthetic test captures: shape x category x light set (names and seeds)."""
-    from cnnps.core.hashing import entropy_seed
+    from cnnps.infra.hashing import entropy_seed
 
     base = params.seed + TEST_SEED_OFFSET
     plan = []
@@ -233,7 +228,7 @@ def test_mesh(shape: str, shape_seed: int):
 def build_testset(params: Params, data_dir: Path) -> list[Path]:
     """Render (or reuse: each capture carries a content key) the synthetic test captures
     under ``data_dir/eval/testset/<shape>-<category>-<lights>/``; return their folders."""
-    from cnnps.core.cache import prune_stale
+    from cnnps.infra.stage_folders import prune_stale
     from cnnps.synth.capture_render import render_capture
 
     root = Path(data_dir) / "eval" / "testset"
@@ -256,11 +251,11 @@ def build_testset(params: Params, data_dir: Path) -> list[Path]:
 
 def evaluate_all(captures, predict, params: Params, out_dir: Path, model_label: str, t0: float | None = None) -> dict:
     """Score ``captures`` ([(name, folder, "synthetic" | "real")]); write the report; return the metrics."""
-    from tqdm import tqdm
+    from cnnps.infra.progress import progress_bar
 
     t0 = time.perf_counter() if t0 is None else t0
     results: dict[str, dict] = {}
-    for name, path, kind in tqdm(captures, desc="eval", unit="capture"):
+    for name, path, kind in progress_bar(captures, desc="eval", unit="capture", leave=True):
         r = evaluate_capture(path, predict, params)
         r["kind"] = kind
         results[name] = r
@@ -288,6 +283,46 @@ def evaluate_all(captures, predict, params: Params, out_dir: Path, model_label: 
     return metrics
 
 
+def score_shipped(metrics: dict, params: Params, rotations: int = 10) -> dict | None:
+    """The shipped model (:mod:`cnnps.models.shipped`) with ``rotations`` K on the synthetic
+    captures of an eval run's ``metrics``, scored as the run scored its own model:
+    ``{"captures": {name: stats}, "summary": stats, "label": str}`` (what
+    :func:`cnnps.stages.eval_report.format_table` shows as its ``shipped`` column); None
+    when the run scored no synthetic capture."""
+    from dataclasses import replace
+
+    captures = {name: Path(c["capture"]) for name, c in metrics.get("captures", {}).items()
+                if c.get("kind") == "synthetic" and c.get("methods")}
+    if not captures:
+        return None
+
+    from cnnps.models.checkpoint import load_checkpoint
+    from cnnps.models.devices import resolve_device
+    from cnnps.models.inference import predict_normals
+    from cnnps.models.shipped import read_provenance, shipped_model_path
+
+    path = shipped_model_path()
+    device = str(resolve_device(params.device))
+    net, _config, _meta = load_checkpoint(path, device)
+    net.eval()
+    one = replace(params, rotations=(int(rotations),))
+
+    def predict(I, L, k):
+        return predict_normals(net, I, L, rotations=k, device=device, batch_size=params.batch_size or None,
+                               progress=False, sparse_fill=params.sparse_fill)
+
+    scores = {name: evaluate_capture(path, predict, one)["methods"][method_name(int(rotations))]
+              for name, path in captures.items()}
+    summary = {"mean_deg": float(np.mean([s["mean_deg"] for s in scores.values()])),
+               "median_deg": float(np.mean([s["median_deg"] for s in scores.values()])),
+               "captures": len(scores)}
+    prov = read_provenance(path)
+    note = str(prov.get("note", ""))
+    version = note.split(" ", 1)[0] + " " if note.startswith("v") else ""
+    label = f"{version}{path.name}, sha256 {str(prov.get('sha256', ''))[:8]}"
+    return {"captures": scores, "summary": summary, "label": label}
+
+
 # --------------------------------------------------------------------------- stage
 
 
@@ -301,7 +336,6 @@ def run(params: Params, data_dir: Path) -> None:
             raise InputError(c, "capture folder not found")
 
     from cnnps.models.checkpoint import load_checkpoint
-
     from cnnps.models.devices import resolve_device
 
     device = str(resolve_device(params.device))  # CnnpsError: cuda asked for, none here

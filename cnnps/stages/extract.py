@@ -1,153 +1,49 @@
 """Stage ``extract``: rendered captures -> Parquet shards of training observation maps.
 
-For every foreground pixel (with a valid ground-truth normal) of every scene in
-``data_dir/render/<scene_id>/``:
+Design notes (the light subsets, sparse pixels, the capture realism, randomness, cache
+keys, integrity, the validation split, with measured distributions): ``docs/extract.md``.
 
-1. A cone about the view axis (+z) with half-angle drawn uniformly from
-   [``cone_min_deg``, ``cone_max_deg``]; the pixel may only use lights inside it.
-   **Too few lights in the cone:** if the cone holds fewer than ``min(min_lights, m)``
-   lights, it is *widened* just enough to hold that many (the nearest lights to the view
-   axis); the row's ``cone_deg`` column stores the half-angle actually used.
-2. A subset size k drawn uniformly from [min(min_lights, m), min(max_lights, m)],
-   capped at the number of lights in the cone; k lights are drawn from the cone without
-   replacement (all of them when the cone holds no more than k).
+Input: ``data_dir/render/<scene_id>/``, the render stage's scenes (images, ``mask.png``,
+``normal_gt.npy``, the light files and ``scene.json``: see
+:mod:`cnnps.synth.capture_render`), every file checked against the size and SHA-256 its
+``scene.json`` records before any job starts. Parameters: :class:`Params` (the
+``extract:`` section of params.yaml).
 
-   **Sparse pixels** (``sparse_fraction`` p > 0, default 0 = off): with probability p a
-   pixel is sparse and draws k log-uniformly from the integers [a, b], a =
-   ``sparse_min_lights`` (default 6), b = min(min_lights, m) - 1:
-   ``k = floor(exp(U(ln a, ln(b + 1))))``, P(k) = ln((k+1)/k) / ln((b+1)/a), so few-light
-   maps are well represented (for [6, 49]: k = 6 7.3 %, 6-11 33 %, 6-20 59 % of the sparse
-   pixels). The cone rule is unchanged (same cone, still widened to hold
-   min(min_lights, m) > k lights), so a sparse pixel gets exactly k lights, spread at
-   random over a cone of >= min_lights lights rather than the k nearest to the axis. The
-   other 1 - p pixels follow the dense rule above, so dense maps stay the majority and
-   one model serves 6 to 1,300 images. The row's ``n_lights`` column holds k. k for
-   p = 0.3, min_lights 50, max_lights 1300, sparse_min_lights 6 (quantiles; "nominal":
-   the cone never binds, exact; "hemisphere": m equal-area lights above 5 degrees of
-   elevation and cones of 20-90 degrees, 1e5-2e5 pixels, where narrow cones cap the
-   dense k; ``tests/synth/test_training_samples.py`` checks both):
+Output, in ``data_dir/extract/`` or at ``Params.output`` (a path or an fsspec URL):
 
-   ====================  ====  ====  ====  ====  ====  ====  ========  ========  ======
-   m, lights             5 %   10 %  25 %  50 %  75 %  90 %  k <= 10   k <= 20   mean
-   ====================  ====  ====  ====  ====  ====  ====  ========  ========  ======
-   200, nominal          8     12    35    93    147   179   8.6 %     17.7 %    93.6
-   200, hemisphere       8     12    34    51    93    134   8.6 %     17.8 %    66.2
-   1300, nominal         8     12    35    407   854   1122  8.6 %     17.7 %    478.6
-   1300, hemisphere      8     12    35    218   514   812   8.6 %     17.8 %    318.7
-   ====================  ====  ====  ====  ====  ====  ====  ========  ========  ======
+- ``shard-<scene_id>-NNN.parquet``: one row per (foreground pixel, rotation), a w x w
+  float16 observation map and its unit normal, both in the row's rotated camera frame
+  (x right, y up, z to the camera); schema in :mod:`cnnps.io.shards`;
+- ``scene-<scene_id>.json``: per scene, its cache key, shards (size, SHA-256) and a
+  checksum of its own content; a rerun skips the scenes whose marker and shards match;
+- ``manifest.json`` (written last): params, row counts, the train / val split by scene
+  (by ``view_id``), every shard with its size and SHA-256, and its own checksum.
 
-   (30 % of the maps have k < 50; without sparse pixels none do.)
-3. ``rotations`` copies: lights and ground-truth normal rotated together about z by the
-   angles ``cnnps.core.rotation.rotation_angles(rotations)`` (the paper's 10 x 36 degrees);
-   each map is built by ``cnnps.core.obsmap.observation_maps`` with the pixel's light mask,
-   the same code prediction uses. A pixel yields ``rotations`` rows.
+Per foreground pixel with a valid ground-truth normal (``docs/extract.md`` has each step
+in full):
 
-4. Sensor and capture realism (augmentations, each off at its default; functions in
-   :mod:`cnnps.synth.training_samples`). They are applied to a pixel's rendered values
-   (already divided by the light intensity) before the maps are built, in capture order:
+1. a cone about the view axis with half-angle in [``cone_min_deg``, ``cone_max_deg``],
+   widened to hold at least ``min(min_lights, m)`` lights;
+2. k lights from the cone, k uniform in [min(min_lights, m), min(max_lights, m)], or,
+   for a fraction ``sparse_fraction`` of the pixels, log-uniform in
+   [``sparse_min_lights``, min(min_lights, m) - 1];
+3. ``rotations`` copies, lights and normal rotated together about z
+   (:func:`cnnps.ps.rotation.rotation_angles`), each map built by
+   :func:`cnnps.ps.obsmap.observation_maps` (the code prediction uses);
+4. sensor and capture realism, each off by default: mis-calibrated intensities and
+   directions, ambient, black level, noise, saturation, quantisation
+   (:mod:`cnnps.synth.training_samples`).
 
-   rendered value -> (a) mis-calibration -> (b) ambient -> (c) black level -> (d) noise
-   -> (e) saturation -> (f) quantisation -> map;  (g) the directions written into the
-   maps are perturbed once per scene, before any map is built.
+Pixels whose chosen lights are all dark are dropped (counted in the manifest). A scene's
+rows depend only on its own key and the params (seeded by
+:func:`cnnps.infra.hashing.derive_seed64`), so scenes are independent jobs for the
+executor (:mod:`cnnps.infra.executor`) and a rerun writes the same bytes. A damaged input
+stops the stage with one line naming the file and the fix; nothing is written.
 
-   Scene quantities: the **full scale** E of a scene is the value its sensor maps to the
-   top code: the largest of its valid pixels' brightest values (over all m lights, after
-   (a)), or with saturation the ``1 - f`` quantile of them (below). It is computed only
-   when (c), (e) or (f) is on. Rendered values that are finite and >= 0 stay so.
+Example::
 
-   a. ``intensity_error`` (per scene and light): each light's values are multiplied by
-      ``max(1 + e, 0)``, ``e ~ N(0, intensity_error)``: the light's true intensity was not
-      the calibrated one (``light_intensities.txt``), so dividing by it leaves that factor.
-   b. ``ambient_max`` (per pixel): every light of a pixel gets the same offset ``a * max``,
-      ``a ~ U(0, ambient_max)``, ``max`` its brightest chosen light
-      (:func:`~cnnps.synth.training_samples.add_ambient`), so the network learns that
-      shadowed cells of real captures hold small non-zero values.
-   c. ``black_level_max`` (per scene): every value of the scene gets the offset ``b * E``,
-      ``b ~ U(0, black_level_max)``: the camera's black level (or its residual after
-      subtraction). Same physics as (b) in that both add a constant to every image; what
-      differs is the scale: ambient light reflects off the surface, so it is proportional
-      to each pixel's brightness, while the black level is one absolute value of the
-      sensor, a fraction of its full scale, the same in dark and bright pixels (so dark,
-      low-albedo pixels get a relatively larger offset).
-   d. ``noise_max`` (per pixel): read and shot noise relative to the pixel's range:
-      ``s_read, s_shot ~ U(0, noise_max)`` per pixel, ``peak`` its brightest chosen value
-      after (a)-(c); each value v (each light independently) gets Gaussian noise of
-      variance ``(s_read * peak)**2 + s_shot**2 * peak * v`` (read noise, constant; shot
-      noise, variance proportional to the value), then is clipped at 0
-      (:func:`~cnnps.synth.training_samples.add_noise`). Relative to the pixel because
-      each map is scaled to its own maximum: this draws the map's signal-to-noise ratio
-      directly, the same for dark and bright pixels.
-   e. ``saturated_fraction_max`` (per scene): ``f ~ U(0, saturated_fraction_max)``; E is
-      the ``1 - f`` quantile of the scene's pixel peaks, and every value above E is
-      clipped to E: the brightest fraction f of the pixels (specular highlights first)
-      saturate, the others keep their values, as in a real exposure.
-   f. ``quantize_bits`` (per scene): a bit depth b drawn uniformly from the list (e.g.
-      ``[8, 16]``); values are clipped to [0, E] (a fixed-point image holds nothing above
-      its full scale; without (e) E is the scene's largest value) and rounded to the
-      nearest of ``k * E / (2**b - 1)``: dark pixels get few levels, as in a real 8-bit
-      capture.
-   g. ``direction_error_deg`` (per scene and light): the direction written into the maps
-      (the cell a light's value lands in) is turned by ``theta ~ |N(0, direction_error_deg)|``
-      (half-normal: mean 0.80, median 0.67 x the parameter) about a random axis
-      perpendicular to the light (so the angle between written and rendered direction is
-      exactly theta), while the image stays as rendered. The cones and subsets (steps 1,
-      2) use the rendered directions, so turning this on moves cells and nothing else.
-
-Pixels whose chosen lights are all dark in the render (an all-zero map: nothing to learn
-from) are dropped and counted in the manifest; the test is made on the rendered values,
-before step 4, so every augmentation keeps the same pixels and light subsets. (A sparse
-pixel whose few lights are all dark is dropped too, so among the rows the share of sparse
-maps is a little below p.)
-
-Randomness: scene ``s`` draws from NumPy generators seeded with
-``h = cnnps.core.hashing.derive_seed64(seed, s.key)``: ``[h, 0]`` (pixel order) and, for
-chunk ``c``, ``[h, 1, c]`` (cones, dense subsets, row order) and ``[h, 2, c]`` (ambient),
-so a scene's rows depend only on its own key and the params, never on the other scenes.
-Each augmentation has its own stream (``cnnps.synth.training_samples.STREAM_*``), so
-turning one on changes no other one's draws (their values do interact, as in a camera:
-e.g. the gains move E and every pixel's peak): per scene ``[h, 3]`` mis-calibration, ``[h, 4]``
-direction error, ``[h, 5]`` black level, ``[h, 7]`` saturation, ``[h, 8]`` bit depth;
-per chunk ``[h, 6, c]`` noise and ``[h, 9, c]`` sparse pixels and their k.
-
-Cache keys: each parameter added after format 1 (``ADDED_LATER``: ``ambient_max`` and
-all of the above) is left out of ``manifest_params()`` and ``row_key()`` while it has
-its default (off) value, so the keys, caches and manifests of a Params that does not use
-it are byte-identical to those made before it existed (``sparse_min_lights`` also while
-``sparse_fraction`` is 0, when it has no effect).
-
-Output in ``data_dir/extract/`` (or at ``output``: a path or an fsspec URL such as
-``s3://bucket/run/extract``, ``file:///shared/run/extract`` or, for one process only,
-``memory://run/extract``): ``shard-<scene_id>-NNN.parquet`` (see :mod:`cnnps.core.shards`
-for the schema), one ``scene-<scene_id>.json`` marker per finished scene (its cache key
-and shard list, written after its shards are moved into place), and ``manifest.json``
-written last. A rerun skips scenes whose marker has the same cache key and whose shards
-still exist with their recorded sizes and SHA-256.
-
-Integrity. Inputs: every ``scene.json`` must match its own checksum, and before a scene
-is extracted its folder must match the size and SHA-256 that ``scene.json`` records for
-each file (:func:`cnnps.synth.capture_render.folder_problems`; all scenes to extract are
-checked before the first job starts), and its images must decode as finite values (the
-check that also covers folders rendered before checksums). A damaged input stops the
-stage with one line naming the file and the fix (the render stage re-renders exactly
-the damaged part); nothing is written. Outputs: each scene marker carries a ``checksum``
-of its own content (its ``seconds`` left out) and the shards' sizes and SHA-256; a
-rerun re-extracts exactly the scenes whose marker was edited or deleted or whose shard
-is missing, truncated or altered (local outputs are hashed in full; fsspec URLs are
-checked by size, the train stage checks their SHA-256). No NaN or infinite map is ever
-written (checked before each write). ``manifest.json`` carries a ``checksum`` of its
-own content, equal to the SHA-256 the file had before the entry existed (so the train
-stage's run keys did not change); a rerun always rewrites it.
-
-Scenes are independent jobs run by the executor (:mod:`cnnps.core.executor`: ``local``
-process pool or ``ray``); each job writes only its own shards and marker, atomically and
-deterministically, so a retried or duplicated job rewrites the same bytes.
-
-Validation split is by scene (grouped by ``scene.json``'s ``view_id`` when present, so
-the same posed mesh never lands in both splits): ``val_scenes`` lists them explicitly,
-otherwise the ``round(val_fraction * groups)`` groups (at least one when
-``val_fraction > 0`` and there are two or more groups) with the smallest
-``sha256(seed, group)`` are validation. The split is only recorded in the manifest, so
-changing it does not re-extract anything.
+    from cnnps.stages import extract
+    extract.run(extract.Params(w=32, rotations=10), data_dir)   # data_dir/render -> data_dir/extract
 """
 
 from __future__ import annotations
@@ -159,14 +55,19 @@ from fnmatch import fnmatch
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
-from cnnps.core.errors import ConfigError, InputError
-from cnnps.core.rotation import rotation_angles
-from cnnps.core import storage
-from cnnps.core.executor import ExecutorParams, runs_in_process, stage_executor
-from cnnps.core.hashing import add_json_checksum, bytes_sha256, derive_seed64, json_checksum_ok, stable_hash
-from cnnps.core.shards import (
+from cnnps.infra import storage
+from cnnps.infra.errors import ConfigError, InputError
+from cnnps.infra.executor import ExecutorParams, runs_in_process, stage_executor
+from cnnps.infra.hashing import (
+    add_json_checksum,
+    bytes_sha256,
+    derive_seed64,
+    json_checksum_ok,
+    stable_hash,
+)
+from cnnps.infra.progress import progress_bar
+from cnnps.io.shards import (
     MANIFEST,
     MANIFEST_INDENT,
     SceneShardWriter,
@@ -176,6 +77,7 @@ from cnnps.core.shards import (
     shard_problem,
     shard_schema,
 )
+from cnnps.ps.rotation import rotation_angles
 from cnnps.synth.capture_render import SCENE_INDENT, SCENE_TIMINGS, folder_problems
 from cnnps.synth.training_samples import (
     STREAM_SPARSE,
@@ -369,7 +271,7 @@ def _load_render(folder: Path, checksummed: bool):
     InputError naming it and the fix. The render stage finds a damaged file by itself
     only in a folder whose ``scene.json`` records checksums; in an older folder the file
     must be deleted first."""
-    from cnnps.core.capture import load_capture
+    from cnnps.io.capture import load_capture
 
     try:
         return load_capture(folder)
@@ -411,7 +313,7 @@ def extract_scene(job: SceneJob) -> dict:
     map_lights = cap.lights if fx.lights is None else fx.lights  # the directions written into the maps
     dropped_dark = 0
     rows_written = 0
-    bar = tqdm(total=len(pix), desc=f"extract {job.scene_id}", unit="px", disable=not job.progress, leave=False)
+    bar = progress_bar(total=len(pix), desc=f"extract {job.scene_id}", unit="px", disable=not job.progress, leave=False)
     with bar, SceneShardWriter(job.out_dir, f"shard-{job.scene_id}", schema, p.rows_per_group, p.rows_per_shard) as wr:
         for c, start in enumerate(range(0, len(pix), p.chunk_pixels)):
             sel = pix[start : start + p.chunk_pixels]
@@ -534,7 +436,7 @@ def output_location(params: Params, data_dir: Path) -> str | Path:
 def run(params: Params, data_dir: Path, executor=None) -> None:
     """Extract every rendered scene (skipping cached ones) and write the manifest.
 
-    ``executor``: runs the per-scene jobs (``cnnps.core.executor``); None = one made from
+    ``executor``: runs the per-scene jobs (``cnnps.infra.executor``); None = one made from
     ``params.executor`` / ``params.workers`` (default: in this process), closed at the end.
     """
     data_dir = Path(data_dir)

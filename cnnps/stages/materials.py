@@ -20,15 +20,20 @@ import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from cnnps.core.cache import prune_stale, read_json
-from cnnps.core.errors import ConfigError, InputError
-from cnnps.core.executor import ExecutorParams, stage_executor
-from cnnps.core.hashing import entropy_seed, key_entropy, stable_hash
-from cnnps.synth.bsdf import CATEGORIES, DEFAULT_CATEGORIES, CategoryRanges, MaterialRanges
+from cnnps.infra.errors import ConfigError, InputError
+from cnnps.infra.executor import ExecutorParams, stage_executor
+from cnnps.infra.hashing import entropy_seed, key_entropy, stable_hash
+from cnnps.infra.stage_folders import prune_stale, read_json
+from cnnps.stages.meshes import list_views
+from cnnps.synth.bsdf import (
+    CATEGORIES,
+    DEFAULT_CATEGORIES,
+    CategoryRanges,
+    MaterialRanges,
+)
 from cnnps.synth.material_maps import sample_material_maps, write_material_maps
 from cnnps.synth.meshes import read_view_mesh
 from cnnps.synth.raster import rasterize
-from cnnps.stages.meshes import list_views
 
 VERSION = 1  # bump when what is written for the same inputs changes
 
@@ -183,7 +188,7 @@ def _scene_job(job: dict) -> str:
 def run(params: Params, data_dir: Path, executor=None) -> None:
     """Write every (view × category) scene under ``data_dir/materials`` (skipping current ones).
 
-    ``executor``: runs the per-scene jobs (:mod:`cnnps.core.executor`); None = one made
+    ``executor``: runs the per-scene jobs (:mod:`cnnps.infra.executor`); None = one made
     from ``params.executor`` / ``params.workers`` (default: in this process), closed at the end.
     """
     out_root = Path(data_dir) / "materials"

@@ -23,13 +23,20 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from tqdm import tqdm
 
-from cnnps.core.atomic import atomic_dir
-from cnnps.core.cache import prune_stale, read_json
-from cnnps.core.errors import ConfigError
-from cnnps.core.hashing import entropy_seed, file_sha256, key_entropy, stable_hash
-from cnnps.synth.meshes import MESH_EXTENSIONS, RADIUS, load_mesh, normalize_mesh, pose_mesh, random_rotation
+from cnnps.infra.atomic import atomic_dir
+from cnnps.infra.errors import ConfigError
+from cnnps.infra.hashing import entropy_seed, file_sha256, key_entropy, stable_hash
+from cnnps.infra.progress import progress_bar
+from cnnps.infra.stage_folders import prune_stale, read_json
+from cnnps.synth.meshes import (
+    MESH_EXTENSIONS,
+    RADIUS,
+    load_mesh,
+    normalize_mesh,
+    pose_mesh,
+    random_rotation,
+)
 
 VERSION = 1  # bump when the processing below changes what is written
 
@@ -200,7 +207,7 @@ def run(params: Params, data_dir: Path) -> None:
     # Group by source so a mesh file is loaded once for all its views.
     cache: dict[str, trimesh.Trimesh] = {}
     root = Path(params.mesh_dir) if params.mesh_dir is not None else None
-    for spec in tqdm(todo, desc="meshes", unit="view", disable=not todo):
+    for spec in progress_bar(todo, desc="meshes", unit="view", disable=not todo, leave=True):
         if spec.source not in cache:
             cache.clear()
             if spec.kind == "file":

@@ -16,7 +16,7 @@ not black, as in a real capture. It adds its term to *every* image of the scene;
 directions and intensities written are still the sun's, and ``scene.json`` records the
 strength (``environment_strength``, relative to the sun's irradiance; 0 = none).
 
-Scaling out. Scenes are independent jobs run by an executor (:mod:`cnnps.core.executor`:
+Scaling out. Scenes are independent jobs run by an executor (:mod:`cnnps.infra.executor`:
 ``local`` process pool, or ``ray`` on a cluster; params.yaml's ``executor`` section).
 Each job builds a fresh Blender scene (factory settings) in whatever worker process runs
 it, is told how many threads Cycles may use (``threads``, else the executor's
@@ -45,10 +45,15 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.core.cache import prune_stale, read_json
-from cnnps.core.errors import ConfigError, InputError
-from cnnps.core.executor import ExecutorParams, LocalExecutor, runs_in_process, stage_executor
-from cnnps.core.hashing import derive_seed, file_sha256, files_sha256
+from cnnps.infra.errors import ConfigError, InputError
+from cnnps.infra.executor import (
+    ExecutorParams,
+    LocalExecutor,
+    runs_in_process,
+    stage_executor,
+)
+from cnnps.infra.hashing import derive_seed, file_sha256, files_sha256
+from cnnps.infra.stage_folders import prune_stale, read_json
 from cnnps.synth.capture_render import (
     VERSION,
     RenderSettings,
@@ -175,7 +180,7 @@ def _load_map(p: Path) -> np.ndarray:
 
 def _material_from_dir(sdir: Path, meta: dict) -> dict:
     """Renderer material of a materials-stage folder (maps extended past their mask)."""
-    from cnnps.core.images import read_mask
+    from cnnps.io.images import read_mask
 
     mask = read_mask(sdir / "mask.png")
     if meta.get("category") == "lambertian" or meta.get("bsdf") == "lambertian":
@@ -197,7 +202,7 @@ def _check_material_files(sdir: Path) -> None:
     """Every file of a materials folder that enters the scene's key must decode as a whole
     (maps: finite numbers; images: readable; JSON: valid), so a damaged one stops the
     stage instead of changing the key and being rendered from."""
-    from cnnps.core.images import read_image_raw
+    from cnnps.io.images import read_image_raw
 
     for p in sorted(sdir.iterdir()):
         if not p.is_file() or p.name == "preview.png":
@@ -270,7 +275,7 @@ def run(params: Params, data_dir: Path, executor=None) -> dict:
     """Render every scene of ``data_dir/materials`` into ``data_dir/render`` (skipping
     current ones, resuming partial ones). Returns counts.
 
-    ``executor``: runs the per-scene jobs (:mod:`cnnps.core.executor`); None = one made
+    ``executor``: runs the per-scene jobs (:mod:`cnnps.infra.executor`); None = one made
     from ``params.executor`` / ``params.workers`` (default: in this process), closed at
     the end. Progress: scenes done / total (the executor's bar).
     """

@@ -1,7 +1,7 @@
 """Stage ``train``: fit CNN-PS on the extracted shards.
 
 Reads ``data_dir/extract/manifest.json`` and streams the ``train`` shards through
-:class:`cnnps.core.shards.ShardStream` (row groups shuffled per epoch, a shuffle buffer;
+:class:`cnnps.io.shards.ShardStream` (row groups shuffled per epoch, a shuffle buffer;
 the data never has to fit in memory). Loss: MSE between the predicted and the true unit
 normal; Adam. Validation (mean / median angular error in degrees over up to
 ``val_max_rows`` maps of the ``val`` scenes, each map on its own, no rotation
@@ -82,8 +82,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from cnnps.core.errors import ConfigError
-from cnnps.core.hashing import stable_hash
+from cnnps.infra.errors import ConfigError
+from cnnps.infra.hashing import stable_hash
 from cnnps.models.openmp import prefer_passive_openmp  # torch-free (torch loads in run)
 
 

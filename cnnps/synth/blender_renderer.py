@@ -24,7 +24,7 @@ Scene set-up (measured facts in ``shared/notes/blender5-facts.md``):
   unbiased path tracing with ``max_bounces`` bounces of every kind (global illumination:
   interreflections and cast shadows);
 - Standard view transform; each picture is written as a float32 linear RGBA OpenEXR
-  (one layer, alpha = object coverage) and read back with :func:`cnnps.core.images.read_exr`;
+  (one layer, alpha = object coverage) and read back with :func:`cnnps.io.images.read_exr`;
 - mask and ground-truth normals: one more 1-sample render of the same camera rays with
   an emission override showing the smooth shading normal (:meth:`BlenderRenderer.render_geometry`),
   and its alpha;
@@ -56,8 +56,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from cnnps.core.errors import CnnpsError, ConfigError
-from cnnps.core.images import read_exr
+from cnnps.infra.errors import CnnpsError, ConfigError
+from cnnps.io.images import read_exr
 
 LAMBERTIAN = "lambertian"
 # the one line every command says when it must render and bpy is missing

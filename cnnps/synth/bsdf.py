@@ -1,9 +1,14 @@
 """Material categories, their parameter ranges, and the mapping to Blender 5's Principled BSDF.
 
+Design notes (why the ranges are what they are, the near-mirror exclusion, near mirrors
+measured in Blender 5.0.1, the reason for each socket): ``docs/bsdf.md``.
+
 Paper parameters (Disney 2012 "principled" model, as in CNN-PS / CyclesPS):
 ``base_color`` (RGB), ``metallic``, ``specular``, ``roughness``, ``sheen``, ``sheen_tint``.
 
-Categories and default ranges (uniform draws, one row per superpixel):
+Categories and default ranges (uniform draws, one row per superpixel); the first three
+are the paper's (:data:`DEFAULT_CATEGORIES`), ``narrow`` (narrow-lobe glossy dielectrics)
+is opt-in through ``materials.categories``:
 
 =========  ==========  ========  ========  =========  =====  ==========
 category   base_color  metallic  specular  roughness  sheen  sheen_tint
@@ -14,102 +19,29 @@ metallic   0–1         1         0–1       0.3–0.7    0–1    0–1
 narrow     0–1         0         0.5–2     0.02–0.15  0      0
 =========  ==========  ========  ========  =========  =====  ==========
 
-The first three are the paper's (:data:`DEFAULT_CATEGORIES`, what the materials stage
-draws unless told otherwise). ``narrow`` is opt-in (``materials.categories``): the
-narrow-lobe glossy materials the paper names as future work, for concave shapes where
-the lobe reflects the object's own lit surface. Its ranges, and why:
+- :class:`MaterialRanges` (one :class:`CategoryRanges` per category) from params.yaml's
+  ``materials.ranges`` with :meth:`MaterialRanges.from_dict`: partial overrides of the
+  defaults, snake_case or camelCase names; ``ConfigError`` unless lo ≤ hi inside the
+  physical limits (:data:`PHYSICAL_LIMITS`: [0, 1], specular [0, 12]).
+- :func:`sample_parameters` ``(ranges, n, rng)``: n rows, ``base_color`` (n, 3), the
+  others (n,), float32, in a fixed draw order. Where ``specular`` > ``high_specular``
+  (default 1), ``roughness`` is drawn from [max(lo, ``high_specular_min_roughness``), hi]
+  (default floor 0.05; 0.02 for narrow): no strong near-mirror dielectric.
+- :func:`to_blender_inputs` ``(params)``: Principled BSDF socket values (pure: no bpy),
+  scalars or per-pixel arrays: ``Base Color`` = base_color, ``Metallic``, ``Roughness``
+  as given; ``IOR`` = 1.5 and ``Specular IOR Level`` = specular (Cycles' F0 = 0.08 ·
+  level, Disney's F0 = 0.08 · specular); ``Specular Tint`` white; ``Sheen Weight`` =
+  sheen · (1 − metallic); ``Sheen Tint`` = mix(white, base_color, sheen_tint);
+  ``Sheen Roughness`` 0.5; ``Diffuse Roughness`` 0; Subsurface, Transmission, Coat,
+  Emission, Anisotropic, Thin Film 0; Alpha 1.
+- :func:`specular_to_ior` / :func:`ior_to_specular` / :func:`blender_f0`: the same F0
+  through the IOR (1.5 at specular 0.5).
 
-- roughness 0.02–0.15 (GGX alpha = roughness² = 0.0004–0.0225: the lobe's half width
-  in light direction is about 1.3·alpha rad, 0.03°–1.7°, below the spacing of even 1300
-  lights, about 4°). Its ``high_specular_min_roughness`` is 0.02, its own lower bound, so
-  the near-mirror floor below changes no default draw (it still applies if the range is
-  widened below 0.02): see "near mirrors, measured" for why the floor of the other
-  categories is not kept here;
-- metallic 0: a glossy dielectric (lacquer, glaze, polished plastic or stone) whose
-  Lambertian base keeps every pixel's observation map informative where no light falls
-  in the lobe (at 1300 lights 30–90 % of the pixels, depending on roughness). A narrow
-  metal has no diffuse term, so those pixels would see only inter-reflections. Polished
-  metals: override ``metallic: 1`` (or a mix ``[0, 1]``) in ``materials.ranges.narrow``;
-- specular 0.5–2 (F0 = 0.04–0.16: from common dielectrics, IOR 1.5, to diamond-like
-  IOR 2.4). Never weak: a lobe with F0 near 0 is a diffuse surface, which the Diffuse
-  category has. Capped at 2 because the lobe is already 10²–10⁴ times the diffuse level
-  through its narrowness, while the caustic fireflies below grow with F0;
-- base_color 0–1: dark bases are where the lobe dominates the map most, the hard case
-  the category exists for;
-- sheen 0 (and sheen_tint 0, then without effect): sheen is a cloth/microfibre layer in
-  Blender 5; a polished surface has none, and its broad grazing lobe would blur the one
-  thing the category adds.
+Example::
 
-Ranges are a :class:`MaterialRanges` (one :class:`CategoryRanges` per category) built from
-params.yaml with :meth:`MaterialRanges.from_dict` (partial overrides of the defaults,
-snake_case or the paper's camelCase names). Validation raises ``ConfigError``: lo ≤ hi and
-both inside the physical limits (all in [0, 1] except specular in [0, 12]: F0 = 0.08·s
-must stay below 1).
-
-Excluded combination (decision): a strong near-mirror dielectric. Where a drawn
-``specular`` exceeds ``high_specular`` (default 1, i.e. F0 > 0.08, brighter than any
-common dielectric), ``roughness`` is drawn from [max(lo, high_specular_min_roughness), hi]
-(default floor 0.05; 0.02 for narrow) instead of [lo, hi] (the same uniform number,
-rescaled, so draws stay reproducible). Under the renderer's delta (sun) lights such a
-surface shows only a sub-pixel highlight. The metallic category's 0.3–0.7 roughness
-already avoids the metal mirror. The floor stays as it was for the paper's categories
-(their material keys and scenes are unchanged).
-
-Near mirrors, measured (Blender 5.0.1, a 0.9-radius sphere, base 0.5, F0 0.08, suns of
-zero angle, no clamping; the numbers behind the narrow category's ranges):
-
-- in one image a near-mirror highlight is below the pixel grid: at 32 px no pixel centre
-  falls in the lobe for roughness ≤ 0.05 (the sphere looks diffuse, peak 0.46–0.56), at
-  roughness 0.1–0.15 it is 1–2 pixels at 4–19 times the diffuse peak; at 64 px roughness
-  0.02 is still invisible, 0.05 gives 1–2 pixels. It is *not* a Monte Carlo firefly: the
-  sun is sampled at the pixel centre (next-event estimation, 0.01 px filter), so two seeds
-  agree to about 1 % of the highlight's peak;
-- per pixel, over the lights (what CNN-PS sees), it is a deterministic one-cell spike of
-  the observation map at the mirror direction (n = half vector): at 1300 lights 11 % of
-  the pixels get one at roughness 0.02 (up to 4.6·10⁴ times the diffuse level), 48 % at
-  0.05, 65–68 % at 0.1–0.15 (median 12–24 times); at 200 lights 2 %, 12 %, 43–64 %;
-- the real fireflies are caustics of global illumination (sun → glossy lobe → diffuse
-  surface → camera, found only by chance): on concave procedural shapes at 32 px, 8 spp,
-  8 bounces, about 1 in 1,000–15,000 pixel-images at roughness 0.05–0.15, up to 10–60
-  times the image's brightest pixel (growing with F0); at 0.02 at most 2.3 times (paths
-  through a near-delta lobe are almost never sampled), at 0.3 at most 1.2 times. A
-  roughness floor at 0.05 cannot remove them (0.05–0.15 is where they are); turning off
-  reflective caustics or Cycles' "filter glossy" does (measured: none left), but would
-  change every render;
-- a sun of finite angular size (1–3°) would widen the lobe only to the sun's disc, still
-  below the light spacing, and costs Monte Carlo noise (3°: two seeds differ by up to
-  25 % of the highlight) and soft shadows: not used.
-
-Hence the narrow category's floor of 0.02, its own lower bound: above it the lobe's spikes
-are deterministic signal (where the spike sits is the mirror direction, which gives the
-normal), and the caustic fireflies are rare and no floor inside the range removes them;
-below it (a near-perfect mirror) the lobe reaches too few observation maps to be worth
-the draws.
-
-Blender 5 mapping (:func:`to_blender_inputs`, pure: no bpy):
-
-- ``Base Color`` = base_color; ``Metallic`` = metallic; ``Roughness`` = roughness (both
-  Disney and Blender square it into the GGX alpha).
-- Specular: Cycles computes ``f0 = ((ior−1)/(ior+1))²`` and, when ``Specular IOR Level``
-  ≠ 0.5, ``f0 *= 2·level`` and re-derives the IOR from f0 (``kernel/svm/closure.h``).
-  With ``IOR`` = 1.5 (f0 = 0.04) that gives f0 = 0.08·level, exactly Disney's
-  f0 = 0.08·specular. So we set **IOR = 1.5 and Specular IOR Level = specular** (linear,
-  so a per-pixel specular map plugs straight into the socket; the socket accepts values
-  above 1). This is equivalent to IOR = 2/(1 − √(0.08 s)) − 1 with level 0.5
-  (:func:`specular_to_ior`; 1.5 at s = 0.5, 3.6 at s = 4) without capping anything: the
-  Specular category keeps the paper's full 0–4 range.
-- ``Specular Tint`` = white (Disney specularTint = 0 in the paper).
-- Sheen: ``Sheen Weight`` = sheen·(1 − metallic) (Disney 2012 puts sheen in the
-  dielectric lobe only; Blender 5 layers sheen over metals too, so metals would get a
-  sheen the paper's renderer never made); ``Sheen Tint`` (a colour in Blender 4+) =
-  mix(white, base_color, sheen_tint) (as MaterialX's Disney-principled graph does;
-  Blender 2.79 mixed toward the luminance-normalised base colour, which can exceed 1);
-  ``Sheen Roughness`` = 0.5 (Blender's default; the Disney sheen had none). Blender 5's
-  sheen is a different (microfibre) model: a close, not exact, match.
-- ``Diffuse Roughness`` = 0 (Lambertian; Disney's roughness-dependent retro-reflection
-  has no exact counterpart in Blender 5).
-- Everything else off: Subsurface / Transmission / Coat / Emission Strength / Anisotropic /
-  Thin Film 0, Alpha 1.
+    rng = np.random.default_rng(0)
+    rows = sample_parameters(MaterialRanges().get("specular"), 4, rng)
+    inputs = to_blender_inputs({k: v[0] for k, v in rows.items()})   # node.inputs[name].default_value
 """
 
 from __future__ import annotations
@@ -118,7 +50,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
 
-from cnnps.core.errors import ConfigError
+from cnnps.infra.errors import ConfigError
 
 CATEGORIES = ("diffuse", "specular", "metallic", "narrow")  # every category known
 DEFAULT_CATEGORIES = ("diffuse", "specular", "metallic")  # the paper's: drawn unless told otherwise

@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from cnnps.core.errors import ConfigError
+from cnnps.infra.errors import ConfigError
 
 CHROME_ROUGHNESS = 0.2
 CHROME_ENVIRONMENT = 0.02
@@ -125,7 +125,7 @@ def _check_lights(lights, intensities) -> tuple[np.ndarray, np.ndarray]:
 
 def _render(work: Path, name: str, mesh, material: dict, L: np.ndarray, size: int, samples: int, seed: int,
             max_bounces: int, environment: float, threads: int, device: str, progress: bool, extra: dict) -> Path:
-    from cnnps.core.hashing import bytes_sha256
+    from cnnps.infra.hashing import bytes_sha256
     from cnnps.synth.capture_render import capture_key, render_into
 
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
@@ -147,8 +147,8 @@ def _scaled_folder(src: Path, dst: Path, E: np.ndarray, keep: tuple[str, ...], l
     """``dst`` = the images of ``src`` with image j's channels times E[j], plus the files in ``keep``."""
     import shutil
 
-    from cnnps.core.atomic import atomic_dir
-    from cnnps.core.images import read_exr, write_exr
+    from cnnps.infra.atomic import atomic_dir
+    from cnnps.io.images import read_exr, write_exr
 
     names = [n for n in (src / "filenames.txt").read_text().split() if n]
     with atomic_dir(dst) as tmp:
@@ -195,7 +195,7 @@ def render_calibration_set(
     chrome, matte and object to make.
     Returns ``{"chrome": Path, "matte": Path, "object": Path, "truth": dict}`` (the parts made).
     """
-    from cnnps.core.atomic import write_text
+    from cnnps.infra.atomic import write_text
     from cnnps.synth.capture_render import lambertian_material, load_mesh_arg
 
     L, E = _check_lights(lights, intensities)

@@ -24,7 +24,7 @@ so a retried or duplicated job resumes or rewrites the same pixels.
 
 Checksums. ``scene.json`` records every other file of the folder (``files``: name ->
 ``{"bytes", "sha256"}``) and a ``checksum`` of its own content
-(:func:`cnnps.core.hashing.json_checksum`, indent 2, leaving out the two timing fields
+(:func:`cnnps.infra.hashing.json_checksum`, indent 2, leaving out the two timing fields
 ``render_seconds`` and ``images_rendered_last_run``, so it is the same for every run that
 writes the same folder). :func:`is_complete` verifies them
 (a truncated, NaN-filled or byte-flipped image, or a ``scene.json`` edited by hand, makes
@@ -55,7 +55,7 @@ so every image then holds the sun's term *plus* the ambient term.
 
 Blender (bpy) is needed only to render: :mod:`cnnps.synth.blender_renderer`, the one
 module that imports it, is imported when a folder actually has images to render, and
-without bpy that is one clear :class:`cnnps.core.errors.ConfigError`
+without bpy that is one clear :class:`cnnps.infra.errors.ConfigError`
 (:func:`cnnps.synth.blender_renderer.require_blender`). A complete folder is recognised
 without Blender.
 """
@@ -69,15 +69,13 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
-from tqdm import tqdm
 
-from cnnps.core.atomic import atomic_path, publish_mode, write_text
-from cnnps.core.cache import read_json
-from cnnps.core.errors import ConfigError, InputError
-from cnnps.core.hashing import (
+from cnnps.infra.atomic import atomic_path, publish_mode, write_text
+from cnnps.infra.errors import ConfigError, InputError
+from cnnps.infra.hashing import (
     add_json_checksum,
     bytes_sha256,
     check_file_record,
@@ -87,9 +85,13 @@ from cnnps.core.hashing import (
     json_checksum_ok,
     stable_hash,
 )
+from cnnps.infra.progress import progress_bar
+from cnnps.infra.stage_folders import read_json
 
 VERSION = 1  # bump when what is written for the same inputs changes (part of every render key)
-MATERIAL_KINDS = ("lambertian", "diffuse", "specular", "metallic", "narrow")
+# what a capture is covered with: white Lambertian, or a materials-stage category on superpixels
+Material = Literal["lambertian", "diffuse", "specular", "metallic", "narrow"]
+MATERIAL_KINDS = get_args(Material)
 # the settings that change the pictures (part of the content key); not device or threads
 PICTURE_FIELDS = ("size", "samples", "lights", "jitter_deg", "min_elevation_deg", "light_intensity", "max_bounces", "seed")
 SCENE_INDENT = 2  # scene.json is json.dumps(..., indent=2) + "\n": its checksum hashes that form
@@ -235,7 +237,7 @@ def folder_problems(out: Path, meta: dict | None = None) -> list[tuple[Path, str
 def decode_problem(path: Path) -> str | None:
     """Why a file of a capture folder without a checksum record cannot be kept (not
     readable by its decoder, or NaN / infinite values), or None when it reads as a whole."""
-    from cnnps.core.images import read_image_raw
+    from cnnps.io.images import read_image_raw
 
     try:
         if path.suffix == ".npy":
@@ -303,6 +305,12 @@ def render_into(
     the light directions and intensities written stay the sun's. Put a non-zero ``s`` in
     ``key`` (the callers do); it is recorded in scene.json (``environment_strength``).
     Returns ``{"rendered": number of images rendered now, "skipped": bool}``.
+
+    Steps: skip a complete folder (or take back the version a killed re-render set
+    aside); :func:`_prepare_folder` (resume or start afresh); :func:`_geometry_and_material`
+    (mask, normals, a material drawn on the mask); :func:`_render_missing_images`;
+    :func:`_scene_record` and :func:`_write_scene_json` (the completion marker). A failure
+    puts the previous complete version back.
     """
     if not (np.isfinite(environment) and environment >= 0):
         raise ConfigError(f"render environment strength must be a finite number >= 0, got {environment!r}")
@@ -312,97 +320,29 @@ def render_into(
     if _take_back_previous(out, key):  # a killed re-render left the version this key asks for
         return {"rendered": 0, "skipped": True}
     _check_not_foreign(out)  # before Blender starts
-    from cnnps.core.images import write_exr, write_png
-
     _forget_inherited_blender_paths()
-    from cnnps.synth.blender_renderer import BlenderRenderer, blender_version, require_blender
+    from cnnps.synth.blender_renderer import BlenderRenderer, require_blender
 
     require_blender()  # one clear line without bpy, before the folder is touched
 
     prev = previous_path(out)
     try:
         t0 = time.perf_counter()
-        rendered = 0
         # the renderer first: a bad device fails before the folder is touched
         with BlenderRenderer(size, samples, device=device, threads=threads, seed=seed, max_bounces=max_bounces,
                              environment=float(environment) * float(intensity)) as r:
             names = image_names(len(lights))
-            pending = read_json(out / ".pending.json") or {}
-            done_meta = read_json(out / "scene.json") or {}
-            # a finished folder is resumed (its damaged files redone) only when its scene.json
-            # is the one we wrote and its light files are intact; else it is rendered afresh
-            done_ok = (done_meta.get("key") == key
-                       and json_checksum_ok(done_meta, indent=SCENE_INDENT, skip=SCENE_TIMINGS) is not False)
-            records = (done_meta.get("files") or {}) if done_ok else {}
-            resume = (pending.get("key") == key or done_ok) and (out / "light_directions.txt").is_file()
-            if resume and any(check_file_record(out / n, records[n]) for n in LIGHT_FILES if n in records):
-                resume = False
-            if resume:
-                try:
-                    L = np.loadtxt(out / "light_directions.txt", ndmin=2)
-                except ValueError:
-                    L = np.zeros((0, 3))
-                resume = L.shape == np.shape(lights)
-            if resume:
-                lights = L  # the directions of the interrupted run
-                if (out / "scene.json").is_file():
-                    # not complete any more: a killed resume must find .pending.json, not nothing
-                    write_text(out / ".pending.json", json.dumps({"key": key}) + "\n")
-                    (out / "scene.json").unlink()
-                remove_temp_files(out)  # half-written files of the killed run
-                _drop_damaged(out, names, records)  # damaged (or unverifiable and unreadable) files
-            else:
-                _set_aside(out)  # a finished capture of another key stays until the new one is complete
-                lights = _start_folder(out, key, lights, intensity, names)
-
+            lights = _prepare_folder(out, key, lights, intensity, names)
             r.load_scene(vertices, faces, material if isinstance(material, dict) else lambertian_material())
-            have_geometry = (out / "mask.png").is_file() and (out / "normal_gt.npy").is_file()
-            if not have_geometry or callable(material):
-                mask, normal = r.render_geometry()
-                if not mask.any():
-                    raise InputError(out, "the mesh covers no pixel of the image (empty mask)")
-                if callable(material):
-                    r.set_material(material(mask))
-                if not have_geometry:
-                    with atomic_path(out / "normal_gt.npy") as tmp:
-                        np.save(tmp, normal)
-                    write_png(out / "mask.png", mask.astype(np.uint8) * 255)
-            todo = [i for i, n in enumerate(names) if not (out / n).is_file()]
-            for i in tqdm(todo, desc=desc, unit="light", leave=False, disable=not progress or not todo):
-                write_exr(out / names[i], r.render(lights[i], intensity))
-                rendered += 1
+            _geometry_and_material(r, out, material)
+            rendered = _render_missing_images(r, out, names, lights, intensity, progress=progress, desc=desc)
             gpus = getattr(r, "gpu_devices", None)
-        scene = dict(meta or {})
-        scene.update(
-            {
-                "key": key,
-                "filenames": names,
-                "n_lights": len(names),
-                "size": size,
-                "samples": samples,
-                "max_bounces": max_bounces,
-                "light_intensity": intensity,
-                "seed": seed,
-                "device": device,
-                "threads": threads,  # Cycles threads (0 = Blender's default: all cores)
-                "gpu_devices": gpus,
-                "blender_version": blender_version(),
-                "renderer": "Cycles: orthographic camera, sun lamps (angle 0), "
-                + ("black world" if environment == 0 else "uniform white world (environment_strength x the sun's irradiance)")
-                + ", Gaussian 0.01 px filter, no denoising, no clamping",
-                # relative to the sun's irradiance; 0 = none. In every image; lights files stay the sun's
-                "environment_strength": float(environment),
-                "mask_normal_source": "Blender camera rays through pixel centres: alpha and smooth shading normal",
-                "render_seconds": round(time.perf_counter() - t0, 3),
-                "images_rendered_last_run": rendered,
-                "version": VERSION,
-                # size and SHA-256 of every other file: what is_complete and the extract stage verify
-                "files": {n: file_record(out / n) for n in list(LIGHT_FILES) + list(GEOMETRY_FILES) + names},
-            }
+        scene = _scene_record(
+            out, meta, key=key, names=names, size=size, samples=samples, max_bounces=max_bounces,
+            intensity=intensity, seed=seed, device=device, threads=threads, gpus=gpus, environment=environment,
+            t0=t0, rendered=rendered,
         )
-        scene = add_json_checksum(scene, indent=SCENE_INDENT, skip=SCENE_TIMINGS)
-        write_text(out / "scene.json", json.dumps(scene, indent=SCENE_INDENT) + "\n")
-        (out / ".pending.json").unlink(missing_ok=True)
+        _write_scene_json(out, scene)
     except BaseException:
         _restore_previous(out, prev)  # a failed re-render leaves the last complete version
         raise
@@ -410,6 +350,135 @@ def render_into(
         shutil.rmtree(prev)
     return {"rendered": rendered, "skipped": False}
 
+
+def _prepare_folder(out: Path, key: str, lights: np.ndarray, intensity: float, names: list[str]) -> np.ndarray:
+    """Make ``out`` ready for the images still missing; the light directions to render with.
+
+    A folder of this ``key`` (unfinished, or finished with damaged files) whose light files
+    are intact is resumed with the directions it holds (:func:`_reopen`); any other is
+    started afresh with ``lights``, a finished capture of another key set aside until the
+    new one is complete."""
+    records = _resume_records(out, key)
+    written = None if records is None else _written_lights(out, lights)
+    if written is None:
+        _set_aside(out)
+        return _start_folder(out, key, lights, intensity, names)
+    _reopen(out, key, names, records)
+    return written
+
+
+def _resume_records(out: Path, key: str) -> dict | None:
+    """The file records ``out`` is resumed with (``{}`` when its ``scene.json`` has none or
+    cannot be trusted), or None when it cannot be resumed: a finished folder only when its
+    ``scene.json`` is the one we wrote for ``key`` and its light files are intact, an
+    unfinished one when its ``.pending.json`` holds ``key``."""
+    pending = read_json(out / ".pending.json") or {}
+    done_meta = read_json(out / "scene.json") or {}
+    done_ok = (done_meta.get("key") == key
+               and json_checksum_ok(done_meta, indent=SCENE_INDENT, skip=SCENE_TIMINGS) is not False)
+    records = (done_meta.get("files") or {}) if done_ok else {}
+    resume = (pending.get("key") == key or done_ok) and (out / "light_directions.txt").is_file()
+    if resume and any(check_file_record(out / n, records[n]) for n in LIGHT_FILES if n in records):
+        resume = False
+    return records if resume else None
+
+
+def _written_lights(out: Path, lights: np.ndarray) -> np.ndarray | None:
+    """The directions ``out/light_directions.txt`` holds (those of the interrupted run), or
+    None when they do not read as an array shaped like ``lights``."""
+    try:
+        L = np.loadtxt(out / "light_directions.txt", ndmin=2)
+    except ValueError:
+        L = np.zeros((0, 3))
+    return L if L.shape == np.shape(lights) else None
+
+
+def _reopen(out: Path, key: str, names: list[str], records: dict) -> None:
+    """Resume ``out``: unfinished again, without the files a killed run half-wrote and
+    without its damaged (or unverifiable and unreadable) files, which are rendered again."""
+    if (out / "scene.json").is_file():
+        # not complete any more: a killed resume must find .pending.json, not nothing
+        write_text(out / ".pending.json", json.dumps({"key": key}) + "\n")
+        (out / "scene.json").unlink()
+    remove_temp_files(out)  # half-written files of the killed run
+    _drop_damaged(out, names, records)  # damaged (or unverifiable and unreadable) files
+
+
+def _geometry_and_material(r, out: Path, material: dict | Any) -> None:
+    """Blender's mask and normals (one extra render) when the folder lacks them or the
+    material is drawn on the mask: written if missing, an empty mask refused
+    (InputError), and a callable ``material`` set from the mask."""
+    from cnnps.io.images import write_png
+
+    have_geometry = (out / "mask.png").is_file() and (out / "normal_gt.npy").is_file()
+    if not have_geometry or callable(material):
+        mask, normal = r.render_geometry()
+        if not mask.any():
+            raise InputError(out, "the mesh covers no pixel of the image (empty mask)")
+        if callable(material):
+            r.set_material(material(mask))
+        if not have_geometry:
+            with atomic_path(out / "normal_gt.npy") as tmp:
+                np.save(tmp, normal)
+            write_png(out / "mask.png", mask.astype(np.uint8) * 255)
+
+
+def _render_missing_images(r, out: Path, names: list[str], lights: np.ndarray, intensity: float, *,
+                           progress: bool, desc: str) -> int:
+    """Render every image of ``names`` not in ``out`` yet, each written atomically; how many."""
+    from cnnps.io.images import write_exr
+
+    todo = [i for i, n in enumerate(names) if not (out / n).is_file()]
+    rendered = 0
+    for i in progress_bar(todo, desc=desc, unit="light", leave=False, disable=not progress or not todo):
+        write_exr(out / names[i], r.render(lights[i], intensity))
+        rendered += 1
+    return rendered
+
+
+def _scene_record(out: Path, meta: dict | None, *, key: str, names: list[str], size: int, samples: int,
+                  max_bounces: int, intensity: float, seed: int, device: str, threads: int, gpus,
+                  environment: float, t0: float, rendered: int) -> dict:
+    """The contents of ``scene.json`` (``meta`` first), without its checksum: the settings,
+    the renderer, the timings and the size and SHA-256 of every other file."""
+    from cnnps.synth.blender_renderer import blender_version
+
+    scene = dict(meta or {})
+    scene.update(
+        {
+            "key": key,
+            "filenames": names,
+            "n_lights": len(names),
+            "size": size,
+            "samples": samples,
+            "max_bounces": max_bounces,
+            "light_intensity": intensity,
+            "seed": seed,
+            "device": device,
+            "threads": threads,  # Cycles threads (0 = Blender's default: all cores)
+            "gpu_devices": gpus,
+            "blender_version": blender_version(),
+            "renderer": "Cycles: orthographic camera, sun lamps (angle 0), "
+            + ("black world" if environment == 0 else "uniform white world (environment_strength x the sun's irradiance)")
+            + ", Gaussian 0.01 px filter, no denoising, no clamping",
+            # relative to the sun's irradiance; 0 = none. In every image; lights files stay the sun's
+            "environment_strength": float(environment),
+            "mask_normal_source": "Blender camera rays through pixel centres: alpha and smooth shading normal",
+            "render_seconds": round(time.perf_counter() - t0, 3),
+            "images_rendered_last_run": rendered,
+            "version": VERSION,
+            # size and SHA-256 of every other file: what is_complete and the extract stage verify
+            "files": {n: file_record(out / n) for n in list(LIGHT_FILES) + list(GEOMETRY_FILES) + names},
+        }
+    )
+    return scene
+
+
+def _write_scene_json(out: Path, scene: dict) -> None:
+    """``scene.json`` with its checksum, written last: the folder is complete."""
+    scene = add_json_checksum(scene, indent=SCENE_INDENT, skip=SCENE_TIMINGS)
+    write_text(out / "scene.json", json.dumps(scene, indent=SCENE_INDENT) + "\n")
+    (out / ".pending.json").unlink(missing_ok=True)
 
 def _forget_inherited_blender_paths() -> None:
     """Drop Blender's script folders from ``sys.path`` in a process that has not imported bpy.
@@ -430,7 +499,7 @@ def _forget_inherited_blender_paths() -> None:
     sys.path[:] = [p for p in sys.path if not (marker in p and f"{os.sep}scripts" in p)]
 
 
-# the temporary names of cnnps.core.atomic: ``.{stem}.XXXXXXXX.tmp{suffix}`` (atomic_path) and
+# the temporary names of cnnps.infra.atomic: ``.{stem}.XXXXXXXX.tmp{suffix}`` (atomic_path) and
 # ``.{name}.XXXXXXXX.tmp`` (atomic_dir, and _start_folder's build folder)
 _TEMP_NAME = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cnnps.core.errors import ConfigError
+from cnnps.infra.errors import ConfigError
 
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 

@@ -16,9 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.core.atomic import atomic_dir
-from cnnps.core.errors import InputError
-from cnnps.synth.bsdf import PARAM_NAMES, CategoryRanges, MaterialRanges, sample_parameters
+from cnnps.infra.atomic import atomic_dir
+from cnnps.infra.errors import InputError
+from cnnps.synth.bsdf import (
+    PARAM_NAMES,
+    CategoryRanges,
+    MaterialRanges,
+    sample_parameters,
+)
 
 
 @dataclass

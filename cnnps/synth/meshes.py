@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from cnnps.core.errors import InputError
+from cnnps.infra.errors import InputError
 
 RADIUS = 0.95  # largest vertex norm after normalisation (unit sphere with a margin)
 MESH_EXTENSIONS = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")

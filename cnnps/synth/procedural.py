@@ -29,7 +29,7 @@ import numpy as np
 import trimesh
 from skimage.measure import marching_cubes
 
-from cnnps.core.errors import ConfigError
+from cnnps.infra.errors import ConfigError
 from cnnps.synth.meshes import normalize_mesh, random_rotation
 
 PROCEDURAL_KINDS = ("blob", "bowl", "assembly", "bumpy", "holed")

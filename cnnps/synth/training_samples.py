@@ -13,7 +13,7 @@ streams are in :mod:`cnnps.stages.extract`'s docstring).
   depth), :func:`apply_capture_effects` applies them, with ambient and noise
   (:func:`add_noise`, :func:`saturate`, :func:`quantize`), to a chunk of pixels;
 - :func:`build_rows`: maps and normals for every rotation angle about z, built by the same
-  :func:`cnnps.core.obsmap.observation_maps_multi` that prediction uses.
+  :func:`cnnps.ps.obsmap.observation_maps_multi` that prediction uses.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cnnps.core.obsmap import observation_maps_multi
-from cnnps.core.rotation import rotate_z
+from cnnps.ps.obsmap import observation_maps_multi
+from cnnps.ps.rotation import rotate_z
 
 
 def sample_light_masks(

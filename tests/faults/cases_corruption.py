@@ -24,8 +24,8 @@ render stage written by the meshes and materials stages are checked by decoding 
 stages keep no per-file checksums); everything else by the checksums the stages record.
 
 :func:`corruption_cases` runs every kind and returns
-``{kind: {"stage", "tried", "detected", "action"}}`` (the benchmark of issue 14,
-``benchmarks/results/faults.json``); :func:`run_try` runs one try and returns a
+``{kind: {"stage", "tried", "detected", "action"}}`` (the fault benchmark,
+``benchmarks/bench_faults.py``, recorded in ``benchmarks/results/faults.json``); :func:`run_try` runs one try and returns a
 :class:`TryResult` with the reason of a failure.
 """
 
@@ -78,7 +78,7 @@ def flip_byte(path: Path, rng: np.random.Generator, lo: int = 0, hi: int | None 
 
 def nonfinite_exr(path: Path, rng: np.random.Generator) -> str:
     """Write NaN, +Inf or -Inf into a few pixels of an EXR (a valid EXR file)."""
-    from cnnps.core.images import read_exr, write_exr
+    from cnnps.io.images import read_exr, write_exr
 
     img = read_exr(path)
     value = [np.nan, np.inf, -np.inf][int(rng.integers(0, 3))]
@@ -489,7 +489,7 @@ def run_cli(params_path: Path, stage: str) -> tuple[int, str]:
 
 def _state(out: Path) -> dict[str, tuple[str, int]]:
     """{relative path: (sha256 of the bytes, mtime_ns)} of every file under ``out``."""
-    from cnnps.core.hashing import file_sha256
+    from cnnps.infra.hashing import file_sha256
 
     if not out.is_dir():
         return {}
@@ -518,7 +518,7 @@ class TryResult:
 def run_try(case: Case, seed: int, base: Path, work: Path, check_fix: bool = True) -> TryResult:
     """Damage one file of a copy of ``base`` (seeded), re-run the case's stage, judge it
     (and, for a stop with ``check_fix``, apply the fix its error line names)."""
-    from cnnps.core.hashing import derive_seed64
+    from cnnps.infra.hashing import derive_seed64
 
     params_path, data = work_copy(base, work)
     out = data / faults.OUTPUT_DIRS[case.stage]

@@ -20,7 +20,7 @@ room, at one of two points (:data:`ENOSPC_POINTS`): "full" (no room when it star
   it, on the same tmpfs) leaves that many bytes free, so the kernel itself answers ENOSPC
   part-way through a write, in whatever library writes (OpenEXR, libpng, torch's zip
   writer, Parquet, numpy, trimesh);
-- ``inject`` (elsewhere): the write layer (:func:`cnnps.core.atomic.publish_mode`, called
+- ``inject`` (elsewhere): the write layer (:func:`cnnps.infra.atomic.publish_mode`, called
   once a temporary file or folder under the stage folder is written, before its rename; the
   shard writer calls it too) truncates that temporary to half its bytes and raises
   ``OSError(ENOSPC)`` at its ``fail_at``-th call (:func:`install_enospc`, in the stage's
@@ -387,13 +387,13 @@ def _run_injected(params_path: Path, stage: str, fail_at: int, out: Path) -> tup
 
 def install_enospc(fail_at: int, root: str | Path) -> dict:
     """Make the ``fail_at``-th publication under ``root`` (1 = the first) of the write layer
-    fail with ENOSPC after half of the temporary's bytes: :func:`cnnps.core.atomic.publish_mode`
+    fail with ENOSPC after half of the temporary's bytes: :func:`cnnps.infra.atomic.publish_mode`
     (atomic files and folders, the render stage's build folders, the shard writer).
     Returns the counter ``{"calls": n, "failed": path or None}``. For a process of its own
     (nothing is restored)."""
     root = Path(root).resolve()
-    import cnnps.core.atomic as atomic
-    import cnnps.core.shards as shards
+    import cnnps.infra.atomic as atomic
+    import cnnps.io.shards as shards
 
     real = atomic.publish_mode
     state = {"calls": 0, "failed": None}
@@ -449,7 +449,7 @@ def readable(path: Path) -> bool:
 
             pq.read_table(path)
         elif suffix in (".exr", ".png"):
-            from cnnps.core.images import read_image
+            from cnnps.io.images import read_image
 
             read_image(path)
         elif suffix == ".ply":

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import pytest
 
-from cnnps.core.lock import LOCK_FILE, RECORD_FILE, DataFolderLock, read_holder
+from cnnps.pipeline.lock import LOCK_FILE, RECORD_FILE, DataFolderLock, read_holder
 from tests.faults import cases_lock as C
 from tests.support import faults as F
 

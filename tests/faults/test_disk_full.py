@@ -1,6 +1,6 @@
 """Disk full (ENOSPC) while a stage writes: one line, exit status 2, previous outputs intact.
 
-The write layer (:mod:`cnnps.core.atomic`) first, in-process: whatever library fails
+The write layer (:mod:`cnnps.infra.atomic`) first, in-process: whatever library fails
 (OpenEXR and torch raise RuntimeError, numpy an OSError without errno, ...), a write on a
 full filesystem becomes ``OSError(ENOSPC)`` naming the final path, the temporary goes,
 the previous file or folder stays.
@@ -21,8 +21,8 @@ import sys
 import numpy as np
 import pytest
 
-import cnnps.core.atomic as atomic
-from cnnps.core.atomic import atomic_dir, atomic_path, filesystem_full
+import cnnps.infra.atomic as atomic
+from cnnps.infra.atomic import atomic_dir, atomic_path, filesystem_full
 from tests.faults import cases_lock as C
 
 pytestmark = pytest.mark.faults
@@ -147,8 +147,8 @@ with open(d / "filler", "wb") as f:
             f.write(bytes(1 << 16))
     except OSError:
         pass
-from cnnps.core.images import write_exr, write_png
-from cnnps.core.atomic import atomic_dir, atomic_path
+from cnnps.io.images import write_exr, write_png
+from cnnps.infra.atomic import atomic_dir, atomic_path
 img = np.random.default_rng(0).random((64, 64, 3)).astype(np.float32)
 def torch_save(p):
     import torch

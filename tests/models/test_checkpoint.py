@@ -7,8 +7,14 @@ import zipfile
 import pytest
 import torch
 
-from cnnps.core.errors import InputError
-from cnnps.models.checkpoint import file_sha256, load_checkpoint, read_checkpoint, save_checkpoint, state_digest
+from cnnps.infra.errors import InputError
+from cnnps.models.checkpoint import (
+    file_sha256,
+    load_checkpoint,
+    read_checkpoint,
+    save_checkpoint,
+    state_digest,
+)
 from cnnps.models.network import ARCH_VERSION, CNNPS
 
 

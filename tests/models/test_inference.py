@@ -5,10 +5,10 @@ import pytest
 import torch
 from torch import nn
 
-from cnnps.core.errors import CnnpsError
-from cnnps.core.metrics import angular_error_deg
+from cnnps.infra.errors import CnnpsError
 from cnnps.models.inference import MapPredictor, predict_normals, resolve_device
 from cnnps.models.network import CNNPS
+from cnnps.ps.metrics import angular_error_deg
 
 
 class CellLambertian(nn.Module):
@@ -111,7 +111,7 @@ def test_streaming_and_batching_do_not_change_results(lambertian_scene):
     # 2 threads at |m| = 0.006, where a flat atol 1e-4 had little room). Bound the
     # rounding, not its amplified size: |out - ref| * |m| <= 2e-5 (measured 1.9e-6).
     # A chunking or batching bug moves normals by ~0.1-1 at |m| ~ 0.5.
-    from cnnps.core.rotation import rotate_z
+    from cnnps.ps.rotation import rotate_z
 
     p0 = predict_normals(model, intensities[:96], lights, rotations=1, device="cpu", progress=False)
     p1 = rotate_z(predict_normals(model, intensities[:96], rotate_z(lights, np.pi), rotations=1, device="cpu",
@@ -120,7 +120,7 @@ def test_streaming_and_batching_do_not_change_results(lambertian_scene):
     assert (np.abs(out - ref).max(axis=1) * m).max() <= 2e-5
     np.testing.assert_allclose(np.linalg.norm(ref, axis=1), 1.0, atol=1e-5)
     # the fast path (folded network) equals the plain eager network
-    from cnnps.core.obsmap import observation_maps
+    from cnnps.ps.obsmap import observation_maps
 
     with torch.no_grad():
         eager = model(torch.from_numpy(observation_maps(intensities[:96], lights)).unsqueeze(1)).numpy()
@@ -210,9 +210,9 @@ class _RecordingPredictor:
 def test_rotated_normals_builds_the_same_maps_in_one_pass(read_ahead):
     """All K rotations of a chunk in one pass (observation_maps_multi), built a chunk ahead:
     the maps, and so the normals, equal K separate observation_maps calls."""
-    from cnnps.core.obsmap import observation_maps
-    from cnnps.core.rotation import average_rotated_predictions, rotate_z, rotation_angles
     from cnnps.models.inference import rotated_normals
+    from cnnps.ps.obsmap import observation_maps
+    from cnnps.ps.rotation import average_rotated_predictions, rotate_z, rotation_angles
 
     rng = np.random.default_rng(3)
     lights = _cell_centre_lights(32, 40, np.random.default_rng(4)) @ np.diag([1, -1, 1])  # any directions
@@ -244,7 +244,7 @@ class _CellCounter(nn.Module):
 
 
 def test_sparse_fill_below_fifty_images_only(lambertian_scene):
-    from cnnps.core.sparse_fill import FILL_BELOW, VIRTUAL_LIGHTS
+    from cnnps.ps.sparse_fill import FILL_BELOW, VIRTUAL_LIGHTS
 
     intensities, lights, normals = lambertian_scene  # 60 lights, no shadows
     counts = {}

@@ -7,7 +7,7 @@ import json
 import pytest
 import torch
 
-from cnnps.core.errors import CnnpsError
+from cnnps.infra.errors import CnnpsError
 from cnnps.models.checkpoint import load_checkpoint, save_checkpoint
 from cnnps.models.interpolate import interpolate, main
 from cnnps.models.network import CNNPS

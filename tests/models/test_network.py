@@ -3,7 +3,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from cnnps.models.network import ARCH_VERSION, CNNPS, FoldedCNNPS, count_parameters, fold_for_inference
+from cnnps.models.network import (
+    ARCH_VERSION,
+    CNNPS,
+    FoldedCNNPS,
+    count_parameters,
+    fold_for_inference,
+)
 
 
 def _expected_params(w: int) -> int:

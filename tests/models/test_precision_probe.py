@@ -42,7 +42,7 @@ def _fake_timings(monkeypatch, rates: dict, error_deg: dict):
     perp = np.cross(truth, [1.0, 0.0, 0.0])
     perp /= np.linalg.norm(perp, axis=1, keepdims=True)
 
-    def fake(predictor, maps, floor, stoppable=True):
+    def fake(predictor, maps, floor, stoppable=True, passes=None):
         a = np.radians(error_deg[predictor.precision])
         return float(rates[predictor.precision]), (np.cos(a) * truth + np.sin(a) * perp).astype(np.float32)
 
@@ -67,7 +67,7 @@ def test_the_pick_is_the_fastest_exact_enough_path(net, monkeypatch, rates, erro
 
 
 def test_a_candidate_stopped_early_is_never_picked(net, monkeypatch):
-    monkeypatch.setattr(pp, "_time_candidate", lambda p, maps, floor, stoppable=True: (
+    monkeypatch.setattr(pp, "_time_candidate", lambda p, maps, floor, stoppable=True, passes=None: (
         (3000.0, p.net(torch.from_numpy(maps[:, None])).detach().numpy()) if p.precision == "fp32" else (9000.0, None)))
     choice = pp.probe(net, torch.device("cpu"))
     assert choice.precision == "fp32" and "stopped" in choice.reason
@@ -121,7 +121,7 @@ def test_threads_are_chosen_by_timing_the_pick(net, monkeypatch, cache, rate_by_
     _, truth = pp.probe_maps()
     monkeypatch.setattr(pp, "thread_candidates", lambda: [2, 1])
 
-    def fake(predictor, maps, floor, stoppable=True):
+    def fake(predictor, maps, floor, stoppable=True, passes=None):
         rate = rate_by_threads[torch.get_num_threads()] * (1.0 if predictor.precision == "fp32" else 0.1)
         return rate, truth.copy()
 
@@ -137,3 +137,144 @@ def test_threads_are_chosen_by_timing_the_pick(net, monkeypatch, cache, rate_by_
         assert again.cached and again.threads == pick and torch.get_num_threads() == pick
     finally:
         torch.set_num_threads(before)
+
+
+# -- load, cache age and the rate a run reports ----------------------------------------------
+
+
+def _passes(share_by_threads: dict, walls=(0.10, 0.11)) -> list:
+    """Timed passes of fp32 at each thread count whose threads got ``share`` of their CPUs."""
+    return [pp.TimedPass("fp32", t, 384, w, w * t * share) for t, share in share_by_threads.items() for w in walls]
+
+
+@pytest.mark.parametrize("passes, loaded, said", [
+    (_passes({2: 0.99, 1: 1.0}), False, None),  # a quiet 2-CPU machine: each thread keeps its CPU busy
+    (_passes({2: 0.49, 1: 1.0}), True, "2 threads got 49% of their CPUs' time"),  # a job on the other core
+    (_passes({2: 0.98, 1: 0.70}), True, "1 thread got 70%"),
+    (_passes({2: 1.0}, walls=(0.10, 0.20)), True, "fp32 at 2 threads: passes 2.00x apart"),  # load came or went
+    ([pp.TimedPass("fp32", None, 384, 0.01, 0.001)] * 2, False, None),  # a GPU: CPU time says nothing
+    ([], False, None),
+])
+def test_load_is_judged_from_the_cpu_time_the_timed_threads_got(passes, loaded, said):
+    note = pp.judge_load(passes)
+    assert (note is not None) == loaded
+    if said:
+        assert said in note
+
+
+class FakeClocks:
+    """Wall and CPU clocks for the real probe: every timed call lasts ``step`` seconds and
+    its threads get ``share_by_threads[threads]`` of their CPUs, whatever this machine does."""
+
+    def __init__(self, share_by_threads: dict, step: float = 0.05):
+        self.share, self.step, self.wall, self.cpu = share_by_threads, step, 0.0, 0.0
+
+    def wall_clock(self) -> float:
+        self.wall += self.step / 2
+        return self.wall
+
+    def cpu_clock(self) -> float:
+        t = torch.get_num_threads()
+        self.cpu += self.step / 2 * t * self.share[t]
+        return self.cpu
+
+
+@pytest.fixture
+def two_threads(monkeypatch):
+    monkeypatch.setattr(pp, "thread_candidates", lambda: [2, 1])
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("shares, loaded", [({2: 1.0, 1: 1.0}, False), ({2: 0.5, 1: 1.0}, True)])
+def test_the_real_probe_records_its_passes_and_a_loaded_one_is_not_cached(net, cache, monkeypatch, two_threads,
+                                                                           shares, loaded):
+    clocks = FakeClocks(shares)
+    monkeypatch.setattr(pp, "wall_clock", clocks.wall_clock)
+    monkeypatch.setattr(pp, "cpu_clock", clocks.cpu_clock)
+    choice = pp.choose_precision(net, torch.device("cpu"), "d" * 64)
+    # every pass took the same time: the tie keeps fp32 and all CPUs
+    assert choice.precision == "fp32" and choice.threads == 2
+    assert choice.cpu_share == {"2": pytest.approx(shares[2]), "1": pytest.approx(shares[1])}
+    assert choice.under_load is loaded and ("not cached" in choice.reason) is loaded
+    assert choice.age_seconds is None and not choice.cached
+    stored = json.loads(cache.read_text())["choices"] if cache.exists() else {}
+    assert (choice.key in stored) is not loaded
+
+
+def test_a_probe_under_load_serves_its_run_only(net, cache, monkeypatch):
+    calls = []
+
+    def loaded(predictor, maps, floor, stoppable=True, passes=None):
+        calls.append(predictor.precision)
+        passes += _passes({torch.get_num_threads(): 0.48})
+        return {"fp32": 3000.0, "bf16": 300.0}[predictor.precision], pp.probe_maps()[1]
+
+    monkeypatch.setattr(pp, "_time_candidate", loaded)
+    first = pp.choose_precision(net, torch.device("cpu"), "e" * 64)
+    assert first.under_load and not first.cached and "under load" in first.reason and "48%" in first.reason
+    assert not cache.exists()
+    n = len(calls)
+    again = pp.choose_precision(net, torch.device("cpu"), "e" * 64)  # nothing cached: probed again
+    assert again.under_load and not again.cached and len(calls) == 2 * n
+
+
+def test_a_cached_answer_has_an_age_and_expires(net, cache, monkeypatch):
+    clock = {"now": 1.9e9}
+    monkeypatch.setattr(pp, "now", lambda: clock["now"])
+    _fake_timings(monkeypatch, {"fp32": 3806.0, "bf16": 7711.0}, {"fp32": 2.0, "bf16": 2.0})
+    first = pp.choose_precision(net, torch.device("cpu"), "f" * 64)
+    assert not first.cached and first.probed_at == clock["now"] and first.age_seconds is None
+    assert not first.under_load
+    clock["now"] += 3 * 86400
+    again = pp.choose_precision(net, torch.device("cpu"), "f" * 64)
+    assert again.cached and again.age_seconds == pytest.approx(3 * 86400) and again.probed_at == first.probed_at
+    clock["now"] = first.probed_at + pp.CACHE_MAX_AGE_S + 1
+    later = pp.choose_precision(net, torch.device("cpu"), "f" * 64)
+    assert not later.cached and later.age_seconds is None and "30.0 days old" in later.reason
+    assert json.loads(cache.read_text())["choices"][later.key]["probed_at"] == clock["now"]
+    clock["now"] -= 3600  # the clock went back past the probe: no age to trust
+    assert not pp.choose_precision(net, torch.device("cpu"), "f" * 64).cached
+
+
+def test_a_cache_of_the_previous_format_is_probed_again(net, cache, monkeypatch):
+    _fake_timings(monkeypatch, {"fp32": 3806.0, "bf16": 7711.0}, {"fp32": 2.0, "bf16": 2.0})
+    key = pp.cache_key(torch.device("cpu"), "g" * 64)
+    cache.parent.mkdir(parents=True)
+    cache.write_text(json.dumps({"version": 1, "choices": {key: {"precision": "fp32", "reason": "old", "threads": 1}}}))
+    choice = pp.choose_precision(net, torch.device("cpu"), "g" * 64)
+    assert not choice.cached and choice.precision == "bf16"
+    assert json.loads(cache.read_text())["version"] == pp.CACHE_VERSION
+
+
+def test_a_run_far_slower_than_the_probe_drops_the_cached_answer(net, cache, monkeypatch, two_threads):
+    calls = []
+    real = pp.probe
+    monkeypatch.setattr(pp, "probe", lambda *a, **k: calls.append(1) or real(*a, **k))
+    _fake_timings(monkeypatch, {"fp32": 3000.0, "bf16": 300.0}, {"fp32": 2.0, "bf16": 2.0})
+    choice = pp.choose_precision(net, torch.device("cpu"), "h" * 64)
+    assert choice.threads == 2 and choice.thread_rates["2"] == 3000.0 and len(calls) == 1
+    assert not pp.report_rate(choice.key, 1500.0)  # half the probe's rate: kept
+    assert not pp.report_rate(choice.key, 3500.0)
+    for nonsense in (0.0, -1.0, float("nan"), float("inf"), None, "fast"):
+        assert not pp.report_rate(choice.key, nonsense)
+    assert not pp.report_rate("another machine", 1.0)
+    assert pp.choose_precision(net, torch.device("cpu"), "h" * 64).cached and len(calls) == 1
+    assert pp.report_rate(choice.key, 1499.0)  # under half: dropped, the next run probes again
+    assert choice.key not in json.loads(cache.read_text())["choices"]
+    assert not pp.report_rate(choice.key, 1.0)  # nothing left to drop
+    assert not pp.choose_precision(net, torch.device("cpu"), "h" * 64).cached and len(calls) == 2
+
+
+def test_the_rate_of_a_gpu_run_does_not_drop_its_answer(cache):
+    key = "some GPU | torch x | cuda | model 0123"
+    cache.parent.mkdir(parents=True)
+    entry = {"precision": "bf16", "reason": "probe", "rates": {"fp32": 9e4, "bf16": 2e5}, "threads": None,
+             "probed_at": 1.9e9, "device": "cuda"}
+    cache.write_text(json.dumps({"version": pp.CACHE_VERSION, "choices": {key: entry}}))
+    assert not pp.report_rate(key, 10.0)
+    assert key in json.loads(cache.read_text())["choices"]
+    cpu_key = "some CPU | torch x | cpu | model 0123"
+    cache.write_text(json.dumps({"version": pp.CACHE_VERSION, "choices": {cpu_key: {**entry, "device": "cpu"}}}))
+    assert pp.report_rate(cpu_key, 0.4 * 2e5)  # no thread rates: the pick's rate is the yardstick

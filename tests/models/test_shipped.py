@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from cnnps.core.errors import CnnpsError
+from cnnps.infra.errors import CnnpsError
 from cnnps.models import shipped
 from cnnps.models.checkpoint import load_checkpoint, save_checkpoint
 from cnnps.models.network import CNNPS
@@ -48,13 +48,13 @@ def test_the_shipped_model_is_intact_and_predict_uses_it(tmp_path):
     # the committed weights match their provenance record, and `predict` without --model
     # uses them: on an analytic Lambertian sphere under 48 lights the trained network is far
     # better than chance (an untrained net is 40-90 degrees off here)
-    from cnnps.pipeline.predict import predict_capture
+    from cnnps.api.prediction import predict_folder
     from tests.support.synthetic import write_capture
 
     path = shipped.shipped_model_path()
     assert json.loads(path.with_suffix(".json").read_text())["preset"]
     write_capture(tmp_path / "cap", fmt="exr", size=24, m=48)
-    result = predict_capture(tmp_path / "cap", tmp_path / "out", method="cnn", rotations=1, progress=False)
+    result = predict_folder(tmp_path / "cap", tmp_path / "out", method="cnn", rotations=1, progress=False)
     assert result["model"].endswith("cnnps_default.pt")
     assert result["mean_deg"] < 15.0
 

@@ -11,9 +11,15 @@ import shutil
 import numpy as np
 import pytest
 
-from cnnps.core.images import write_png
+from cnnps.io.images import write_png
 from cnnps.synth.lights import hemisphere_lights
-from tests.support.calibration import BALL, angles_deg, chrome_image, matte_image, write_ball_folder
+from tests.support.calibration import (
+    BALL,
+    angles_deg,
+    chrome_image,
+    matte_image,
+    write_ball_folder,
+)
 from tests.support.cli import run_cli
 
 LIGHTS = hemisphere_lights(8, jitter_deg=4.0, seed=11, min_elevation_deg=10.0)
@@ -54,7 +60,7 @@ def test_calibrate_writes_lights_picture_and_report(tmp_path, balls, capsys):
     np.testing.assert_allclose(I, E / E.mean(), rtol=0.01)
     report = json.loads((out / "calibration.json").read_text())
     assert report["chrome_ball"]["radius_px"] == pytest.approx(BALL.radius, abs=0.1)
-    from cnnps.core.images import read_image
+    from cnnps.io.images import read_image
 
     pic = read_image(out / "calibration.png")
     assert pic.shape[2] == 3 and min(pic.shape[:2]) >= 400
@@ -169,7 +175,10 @@ def test_calibrated_lights_predict_as_well_as_true_ones(tmp_path, capsys):
     """A chrome ball, a matte ball and an object rendered under the same jittered lights
     with per-light RGB intensities: `cnnps calibrate` then `cnnps predict` (Lambertian
     least squares) gives normals within 0.5 degrees (mean) of those from the true lights."""
-    from cnnps.synth.calibration_scenes import random_intensities, render_calibration_set
+    from cnnps.synth.calibration_scenes import (
+        random_intensities,
+        render_calibration_set,
+    )
 
     L = hemisphere_lights(24, jitter_deg=5.0, seed=21)
     E = random_intensities(len(L), seed=22, spread=0.3)

@@ -11,11 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnnps.core.errors import CnnpsError, InputError
-from cnnps.core.executor import LocalExecutor, WorkerLostError
+from cnnps.infra.errors import CnnpsError, InputError
+from cnnps.infra.executor import LocalExecutor, WorkerLostError
 from tests.support.cli import run_cli
 from tests.support.jobs import always_crash, bad_input, crash_first_time
-
 
 # -- command line ----------------------------------------------------------------------
 
@@ -67,16 +66,16 @@ def test_os_error_without_filename_and_rename():
 
 
 def _raising(exc):
-    def predict_capture(*args, **kwargs):
+    def predict_folder(*args, **kwargs):
         raise exc
 
-    return predict_capture
+    return predict_folder
 
 
 def test_broken_pool_is_one_line(capture, tmp_path, capsys, monkeypatch):
-    import cnnps.pipeline.predict
+    import cnnps.api.prediction
 
-    monkeypatch.setattr(cnnps.pipeline.predict, "predict_capture", _raising(BrokenProcessPool(
+    monkeypatch.setattr(cnnps.api.prediction, "predict_folder", _raising(BrokenProcessPool(
         "A process in the process pool was terminated abruptly while the future was running or pending.")))
     code, out, err = run_cli(predict_argv(capture, tmp_path / "o"), capsys)
     assert code == 2
@@ -86,20 +85,20 @@ def test_broken_pool_is_one_line(capture, tmp_path, capsys, monkeypatch):
 
 
 def test_cnnps_error_with_notes_is_one_line(capture, tmp_path, capsys, monkeypatch):
-    import cnnps.pipeline.predict
+    import cnnps.api.prediction
 
     exc = InputError("/d/img.tif", "tifffile says:\nnot a TIFF\n")
     exc.add_note("(in render job 3: Job(seed=3))")
-    monkeypatch.setattr(cnnps.pipeline.predict, "predict_capture", _raising(exc))
+    monkeypatch.setattr(cnnps.api.prediction, "predict_folder", _raising(exc))
     code, out, err = run_cli(predict_argv(capture, tmp_path / "o"), capsys)
     assert code == 2
     assert err.strip().splitlines() == ["cnnps: error: /d/img.tif: tifffile says: not a TIFF (in render job 3: Job(seed=3))"]
 
 
 def test_interrupt_exits_130(capture, tmp_path, capsys, monkeypatch):
-    import cnnps.pipeline.predict
+    import cnnps.api.prediction
 
-    monkeypatch.setattr(cnnps.pipeline.predict, "predict_capture", _raising(KeyboardInterrupt()))
+    monkeypatch.setattr(cnnps.api.prediction, "predict_folder", _raising(KeyboardInterrupt()))
     code, out, err = run_cli(predict_argv(capture, tmp_path / "o"), capsys)
     assert code == 130 and "Traceback" not in err
 
@@ -143,7 +142,7 @@ def test_input_error_from_a_worker_arrives_intact(tmp_path):
 def test_broken_pool_cause_is_summarised():
     from concurrent.futures.process import _RemoteTraceback
 
-    from cnnps.core.executor import _broken_cause
+    from cnnps.infra.executor import _broken_cause
 
     exc = BrokenProcessPool("A process in the process pool was terminated abruptly")
     assert _broken_cause(exc) == ""  # a killed worker: no cause

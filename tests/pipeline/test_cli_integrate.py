@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cnnps.core.images import write_png
+from cnnps.io.images import write_png
 from tests.support.cli import run_cli
 
 

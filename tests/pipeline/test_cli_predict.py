@@ -194,6 +194,8 @@ def test_precision_auto_says_which_path_ran_and_why(tmp_path, capsys, monkeypatc
     from cnnps.models import precision_probe
 
     monkeypatch.setenv("CNNPS_CACHE_DIR", str(tmp_path / "cache"))
+    # a loaded machine (other tests alongside) would rightly leave the first probe uncached
+    monkeypatch.setattr(precision_probe, "judge_load", lambda passes: None)
     write_capture(tmp_path / "cap", fmt="exr", size=12, m=20, max_tilt_deg=45)
     argv = ["predict", str(tmp_path / "cap"), "--rotations", "1", "--no-progress"]
     code, _, stderr = run_cli([*argv, "--out", str(tmp_path / "a"), "-v"], capsys)
@@ -205,7 +207,9 @@ def test_precision_auto_says_which_path_ran_and_why(tmp_path, capsys, monkeypatc
     assert first["precision_choice"]["requested"] == "auto" and not first["precision_choice"]["cached"]
     code, _, stderr = run_cli([*argv, "--out", str(tmp_path / "b"), "-v"], capsys)
     second = json.loads((tmp_path / "b" / "prediction.json").read_text())
-    assert code == 0 and "(cached)" in stderr and second["precision"] == first["precision"]
+    assert code == 0 and "(cached, measured " in stderr and " s ago)" in stderr, stderr
+    assert second["precision"] == first["precision"] and second["precision_choice"]["cached"]
+    assert 0 <= second["precision_choice"]["age_seconds"] < 600 and not second["precision_choice"]["under_load"]
 
     def no_probe(*a, **k):
         raise AssertionError("an explicit --precision must not probe")
@@ -215,3 +219,25 @@ def test_precision_auto_says_which_path_ran_and_why(tmp_path, capsys, monkeypatc
     third = json.loads((tmp_path / "c" / "prediction.json").read_text())
     assert code == 0 and "cnnps: precision" not in stderr
     assert third["precision"] == "fp32" and third["precision_choice"]["requested"] == "fp32"
+
+
+def test_an_option_has_one_message_in_the_api_the_command_line_and_params_yaml(tmp_path, capsys):
+    """sparse_fill is declared once (cnnps.ps.sparse_fill.SparseFill): each front end names
+    it its own way and says the same thing about it."""
+    from cnnps.api.prediction import predict_folder
+    from cnnps.infra.errors import ConfigError
+    from cnnps.pipeline import config
+
+    write_capture(tmp_path / "cap", fmt="exr", size=8, m=6)
+    said = "must be one of auto, on, off, got 'sometimes'"
+    with pytest.raises(ConfigError) as api:
+        predict_folder(tmp_path / "cap", tmp_path / "o1", sparse_fill="sometimes", progress=False)
+    code, _, stderr = run_cli(["predict", str(tmp_path / "cap"), "--out", str(tmp_path / "o2"),
+                               "--sparse-fill", "sometimes"], capsys)
+    params = tmp_path / "params.yaml"
+    params.write_text("eval:\n  sparse_fill: sometimes\n")
+    with pytest.raises(ConfigError) as yaml_file:
+        config.load_all(config.load_config(params), ["eval"], check_files=False)
+    assert str(api.value) == f"sparse_fill {said}"
+    assert code == 2 and stderr == f"cnnps: error: --sparse-fill {said}\n"
+    assert str(yaml_file.value) == f"{params}: eval.sparse_fill {said}"

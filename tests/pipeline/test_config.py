@@ -15,10 +15,10 @@ from typing import Literal, Optional
 import pytest
 import yaml
 
-from cnnps.core.errors import ConfigError
+from cnnps.infra.errors import ConfigError
+from cnnps.infra.executor import ExecutorParams
 from cnnps.pipeline import config as cfg
 from cnnps.pipeline.cli import main
-from cnnps.core.executor import ExecutorParams
 
 
 @dataclass(frozen=True)
@@ -125,7 +125,7 @@ def test_defaults_when_section_missing(fake_stages):
         ({"count": True}, "meshes.count: expected an integer"),
         ({"sizes": 3}, "meshes.sizes"),
         ({"bounds": [0, 1, 2]}, "meshes.bounds: expected 2 values"),
-        ({"mode": "c"}, "meshes.mode: must be one of 'a', 'b'"),
+        ({"mode": "c"}, "meshes.mode must be one of a, b, got 'c'"),
         ({"cone": {"max": 3}}, "meshes.cone: unknown key 'max'"),
         ({"count": -1}, "count must be >= 0"),
         ({"bounds": [1, 0]}, "bounds reversed"),

@@ -45,7 +45,7 @@ def _module_file(name: str) -> Path | None:
 
 def _imported_modules(path: Path) -> set[str]:
     """Every cnnps module ``path`` imports, at the top or inside functions (lazy imports)."""
-    # the package holding the module (cnnps/core/shards.py and cnnps/core/__init__.py: cnnps.core)
+    # the package holding the module (cnnps/io/shards.py and cnnps/io/__init__.py: cnnps.io)
     package = ".".join(path.relative_to(REPO).with_suffix("").parts).rpartition(".")[0]
     found: set[str] = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
@@ -93,7 +93,7 @@ def code_closure(*modules: str) -> set[str]:
             continue
         seen.add(name)
         f = _module_file(name)
-        if f is None:  # an attribute (`from cnnps.core.errors import ConfigError`), not a module
+        if f is None:  # an attribute (`from cnnps.infra.errors import ConfigError`), not a module
             continue
         if not _trivial_init(f):
             files.add(f.relative_to(REPO).as_posix())
@@ -203,8 +203,8 @@ def test_dvc_reruns_only_what_changed(dvc_repo):
 
     # 2. code: editing one stage's module makes exactly that stage stale (and byte code,
     #    written into cnnps/ by any import, is not a change: .dvcignore)
-    (repo / "cnnps" / "core" / "__pycache__").mkdir(exist_ok=True)
-    (repo / "cnnps" / "core" / "__pycache__" / "obsmap.cpython-311.pyc").write_bytes(b"\0")
+    (repo / "cnnps" / "ps" / "__pycache__").mkdir(exist_ok=True)
+    (repo / "cnnps" / "ps" / "__pycache__" / "obsmap.cpython-311.pyc").write_bytes(b"\0")
     assert UP_TO_DATE in dvc(repo, "status")
     extract_py = repo / "cnnps" / "stages" / "extract.py"
     source = extract_py.read_text()

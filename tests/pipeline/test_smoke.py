@@ -33,7 +33,7 @@ def test_every_stage_on_one_tiny_mesh(tiny_setup, monkeypatch, capsys):
     scenes = sorted(p.name for p in (data / "materials").iterdir() if p.is_dir())
     assert scenes == [f"{views[0].name}-diffuse", f"{views[0].name}-specular"]
 
-    from cnnps.core.capture import load_capture
+    from cnnps.io.capture import load_capture
 
     renders = sorted(p for p in (data / "render").iterdir() if p.is_dir())
     assert [p.name for p in renders] == scenes
@@ -67,5 +67,11 @@ def test_every_stage_on_one_tiny_mesh(tiny_setup, monkeypatch, capsys):
     report = (data / "eval" / "report.md").read_text()
     assert "sphere-specular-8" in report and (data / "eval" / "pictures" / "sphere-specular-8_input.png").is_file()
     assert "CNN-PS K=2" in out and "report: data/eval/report.md" in out
+    # the shipped model scored on the same capture, in its own column, and a legend saying which is which
+    head = [line for line in out.splitlines() if line.startswith("capture")][-1]  # the demo's closing table
+    assert head.index("CNN-PS K=2") < head.index("shipped K=10") < head.index("Lambertian LS")
+    row = [line for line in out.splitlines() if line.startswith("sphere-specular-8")][-1]
+    assert len(row.split("/")) == 5  # K=1, K=2, shipped, least squares: four "mean / median" cells
+    assert "shipped K=10: the model cnnps ships (v3.1 cnnps_default.pt" in out
     print(f"smoke pipeline: {elapsed:.1f} s")
     assert elapsed < 900  # generous: CI machines can be loaded (quiet: about 10 s)

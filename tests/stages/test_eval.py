@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnnps.core.errors import ConfigError
-from cnnps.core.images import read_image, write_exr, write_png
+from cnnps.infra.errors import ConfigError
+from cnnps.io.images import read_image, write_exr, write_png
 from cnnps.stages import evaluate as ev
 
 S = 32
@@ -135,7 +135,7 @@ def test_params_validation(kwargs, message):
 
 
 def test_missing_model_is_one_clear_error(tmp_path):
-    from cnnps.core.errors import InputError
+    from cnnps.infra.errors import InputError
 
     with pytest.raises(InputError, match="model not found"):
         ev.run(ev.Params(), tmp_path)
@@ -200,3 +200,28 @@ def test_cached_synthetic_test_set_needs_no_blender(tmp_path, tiny_model):
     assert b["pixels"] == a["pixels"] > 20 and b["methods"]["lambertian"] == a["methods"]["lambertian"]
     # the same images and model: the CNN's numbers agree too (to float rounding of the network)
     assert b["methods"]["cnn_k1"]["mean_deg"] == pytest.approx(a["methods"]["cnn_k1"]["mean_deg"], rel=1e-5)
+
+
+def test_the_table_puts_another_model_beside_the_trained_one():
+    """`cnnps demo` scores the shipped model on the same captures: its column sits between
+    the trained model's and least squares', with the mean over captures, and a legend
+    says what each column is."""
+    from cnnps.stages.eval_report import format_table
+
+    stats = lambda mean: {"mean_deg": mean, "median_deg": mean - 1.0}  # noqa: E731
+    metrics = {"methods": ["cnn_k10", "lambertian"],
+               "captures": {"a-17": {"n_images": 17, "methods": {"cnn_k10": stats(12.3), "lambertian": stats(14.4)}},
+                            "b-305": {"n_images": 305, "methods": {"cnn_k10": stats(5.0), "lambertian": stats(9.0)}}},
+               "summary": {"cnn_k10": stats(8.65), "lambertian": stats(11.7)}}
+    shipped = {"captures": {"a-17": stats(7.5), "b-305": stats(2.5)}, "summary": stats(5.0), "label": "v9 m.pt"}
+    lines = format_table(metrics, shipped).splitlines()
+    head = lines[1]
+    assert head.index("CNN-PS K=10") < head.index("shipped K=10") < head.index("Lambertian LS")
+    import re
+
+    cells = lambda line: re.findall(r"(\d+\.\d+) / +(\d+\.\d+)", line)  # noqa: E731
+    assert cells(lines[3]) == [("12.30", "11.30"), ("7.50", "6.50"), ("14.40", "13.40")]
+    assert lines[5].startswith("mean over captures")
+    assert cells(lines[5]) == [("8.65", "7.65"), ("5.00", "4.00"), ("11.70", "10.70")]
+    assert "shipped K=10: the model cnnps ships (v9 m.pt)" in lines[-1]
+    assert "shipped" not in format_table(metrics)  # without another model: the table as before

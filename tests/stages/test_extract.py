@@ -8,15 +8,18 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from cnnps.core.obsmap import observation_maps
-from cnnps.core.rotation import rotate_z, rotation_angles
+from cnnps.io.shards import decode_maps, decode_normals, load_manifest
+from cnnps.ps.obsmap import observation_maps
+from cnnps.ps.rotation import rotate_z, rotation_angles
 from cnnps.stages import extract
 from cnnps.stages.extract import Params
 from cnnps.synth.training_samples import add_ambient, build_rows, sample_light_masks
-from cnnps.core.shards import decode_maps, decode_normals, load_manifest
-
-from tests.support.renders import make_render_dir, make_scene, random_lights, sphere_normals  # noqa: F401
-
+from tests.support.renders import (  # noqa: F401
+    make_render_dir,
+    make_scene,
+    random_lights,
+    sphere_normals,
+)
 
 SMALL = dict(min_lights=10, max_lights=40, rotations=4, rows_per_group=500, rows_per_shard=1500, chunk_pixels=100)
 
@@ -114,7 +117,7 @@ def test_schema_and_manifest(extracted):
 def test_rows_match_recomputation(extracted):
     """Each row equals a map rebuilt from the capture: lights inside the cone, lights and
     normal of rotation r turned by rotation_angles(R)[r]."""
-    from cnnps.core.capture import load_capture
+    from cnnps.io.capture import load_capture
 
     data, params = extracted
     man, table = read_all(data)
@@ -208,7 +211,7 @@ def test_pixels_per_scene_and_explicit_val(tmp_path):
     assert man["val_scenes"] == ["s01"] and man["train_scenes"] == ["s00"]
     for rec in man["scenes"].values():
         assert rec["pixels"] + rec["dropped_dark_pixels"] == 30
-    from cnnps.core.errors import ConfigError
+    from cnnps.infra.errors import ConfigError
 
     with pytest.raises(ConfigError, match="nope"):
         extract.run(Params(val_scenes=("nope",), **SMALL), tmp_path)
@@ -251,7 +254,7 @@ def test_ambient_max_changes_rows_only_when_set(tmp_path):
     occupied = maps0 > 0
     assert np.all(maps1[occupied] >= maps0[occupied] - 1e-3)
     assert (maps1[occupied] - maps0[occupied]).mean() > 0.01
-    from cnnps.core.errors import ConfigError
+    from cnnps.infra.errors import ConfigError
 
     with pytest.raises(ConfigError, match="ambient_max"):
         Params(ambient_max=1.5)
@@ -394,7 +397,7 @@ def test_all_augmentations_together(one_scene, tmp_path):
 
 
 def test_new_params_are_validated_and_normalised():
-    from cnnps.core.errors import ConfigError
+    from cnnps.infra.errors import ConfigError
 
     assert Params(quantize_bits=[16, 8, 8]).quantize_bits == (8, 16)
     assert Params(quantize_bits=[16, 8]).row_key() == Params(quantize_bits=(8, 16)).row_key()
@@ -446,7 +449,7 @@ def test_failure_mid_write_leaves_no_shard(tmp_path, monkeypatch):
 
 
 def test_bad_params_and_missing_renders(tmp_path):
-    from cnnps.core.errors import ConfigError, InputError
+    from cnnps.infra.errors import ConfigError, InputError
 
     with pytest.raises(ConfigError):
         Params(min_lights=100, max_lights=50)

@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
-from cnnps.core.errors import ConfigError
+from cnnps.infra.errors import ConfigError
 from cnnps.stages import materials
 from cnnps.stages.materials import Params
 from cnnps.synth import bsdf

@@ -8,8 +8,8 @@ import shutil
 import numpy as np
 import pytest
 
-from cnnps.core.errors import ConfigError
-from cnnps.core.hashing import file_sha256
+from cnnps.infra.errors import ConfigError
+from cnnps.infra.hashing import file_sha256
 from cnnps.stages import meshes
 from cnnps.stages.meshes import Params, plan_views
 from cnnps.synth.meshes import RADIUS, load_mesh, read_view_mesh

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnnps.core.errors import ConfigError
+from cnnps.infra.errors import ConfigError
 
 trimesh = pytest.importorskip("trimesh")
 
@@ -26,7 +26,7 @@ def _sphere(radius=0.9):
 
 
 def _load(out):
-    from cnnps.core.capture import load_capture
+    from cnnps.io.capture import load_capture
 
     return load_capture(out)
 
@@ -96,7 +96,7 @@ def test_environment_strength_is_seeded_per_scene_and_off_by_default():
 def test_render_keys_without_environment_are_unchanged(materials_data):
     """Both new features off (the defaults): every scene's key is the one it had before they
     existed (the old formula, and a pinned value of it); on, only lit scenes' keys move."""
-    from cnnps.core.hashing import file_sha256, files_sha256, stable_hash
+    from cnnps.infra.hashing import file_sha256, files_sha256, stable_hash
     from cnnps.stages import render
     from cnnps.synth.capture_render import VERSION, capture_key
 
@@ -185,12 +185,11 @@ def test_stage_run_renders_scenes_skips_current_and_redoes_changed(tmp_path):
     meta = json.loads((out / "scene.json").read_text())
     assert meta["view_id"] and meta["category"] == "specular" and meta["pose"] is not None
     # Blender's mask and the materials stage's rasterised mask agree (same pixel centres)
-    from cnnps.core.images import read_mask
+    from cnnps.io.images import read_mask
 
     assert (read_mask(scene / "mask.png") != cap.mask).sum() <= 2
+    from cnnps.infra.hashing import derive_seed
     from cnnps.synth.lights import hemisphere_lights
-
-    from cnnps.core.hashing import derive_seed
 
     np.testing.assert_allclose(cap.lights, hemisphere_lights(4, 2, seed=derive_seed(0, scene.name)), atol=1e-8)
     assert render.run(p, data) == {"scenes": 1, "skipped": 1, "rendered_images": 0}
@@ -205,7 +204,7 @@ def test_stage_run_renders_scenes_skips_current_and_redoes_changed(tmp_path):
 def test_stage_environment_light_and_narrow_scene(tmp_path):
     """A narrow scene rendered with the environment light on, then off: scene.json records
     the drawn strength, the lights files are the sun's, attached shadows are lit only when on."""
-    from cnnps.core.capture import load_capture
+    from cnnps.io.capture import load_capture
     from cnnps.stages import render
 
     data = _one_sphere_scene(tmp_path, "narrow")

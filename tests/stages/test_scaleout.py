@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnnps.core.errors import ConfigError
-from cnnps.core.executor import ExecutorParams, LocalExecutor
+from cnnps.infra.errors import ConfigError
+from cnnps.infra.executor import ExecutorParams, LocalExecutor
 
 pytestmark = pytest.mark.blender  # every test renders
 pytest.importorskip("bpy")
@@ -71,7 +71,7 @@ def local_render(materials_dir, tmp_path_factory) -> Path:
 def ray_ex():
     """A Ray runtime started for these tests: loopback only, 2 CPUs."""
     pytest.importorskip("ray")
-    from cnnps.core.executor import RayExecutor
+    from cnnps.infra.executor import RayExecutor
 
     ex = RayExecutor(address="local", num_cpus=2, max_retries=2, node_ip_address="127.0.0.1")
     assert ex.cluster_cpus() == (2, 2)  # starts the runtime
@@ -182,8 +182,8 @@ def test_killed_render_worker_is_retried(local_render, materials_dir, ray_ex, tm
 def test_ray_materials_and_extract_match_local(materials_dir, ray_ex, tmp_path, local_render):
     """materials and extract through Ray (extract writing to a file:// URL) give the same
     bytes as in this process."""
+    from cnnps.io.shards import load_manifest
     from cnnps.stages import extract, materials
-    from cnnps.core.shards import load_manifest
 
     # materials: rewrite into a fresh copy with Ray, compare the maps
     data = tmp_path / "m"
@@ -207,8 +207,8 @@ def test_extract_and_train_at_an_fsspec_url(local_render, tmp_path):
     fsspec = pytest.importorskip("fsspec")
     import pyarrow.parquet as pq
 
+    from cnnps.io.shards import ShardStream, load_manifest, manifest_files
     from cnnps.stages import extract, train
-    from cnnps.core.shards import ShardStream, load_manifest, manifest_files
 
     p = dict(w=8, min_lights=3, max_lights=8, rotations=2, rows_per_group=64, val_fraction=0.5)
     local = tmp_path / "local"
@@ -251,8 +251,8 @@ def test_extract_and_train_at_an_fsspec_url(local_render, tmp_path):
 
 def test_extract_workers_write_a_file_url(local_render, tmp_path):
     """Two local worker processes writing to a file:// URL: same shards as in-process."""
+    from cnnps.io.shards import load_manifest
     from cnnps.stages import extract
-    from cnnps.core.shards import load_manifest
 
     p = dict(w=8, min_lights=3, max_lights=8, rotations=2, rows_per_group=64, val_fraction=0.5)
     local = tmp_path / "local"

@@ -14,7 +14,6 @@ from cnnps.stages import extract, train
 from tests.support.renders import make_render_dir
 
 
-
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     d = tmp_path_factory.mktemp("train")
@@ -106,7 +105,7 @@ def test_resume_equals_uninterrupted(dataset, tmp_path):
 
 
 def test_epoch_boundary_crossed(dataset):
-    from cnnps.core.shards import ShardStream, load_manifest, manifest_files
+    from cnnps.io.shards import ShardStream, load_manifest, manifest_files
 
     man = load_manifest(dataset / "extract")
     s = ShardStream(manifest_files(dataset / "extract", man, "train"), 16, 256)
@@ -114,7 +113,7 @@ def test_epoch_boundary_crossed(dataset):
 
 
 def test_bad_params(dataset, tmp_path):
-    from cnnps.core.errors import ConfigError, InputError
+    from cnnps.infra.errors import ConfigError, InputError
 
     with pytest.raises(ConfigError):
         train.Params(precision="fp8")
@@ -131,7 +130,7 @@ def test_lr_schedule_is_a_step_function_of_the_step():
         [1e-3, 1e-3, 5e-4, 5e-4, 2.5e-4, 2.5e-4]
     )
     assert lr_at(train.Params(lr=2e-3), 10**6) == 2e-3
-    from cnnps.core.errors import ConfigError
+    from cnnps.infra.errors import ConfigError
 
     for bad in (dict(lr_milestones=[20, 10]), dict(lr_milestones=[0]), dict(lr_milestones=[5, 5]),
                 dict(lr_gamma=0), dict(lr_gamma=1.5), dict(init="")):
@@ -152,7 +151,7 @@ def test_lr_milestones_reach_the_optimiser(dataset, tmp_path):
 
 
 def test_init_starts_from_given_weights(dataset, tmp_path):
-    from cnnps.core.errors import InputError
+    from cnnps.infra.errors import InputError
     from cnnps.models.checkpoint import load_checkpoint, read_checkpoint
 
     a = fresh_copy(dataset, tmp_path / "a")
@@ -179,7 +178,7 @@ def test_stage_modules_do_not_import_torch(repo_root):
     import subprocess
     import sys
 
-    code = "import sys, cnnps.stages.train, cnnps.core.shards, cnnps.models.openmp; print('torch' in sys.modules)"
+    code = "import sys, cnnps.stages.train, cnnps.io.shards, cnnps.models.openmp; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], cwd=repo_root, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 

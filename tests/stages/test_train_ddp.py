@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 import torch
 
-from cnnps.core.errors import ConfigError
+from cnnps.infra.errors import ConfigError
 from cnnps.models.distributed import DistInfo, dist_env, rank_steps_per_epoch
 from cnnps.models.optimiser import make_model, train_step
 from cnnps.stages import extract, train
@@ -86,7 +86,7 @@ def _final(d: Path) -> dict:
 
 def _reference(url: str) -> tuple[list[float], dict]:
     """One process, each step on rank 0's and rank 1's batches concatenated."""
-    from cnnps.core.shards import ShardStream, load_manifest, manifest_files
+    from cnnps.io.shards import ShardStream, load_manifest, manifest_files
 
     files = manifest_files(url, load_manifest(url), "train")
     streams = [ShardStream(files, W, BATCH // 2, seed=0, buffer_rows=1000, rank=r, world_size=2) for r in (0, 1)]
@@ -164,7 +164,7 @@ def test_ddp_matches_one_process_with_the_same_global_batch(ddp_run, shards_url)
     # model.pt on that sample again gives it (up to the rounding of another thread
     # count), and the one-process reference weights score the same to within what
     # the weight bounds above allow (measured 2.5e-5 deg)
-    from cnnps.core.shards import load_manifest, manifest_files
+    from cnnps.io.shards import load_manifest, manifest_files
     from cnnps.models.checkpoint import load_checkpoint
     from cnnps.models.validation import load_val, val_errors
 

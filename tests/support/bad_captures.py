@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cnnps.core import images
+from cnnps.io import images
 from tests.support.synthetic import write_capture
 
 
@@ -15,7 +15,7 @@ def _rewrite_line(path, lineno, text):
 
 
 def _write_exr_pixel(cap, name, value):
-    from cnnps.core.images import read_image, write_exr
+    from cnnps.io.images import read_image, write_exr
 
     img = read_image(cap / name)
     img[3, 4, 1] = value

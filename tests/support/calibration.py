@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.core.calibration import Ball
-from cnnps.core.images import write_exr, write_png
-from cnnps.core.srgb import linear_to_srgb
+from cnnps.io.images import write_exr, write_png
+from cnnps.io.srgb import linear_to_srgb
+from cnnps.ps.light_calibration import Ball
 
 SHAPE = (72, 80)  # H, W
 BALL = Ball(41.3, 35.6, 29.4)  # x = column, y = row, radius (px)
@@ -100,3 +100,11 @@ def angles_deg(a, b) -> np.ndarray:
     a = a / np.linalg.norm(a, axis=-1, keepdims=True)
     b = b / np.linalg.norm(b, axis=-1, keepdims=True)
     return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=-1), -1.0, 1.0)))
+
+
+def disc_mask(ball, shape=SHAPE, ss: int = 4) -> np.ndarray:
+    """Pixel-coverage >= 1/2 mask of a disc (supersampled ``ss`` x ``ss`` per pixel)."""
+    o = (np.arange(ss) + 0.5) / ss - 0.5
+    rows, cols = np.indices(shape, dtype=float)
+    cov = sum((np.hypot(cols + a - ball.cx, rows + b - ball.cy) < ball.radius).astype(float) for a in o for b in o)
+    return cov / ss**2 >= 0.5

@@ -40,7 +40,7 @@ what the *last* run did, not what the outputs are:
 - eval ``metrics.json``: ``seconds`` (wall time).
 
 A record with an excluded field that carries a ``checksum`` of its own content
-(:func:`cnnps.core.hashing.json_checksum`) is also hashed without that entry, but only
+(:func:`cnnps.infra.hashing.json_checksum`) is also hashed without that entry, but only
 when the entry is valid for the record as written: it hashes the excluded fields too,
 so it must change with them, while a wrong checksum still shows as a difference.
 """
@@ -77,7 +77,7 @@ EXCLUDED_FIELDS: dict[tuple[str, str], tuple[str, ...]] = {
 }
 
 ARCHIVE_NAME_ONLY = "torch archive name only (same tensors; torch.save named the zip's root folder after the temporary file)"
-CHECKSUM = "checksum"  # a record's self-checksum entry (cnnps.core.hashing.json_checksum)
+CHECKSUM = "checksum"  # a record's self-checksum entry (cnnps.infra.hashing.json_checksum)
 STAGE_TIMEOUT_S = 900  # one tiny stage on a loaded 2-core machine takes seconds; this only stops a hang
 
 
@@ -320,10 +320,10 @@ def excluded_fields(stage: str, rel: str) -> tuple[str, ...]:
 
 def _checksum_is_valid(obj: dict) -> bool:
     """Whether ``obj["checksum"]`` is the self-checksum the stages write
-    (:func:`cnnps.core.hashing.json_checksum`, over the record as written, at any of the
+    (:func:`cnnps.infra.hashing.json_checksum`, over the record as written, at any of the
     indents the stages use)."""
     try:
-        from cnnps.core.hashing import json_checksum
+        from cnnps.infra.hashing import json_checksum
     except ImportError:  # a checkout without checksums: nothing to verify
         return False
     for indent in (2, 1, None):
@@ -467,7 +467,7 @@ def kill_moments(stage: str, seeds, duration: float, start: float = 0.0) -> list
     """
     import numpy as np
 
-    from cnnps.core.hashing import derive_seed64
+    from cnnps.infra.hashing import derive_seed64
 
     start = min(max(0.0, start), duration)
     return [(s, float(np.random.default_rng(derive_seed64("kill", stage, s)).uniform(start, duration))) for s in seeds]

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.core.errors import InputError
+from cnnps.infra.errors import InputError
 
 
 def count_attempt(marker_dir: str, x: int) -> int:

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 # Lowest first: a module may import its own layer or a lower one, never a higher one.
-LAYERS = ("cnnps.core", "cnnps.models", "cnnps.synth", "cnnps.stages", "cnnps.pipeline")
+LAYERS = ("cnnps.infra", "cnnps.ps", "cnnps.io", "cnnps.models", "cnnps.synth", "cnnps.stages", "cnnps.api",
+          "cnnps.pipeline")
 # The package's own __init__/__main__ sit on top (``python -m cnnps`` runs the CLI).
 TOP = len(LAYERS)
 
@@ -51,7 +52,7 @@ def read_imports(root: Path, package: str = "cnnps") -> list[Import]:
                 out += [Import(importer, a.name, path, node.lineno) for a in node.names]
             elif isinstance(node, ast.ImportFrom):
                 mod = _resolve(node, importer, path.name == "__init__.py")
-                # `from cnnps.core import storage` imports the module cnnps.core.storage
+                # `from cnnps.infra import storage` imports the module cnnps.infra.storage
                 out += [Import(importer, f"{mod}.{a.name}" if mod.startswith(package) else mod, path, node.lineno)
                         for a in node.names]
     return out

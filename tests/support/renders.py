@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.core.images import write_exr, write_png
+from cnnps.io.images import write_exr, write_png
 
 
 def random_lights(rng: np.random.Generator, m: int, min_z: float = 0.05) -> np.ndarray:

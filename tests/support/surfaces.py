@@ -66,7 +66,7 @@ def distorted_fraction(depth, truth, normals, mask, tol: float = 0.05) -> float:
     height difference matches the normals' gradient) whose reconstructed height difference
     is off by more than ``tol`` pixels: the smooth distortion least squares spreads around
     a discontinuity. A ValueError when fewer than 10 pairs straddle a jump."""
-    from cnnps.core.integrate import _grid, gradients
+    from cnnps.ps.integrate import _grid, gradients
 
     p, q, conf, _ = gradients(normals, mask)
     g = _grid(mask, p, q, conf)

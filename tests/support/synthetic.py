@@ -58,7 +58,7 @@ def write_capture(
     For integer formats the images are multiplied by one factor ``scale`` so the
     brightest value is below 1; the loaded grey images are then ``scale`` times the truth.
     """
-    from cnnps.core.images import write_exr, write_png
+    from cnnps.io.images import write_exr, write_png
 
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)

@@ -12,8 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnnps.core.errors import CnnpsError
-
+from cnnps.infra.errors import CnnpsError
 from tests.support.tiny_scenes import THREADS, S
 from tests.support.tiny_scenes import sphere as _sphere
 

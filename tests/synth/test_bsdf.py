@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cnnps.core.errors import ConfigError
+from cnnps.infra.errors import ConfigError
 from cnnps.synth import bsdf
 from cnnps.synth.bsdf import MaterialRanges, specular_to_ior, to_blender_inputs
 

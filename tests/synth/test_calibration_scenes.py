@@ -10,7 +10,7 @@ import shutil
 import numpy as np
 import pytest
 
-from cnnps.core.errors import ConfigError
+from cnnps.infra.errors import ConfigError
 from cnnps.synth.calibration_scenes import (
     ball_image_size,
     ball_placement,
@@ -66,8 +66,8 @@ def balls(tmp_path_factory):
 
 @pytest.mark.blender
 def test_folders_and_matte_physics(balls):
-    from cnnps.core.calibration import Ball
-    from cnnps.core.images import read_image
+    from cnnps.io.images import read_image
+    from cnnps.ps.light_calibration import Ball
 
     sets, L, E = balls
     truth = json.loads((sets["chrome"].parent / "truth.json").read_text())
@@ -96,7 +96,7 @@ def test_folders_and_matte_physics(balls):
 @pytest.mark.blender
 @pytest.mark.parametrize("with_masks", [True, False])
 def test_calibration_accuracy_on_rendered_balls(balls, tmp_path, with_masks):
-    from cnnps.core.calibration import calibrate
+    from cnnps.api.calibration import calibrate
 
     sets, L, E = balls
     chrome, matte = sets["chrome"], sets["matte"]

@@ -15,8 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cnnps.core.errors import ConfigError
-
+from cnnps.infra.errors import ConfigError
 from tests.support.tiny_scenes import THREADS, S
 from tests.support.tiny_scenes import sphere as _sphere
 
@@ -31,7 +30,7 @@ def _pixel_grid(size):
 
 
 def _load(out):
-    from cnnps.core.capture import load_capture
+    from cnnps.io.capture import load_capture
 
     return load_capture(out)
 
@@ -61,7 +60,7 @@ def test_extend_maps_fills_outside_with_nearest():
 
 
 def test_remove_temp_files_only_removes_atomic_temporaries(tmp_path):
-    from cnnps.core.atomic import atomic_path
+    from cnnps.infra.atomic import atomic_path
     from cnnps.synth.capture_render import remove_temp_files
 
     keep = ["000.exr", ".pending.json", ".hidden_user_file", "light_directions.txt", ".x.tmp"]
@@ -172,9 +171,14 @@ def test_cli_refuses_a_folder_that_is_not_a_render_folder(tmp_path):
 
 def _hand_made_capture(out: Path, names=("000.exr", "001.exr", "002.exr")) -> dict:
     """A finished capture folder written the way render_into writes one (no Blender)."""
-    from cnnps.core.hashing import add_json_checksum, file_record
-    from cnnps.core.images import write_exr, write_png
-    from cnnps.synth.capture_render import GEOMETRY_FILES, LIGHT_FILES, SCENE_INDENT, SCENE_TIMINGS
+    from cnnps.infra.hashing import add_json_checksum, file_record
+    from cnnps.io.images import write_exr, write_png
+    from cnnps.synth.capture_render import (
+        GEOMETRY_FILES,
+        LIGHT_FILES,
+        SCENE_INDENT,
+        SCENE_TIMINGS,
+    )
 
     out.mkdir(parents=True)
     rng = np.random.default_rng(0)
@@ -232,7 +236,7 @@ def test_an_edited_scene_json_vouches_for_nothing(tmp_path):
 
 
 def test_decode_problem_without_a_record(tmp_path):
-    from cnnps.core.images import write_exr
+    from cnnps.io.images import write_exr
     from cnnps.synth.capture_render import decode_problem
 
     out = tmp_path / "cap"
@@ -250,7 +254,7 @@ def test_decode_problem_without_a_record(tmp_path):
 
 
 def test_capture_key_without_environment_is_the_old_key():
-    from cnnps.core.hashing import stable_hash
+    from cnnps.infra.hashing import stable_hash
     from cnnps.synth.capture_render import VERSION, RenderSettings, capture_key
 
     inputs = {"mesh": "m", "material": ["lambertian", 20], "params": RenderSettings().picture_params(), "v": VERSION}
@@ -293,7 +297,7 @@ def test_capture_layout_and_geometry(sphere_capture):
 @pytest.mark.blender
 def test_lambertian_sphere_least_squares_recovers_normal_gt(sphere_capture):
     """Lambertian photometric stereo on the rendered images gives back normal_gt."""
-    from cnnps.core.lambertian import least_squares
+    from cnnps.ps.least_squares import least_squares
 
     cap = _load(sphere_capture)
     I = cap.pixel_intensities()
@@ -343,7 +347,7 @@ def test_resume_renders_only_missing_images(sphere_capture, tmp_path):
     (out / ".pending.json").write_text(json.dumps({"key": meta["key"]}))
     for n in ("003.exr", "007.exr", "039.exr"):
         (out / n).unlink()
-    from cnnps.core.atomic import atomic_path
+    from cnnps.infra.atomic import atomic_path
 
     write = atomic_path(out / "003.exr")  # killed in the middle of this atomic write (kept alive:
     leftover = write.__enter__()  # a collected one would clean up after itself)
@@ -353,7 +357,7 @@ def test_resume_renders_only_missing_images(sphere_capture, tmp_path):
     assert meta2["images_rendered_last_run"] == 3 and meta2["key"] == meta["key"]
     assert not leftover.exists() and not [p.name for p in out.iterdir() if p.name.startswith(".")]
     assert (out / "light_directions.txt").read_bytes() == before["light_directions.txt"]
-    from cnnps.core.images import read_image
+    from cnnps.io.images import read_image
 
     assert (out / "007.exr").read_bytes() != b""
     np.testing.assert_array_equal(read_image(out / "007.exr"), read_image(Path(sphere_capture) / "007.exr"))
@@ -440,7 +444,7 @@ def test_a_failed_re_render_puts_the_previous_capture_back(tmp_path, monkeypatch
     a killed re-render followed by the old parameters takes it back without rendering."""
     pytest.importorskip("bpy")
     import cnnps.synth.capture_render as cr
-    from cnnps.core.images import write_exr as real_write_exr
+    from cnnps.io.images import write_exr as real_write_exr
     from cnnps.synth.capture_render import lambertian_material, render_into
     from cnnps.synth.lights import hemisphere_lights
 
@@ -458,12 +462,12 @@ def test_a_failed_re_render_puts_the_previous_capture_back(tmp_path, monkeypatch
             raise OSError(28, "No space left on device", str(path))
         real_write_exr(path, img)
 
-    monkeypatch.setattr("cnnps.core.images.write_exr", full_disk)
+    monkeypatch.setattr("cnnps.io.images.write_exr", full_disk)
     with pytest.raises(OSError, match="No space left"):
         render_into(out, mesh.vertices, mesh.faces, lambertian_material(), key="new", **kw)
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     assert not cr.previous_path(out).exists() and [p.name for p in tmp_path.iterdir()] == ["cap"]
-    monkeypatch.setattr("cnnps.core.images.write_exr", real_write_exr)
+    monkeypatch.setattr("cnnps.io.images.write_exr", real_write_exr)
     # killed half-way through a re-render: both versions on disk; going back takes the old one
     out.rename(cr.previous_path(out))
     out.mkdir()

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from cnnps.core.errors import ConfigError
+from cnnps.infra.errors import ConfigError
 from cnnps.synth.lights import hemisphere_lights, uniform_lights
 
 

@@ -10,7 +10,11 @@ import trimesh
 
 from cnnps.synth import bsdf
 from cnnps.synth.bsdf import MaterialRanges
-from cnnps.synth.material_maps import sample_material_maps, slic_labels, write_material_maps
+from cnnps.synth.material_maps import (
+    sample_material_maps,
+    slic_labels,
+    write_material_maps,
+)
 from cnnps.synth.raster import rasterize
 
 

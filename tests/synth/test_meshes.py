@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 import trimesh
 
-from cnnps.core.errors import InputError
-from cnnps.synth.meshes import MESH_EXTENSIONS, RADIUS, load_mesh, pose_mesh, random_rotation, read_view_mesh
+from cnnps.infra.errors import InputError
+from cnnps.synth.meshes import (
+    MESH_EXTENSIONS,
+    RADIUS,
+    load_mesh,
+    pose_mesh,
+    random_rotation,
+    read_view_mesh,
+)
 
 
 @pytest.mark.slow

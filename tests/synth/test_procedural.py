@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cnnps.core.errors import ConfigError
+from cnnps.infra.errors import ConfigError
 from cnnps.synth.meshes import RADIUS
 from cnnps.synth.procedural import PROCEDURAL_KINDS, make_shape
 

@@ -35,7 +35,6 @@ from cnnps.synth.training_samples import (
 )
 from tests.support.renders import random_lights
 
-
 # -- sparse light subsets ---------------------------------------------------------------
 
 

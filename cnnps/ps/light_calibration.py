@@ -1,0 +1,473 @@
+"""Light calibration from photos of a chrome (mirror) ball and, optionally, a matte white ball.
+
+The maths of ``cnnps calibrate`` on arrays (the folders, the report and the outputs are
+:mod:`cnnps.api.calibration`); NumPy, SciPy and scikit-image only.
+
+Pixel coordinates: ``x`` = column, ``y`` = row, with the centre of pixel (row 0, column 0)
+at (0, 0) (scikit-image's convention); the capture frame is x right, y up, z toward the
+camera, so a pixel offset ``(dx, dy)`` from the ball's centre is the direction
+``(dx, -dy)`` in that frame (image rows grow downward). The camera is orthographic and
+looks along -z, so the view vector is ``v = (0, 0, 1)`` for every pixel.
+
+Finding the ball (:func:`fit_circle`, :func:`find_ball`). From ``mask.png`` when the
+folder has one, else from a picture of the folder: the per-pixel **median** over the
+images for the chrome ball (the highlight moves from image to image; what stays is the
+reflection of the room, so the ball must be brighter than the background there) and the
+per-pixel **maximum** for the matte ball (every visible point is lit by some light).
+That picture is split by Otsu's threshold t and the largest connected bright region kept
+(its holes filled); its outline is where the picture crosses the level halfway between
+the ball's brightness just inside that region's edge and the background's just outside
+(``skimage.measure.find_contours``, which interpolates between pixel centres: an edge
+pixel half covered by the ball reads about halfway, so the outline is sub-pixel), with
+anything more than 2 px outside the region masked out. ``mask.png`` is binary: its
+outline runs midway between the pixel centres inside and outside (level 0.5). Outline
+points on the image border are dropped (a ball cut off by the frame still fits), a
+circle is fitted with RANSAC (``skimage.measure.ransac`` with ``CircleModel``, inliers
+within 1 px, a fixed seed; a stand or an occluder touching the ball is ignored) and
+refined by least squares on the inliers. A region whose outline is less than 60 % within
+1 px of the circle (not round), too small or absent is an error asking for a mask.
+
+Highlights (:func:`locate_highlight`), per image, in the grey image (mean of the RGB
+channels), inside the disc of radius r - 1 px:
+
+- b = median brightness of the disc (the ball's own reflection of the room), p = its
+  brightest value, contrast c = p - b;
+- *no highlight*: c at most 5 % of the median contrast of all the folder's images, or p
+  below 2 b;
+- *two highlights*: the pixels above half the contrast (b + c/2) form two or more
+  regions more than 2 px apart (8-connectivity after a 1-px dilation);
+- *saturated*: in integer images (8/16-bit PNG, JPEG, TIFF) a pixel whose stored
+  channel reaches 0.99 of the format's maximum is clipped
+  (:data:`cnnps.io.capture.SATURATION_LEVEL`, the level ``cnnps predict`` uses). A
+  clipped *core* is normal for a chrome ball photographed in 8 bits and is harmless (the
+  centroid of a symmetric blob with a flat top is still its centre). It is an error only
+  when the clipped pixels of the highlight cover more than 1 % of the ball's disc (an
+  equivalent radius above 0.1 r): such a plateau is foreshortened unevenly on the sphere
+  and its centre is no longer the mirror point. Float (EXR) images are never clipped;
+- *not a highlight*: the half-contrast region covers more than 5 % of the disc (a rough
+  or matte ball, not a mirror);
+- otherwise the highlight is the **intensity-weighted centroid** of the connected region
+  around the brightest pixel where the value exceeds b + c/10, each pixel weighted by its
+  value minus that level (weights fall continuously to 0 at the region's edge, so the
+  centroid moves smoothly with the highlight: sub-pixel precision).
+
+Directions (:func:`highlight_normal`, :func:`reflect`): the sphere's normal at the
+highlight ``n = ((x - cx)/r, -(y - cy)/r, sqrt(1 - ...))`` and the light
+``l = 2 (n.v) n - v`` with ``v = (0, 0, 1)``.
+
+Intensities (:func:`fit_intensities`), with photos of a matte white ball under the same
+lights: per light and channel, the least-squares scale e of ``pixel = e * max(n.l, 0)``
+over the ball's pixels inside 0.95 r (the limb is where the circle's error matters most)
+that are lit (n.l >= 0.1, away from the terminator where a real ball's albedo and the
+calibrated direction matter most) and, in integer images, unsaturated. The albedo is
+one unknown common factor, so the intensities are returned **normalised to a mean of 1
+over lights and channels** (:func:`normalise_intensities`). The ball must be white or
+neutral grey: a coloured ball's albedo would end up in the channels' ratios. The model
+has no ambient term: photograph the matte ball in the dark, or subtract a dark frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+SEARCH_MARGIN_PX = 1.0  # highlights are looked for inside the disc of radius r - this
+DETECT_LEVEL = 0.5  # fraction of the contrast: the regions counted ("two highlights")
+CENTROID_LEVEL = 0.1  # fraction of the contrast: the centroid's support and zero weight
+MERGE_PX = 1  # regions closer than 2 * MERGE_PX are one highlight
+MIN_CONTRAST_FRACTION = 0.05  # of the folder's median contrast: below it, no highlight
+MIN_PEAK_OVER_BODY = 2.0  # the brightest pixel must be this many times the disc's median
+MAX_SATURATED_FRACTION = 0.01  # of the disc's area: a larger clipped core is an error
+MAX_HIGHLIGHT_FRACTION = 0.05  # of the disc's area: a larger bright region is not a highlight
+MIN_SHADING = 0.1  # matte fit: pixels with n.l below this are left out
+MATTE_RADIUS_FRACTION = 0.95  # matte fit: pixels inside this fraction of the radius
+MIN_FIT_PIXELS = 20  # matte fit: fewest usable pixels per light and channel
+MIN_RADIUS_PX = 4.0
+MIN_ROUND_FRACTION = 0.6  # of the outline within 1 px of the fitted circle
+RANSAC_SEED = 0
+SCALE_NOTE = "normalised so that the mean over lights and channels is 1"
+
+
+class CalibrationError(ValueError):
+    """A ball or a highlight that cannot be measured; ``kind`` says which check failed."""
+
+    def __init__(self, message: str, kind: str = "ball"):
+        super().__init__(message)
+        self.kind = kind
+
+
+# ----------------------------------------------------------------------------- the ball
+
+
+@dataclass(frozen=True)
+class Ball:
+    """A circle in pixel coordinates (x = column, y = row, pixel centres at integers)."""
+
+    cx: float
+    cy: float
+    radius: float
+    source: str = ""  # how it was found (for the report)
+    rms_px: float = 0.0  # RMS distance of the boundary points to the circle
+    points: int = 0  # boundary points used (RANSAC inliers)
+
+    def distance(self, shape: tuple[int, int]) -> np.ndarray:
+        """(H, W) distance of every pixel centre from the centre, in pixels."""
+        rows, cols = np.indices(shape, dtype=np.float64)
+        return np.hypot(cols - self.cx, rows - self.cy)
+
+    def disc(self, shape: tuple[int, int], radius: float | None = None) -> np.ndarray:
+        """(H, W) bool: pixel centres within ``radius`` (default: the ball's) of the centre."""
+        return self.distance(shape) <= (self.radius if radius is None else radius)
+
+    def normals(self, shape: tuple[int, int], radius_fraction: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """(mask (H, W), unit normals (P, 3)) of the sphere at the pixels inside
+        ``radius_fraction`` of the radius (row-major order), capture frame."""
+        mask = self.disc(shape, self.radius * radius_fraction)
+        rows, cols = np.nonzero(mask)
+        return mask, sphere_normal(cols, rows, self)
+
+    def to_dict(self) -> dict:
+        return {
+            "centre_px": [round(self.cx, 4), round(self.cy, 4)],
+            "radius_px": round(self.radius, 4),
+            "source": self.source,
+            "fit_rms_px": round(self.rms_px, 4),
+            "boundary_points": self.points,
+        }
+
+
+def _circle(xy: np.ndarray) -> tuple[float, float, float] | None:
+    """Least-squares circle (cx, cy, r) through points (N, 2) with ``CircleModel``; None if it fails."""
+    from skimage.measure import CircleModel
+
+    if hasattr(CircleModel, "from_estimate"):  # scikit-image >= 0.26
+        model = CircleModel.from_estimate(xy)
+        if not model:
+            return None
+        (cx, cy), r = model.center, model.radius
+    else:  # pragma: no cover - older scikit-image
+        model = CircleModel()
+        if not model.estimate(xy):
+            return None
+        cx, cy, r = model.params
+    if not all(np.isfinite([cx, cy, r])) or r <= 0:
+        return None
+    return float(cx), float(cy), float(r)
+
+
+def largest_region(mask: np.ndarray) -> np.ndarray:
+    """The largest 8-connected region of ``mask``, its holes filled."""
+    from scipy.ndimage import binary_fill_holes
+    from skimage.measure import label
+
+    lab = label(np.asarray(mask, dtype=bool), connectivity=2)
+    if lab.max() == 0:
+        return np.zeros(mask.shape, dtype=bool)
+    sizes = np.bincount(lab.ravel())
+    sizes[0] = 0
+    return binary_fill_holes(lab == int(np.argmax(sizes)))
+
+
+def _boundary_points(picture: np.ndarray, level: float) -> np.ndarray:
+    """(N, 2) points (x, y) where ``picture`` crosses ``level`` (``find_contours``, linear
+    interpolation between pixel centres), leaving out the image border."""
+    from skimage.measure import find_contours
+
+    H, W = picture.shape
+    low = min(float(picture.min()), level) - 1.0
+    padded = np.pad(picture.astype(np.float64), 1, constant_values=low)
+    contours = find_contours(padded, level)
+    if not contours:
+        return np.zeros((0, 2))
+    pts = np.concatenate(contours, axis=0) - 1.0  # (row, col)
+    inside = (pts[:, 0] > 0) & (pts[:, 0] < H - 1) & (pts[:, 1] > 0) & (pts[:, 1] < W - 1)
+    return pts[inside][:, ::-1]
+
+
+def _fit_points(xy: np.ndarray, source: str) -> Ball:
+    """RANSAC (``CircleModel``, 1 px, fixed seed) then least squares on the inliers."""
+    from skimage.measure import CircleModel, ransac
+
+    if len(xy) < 12:
+        raise CalibrationError("no ball found (its outline is almost all on the image border)")
+    model, inliers = ransac(xy, CircleModel, min_samples=3, residual_threshold=1.0, max_trials=300,
+                            rng=RANSAC_SEED)
+    if model is None or inliers is None:
+        raise CalibrationError("no ball found (the circle fit failed)")
+    frac = float(inliers.mean())
+    fit = _circle(xy[inliers]) if inliers.sum() >= 12 else None
+    if fit is None:
+        raise CalibrationError("no ball found (the circle fit failed)")
+    cx, cy, r = fit
+    if r < MIN_RADIUS_PX:
+        raise CalibrationError(f"the ball found is too small (radius {r:.1f} px)")
+    if frac < MIN_ROUND_FRACTION:
+        raise CalibrationError(
+            f"the region found is not round (only {100 * frac:.0f} % of its outline within 1 px of a circle)")
+    res = np.hypot(xy[inliers, 0] - cx, xy[inliers, 1] - cy) - r
+    return Ball(cx, cy, r, source=source, rms_px=float(np.sqrt(np.mean(res**2))), points=int(inliers.sum()))
+
+
+def fit_circle(mask: np.ndarray, source: str = "mask") -> Ball:
+    """Fit a circle to the boundary of the largest region of ``mask`` (H, W) bool.
+
+    The boundary is ``skimage.measure.find_contours`` at level 0.5 of the binary region
+    (midway between the pixel centres inside and outside); points on the image border are
+    left out; RANSAC (``CircleModel``, 1 px, fixed seed) then least squares on its inliers
+    (at least :data:`MIN_ROUND_FRACTION` of the points, else the region is not round).
+    Raises :class:`CalibrationError` when there is no usable round region.
+    """
+    region = largest_region(mask)
+    n = int(region.sum())
+    if n < math.pi * MIN_RADIUS_PX**2:
+        raise CalibrationError(f"no ball found (largest region {n} pixels)")
+    return _fit_points(_boundary_points(region.astype(np.float64), 0.5), source)
+
+
+def find_ball(image: np.ndarray, source: str = "image") -> Ball:
+    """Find a bright ball on a darker background in ``image`` (H, W).
+
+    Otsu's threshold t; the largest region above it (holes filled); its outline where
+    the picture itself crosses the level halfway between the ball's brightness just
+    inside the region's edge (1-3 px, median) and the background's just outside it
+    (sub-pixel: a pixel the ball half covers reads about halfway), with everything
+    farther than 2 px outside the region set to the background and everything 2 px
+    inside it to the ball, so other objects and dark spots on the ball make no outline;
+    then the circle fit of :func:`fit_circle`.
+    """
+    from scipy.ndimage import binary_dilation, binary_erosion
+    from skimage.filters import threshold_otsu
+
+    img = np.asarray(image, dtype=np.float64)
+    if not np.all(np.isfinite(img)) or img.max() <= img.min():
+        raise CalibrationError("no ball found (the picture is uniform)")
+    t = float(threshold_otsu(img))
+    region = largest_region(img > t)
+    n = int(region.sum())
+    if n < math.pi * MIN_RADIUS_PX**2:
+        raise CalibrationError(f"no ball found (largest bright region {n} pixels)")
+    # the level halfway between the ball and the background next to its outline
+    inner = binary_erosion(region, iterations=1) & ~binary_erosion(region, iterations=3)
+    outer = binary_dilation(region, iterations=3) & ~binary_dilation(region, iterations=1)
+    level = t
+    if inner.any() and outer.any():
+        level = 0.5 * (float(np.median(img[inner])) + float(np.median(img[outer])))
+    pic = img.copy()
+    pic[~binary_dilation(region, iterations=2)] = min(float(img.min()), level) - 1.0
+    pic[binary_erosion(region, iterations=2)] = max(float(img.max()), level) + 1.0
+    return _fit_points(_boundary_points(pic, level), source)
+
+
+# ----------------------------------------------------------------------------- highlights
+
+
+@dataclass(frozen=True)
+class Highlight:
+    """The specular highlight of one image (pixel coordinates as :class:`Ball`)."""
+
+    x: float
+    y: float
+    peak: float  # brightest grey value in the disc
+    background: float  # median grey value in the disc
+    area_px: int  # pixels above half the contrast
+    saturated_px: int  # clipped pixels in the highlight
+
+
+def _regions(binary: np.ndarray, merge_px: int = MERGE_PX) -> tuple[np.ndarray, int]:
+    """Labels of ``binary``'s regions, regions within 2 * merge_px merged (labels on binary only)."""
+    from scipy.ndimage import binary_dilation
+    from skimage.measure import label
+
+    grown = binary_dilation(binary, iterations=merge_px) if merge_px > 0 else binary
+    lab = label(grown, connectivity=2)
+    lab[~binary] = 0
+    return lab, int(lab.max())
+
+
+def locate_highlight(
+    grey: np.ndarray,
+    ball: Ball,
+    saturated: np.ndarray | None = None,
+    min_contrast: float = 0.0,
+) -> Highlight:
+    """The specular highlight of one chrome-ball image (see the module docstring).
+
+    grey: (H, W) image; saturated: (H, W) bool clipped pixels (None: float image, none);
+    min_contrast: contrast below which the image has no highlight (the caller passes
+    :data:`MIN_CONTRAST_FRACTION` times the folder's median contrast).
+    Raises :class:`CalibrationError` with ``kind`` "none", "two", "saturated" or "large".
+    """
+    grey = np.asarray(grey, dtype=np.float64)
+    dist = ball.distance(grey.shape)
+    disc = dist <= ball.radius - SEARCH_MARGIN_PX
+    if not disc.any():
+        raise CalibrationError("the ball is too small to search for a highlight", "none")
+    vals = grey[disc]
+    b = float(np.median(vals))
+    p = float(vals.max())
+    c = p - b
+    if not c > min_contrast or p < MIN_PEAK_OVER_BODY * b:
+        raise CalibrationError(
+            f"no specular highlight on the ball (brightest value {p:.4g}, the ball's median {b:.4g})", "none")
+    disc_area = float(disc.sum())
+
+    half = disc & (grey >= b + DETECT_LEVEL * c)
+    lab, n = _regions(half)
+    if n >= 2:
+        spots = []
+        for k in range(1, n + 1):
+            rr, cc = np.nonzero(lab == k)
+            i = int(np.argmax(grey[rr, cc]))
+            spots.append((float(grey[rr[i], cc[i]]), int(cc[i]), int(rr[i])))
+        spots.sort(reverse=True)
+        (_, x1, y1), (_, x2, y2) = spots[:2]
+        raise CalibrationError(
+            f"{n} separate highlights on the ball (brightest at x={x1}, y={y1} and x={x2}, y={y2} px): "
+            "one light per image, and no other bright reflections", "two")
+
+    sat_px = 0
+    if saturated is not None:
+        sat_px = int((saturated & half).sum())
+        if sat_px > MAX_SATURATED_FRACTION * disc_area:
+            raise CalibrationError(
+                f"the highlight is saturated over {sat_px} pixels ({100 * sat_px / disc_area:.1f} % of the ball, "
+                f"more than {100 * MAX_SATURATED_FRACTION:g} %): its centre cannot be located; "
+                "use a shorter exposure", "saturated")
+    area = int(half.sum())
+    if area > MAX_HIGHLIGHT_FRACTION * disc_area:
+        raise CalibrationError(
+            f"no sharp highlight: the bright region covers {100 * area / disc_area:.0f} % of the ball "
+            "(is this a chrome ball?)", "large")
+
+    level = b + CENTROID_LEVEL * c
+    support, _ = _regions(disc & (grey > level), merge_px=0)
+    idx = int(np.argmax(np.where(disc, grey, -np.inf)))
+    r0, c0 = np.unravel_index(idx, grey.shape)
+    region = support == support[r0, c0]
+    rows, cols = np.nonzero(region)
+    w = grey[rows, cols] - level
+    s = float(w.sum())
+    return Highlight(
+        x=float((w * cols).sum() / s),
+        y=float((w * rows).sum() / s),
+        peak=p,
+        background=b,
+        area_px=area,
+        saturated_px=sat_px,
+    )
+
+
+def sphere_normal(x, y, ball: Ball) -> np.ndarray:
+    """Unit normals (..., 3) of the ball at pixel positions ``x`` (columns), ``y`` (rows);
+    points outside the circle get the limb normal (z = 0)."""
+    nx = (np.asarray(x, dtype=np.float64) - ball.cx) / ball.radius
+    ny = -(np.asarray(y, dtype=np.float64) - ball.cy) / ball.radius  # rows grow downward
+    rho = np.hypot(nx, ny)
+    scale = np.where(rho > 1.0, 1.0 / np.maximum(rho, 1e-12), 1.0)
+    nx, ny = nx * scale, ny * scale
+    nz = np.sqrt(np.clip(1.0 - nx * nx - ny * ny, 0.0, None))
+    return np.stack([nx, ny, nz], axis=-1)
+
+
+def highlight_normal(h: Highlight, ball: Ball) -> np.ndarray:
+    """The sphere's unit normal (3,) at the highlight."""
+    return sphere_normal(h.x, h.y, ball)
+
+
+def reflect(n: np.ndarray, v=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Mirror direction(s) ``l = 2 (n.v) n - v`` (unit) for unit normals ``n`` (..., 3)."""
+    n = np.asarray(n, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    l = 2.0 * np.sum(n * v, axis=-1, keepdims=True) * n - v
+    return l / np.linalg.norm(l, axis=-1, keepdims=True)
+
+
+def light_from_highlight(h: Highlight, ball: Ball) -> np.ndarray:
+    """The light direction (3,) whose mirror reflection makes highlight ``h``."""
+    return reflect(highlight_normal(h, ball))
+
+
+def contrasts(grey_stack: np.ndarray, ball: Ball) -> np.ndarray:
+    """(m,) highlight contrast (brightest minus median of the search disc) per image."""
+    disc = ball.distance(grey_stack.shape[1:]) <= ball.radius - SEARCH_MARGIN_PX
+    vals = grey_stack[:, disc]
+    return vals.max(axis=1) - np.median(vals, axis=1)
+
+
+def chrome_directions(
+    grey_stack: np.ndarray,
+    ball: Ball,
+    saturated: np.ndarray | None = None,
+) -> tuple[np.ndarray, list[Highlight]]:
+    """Light directions (m, 3) and highlights from chrome-ball images (m, H, W).
+
+    Raises :class:`CalibrationError` for the first bad image, with ``index`` set to it.
+    """
+    grey_stack = np.asarray(grey_stack)
+    ref = float(np.median(contrasts(grey_stack, ball)))
+    min_contrast = MIN_CONTRAST_FRACTION * max(ref, 0.0)
+    lights, highs = [], []
+    for j in range(grey_stack.shape[0]):
+        try:
+            h = locate_highlight(grey_stack[j], ball, None if saturated is None else saturated[j], min_contrast)
+        except CalibrationError as exc:
+            exc.index = j
+            raise
+        highs.append(h)
+        lights.append(light_from_highlight(h, ball))
+    return np.array(lights).reshape(-1, 3), highs
+
+
+# ----------------------------------------------------------------------------- intensities
+
+
+def fit_intensities(
+    image: np.ndarray,
+    ball: Ball,
+    light: np.ndarray,
+    saturated: np.ndarray | None = None,
+    min_shading: float = MIN_SHADING,
+    radius_fraction: float = MATTE_RADIUS_FRACTION,
+) -> tuple[np.ndarray, dict]:
+    """Per-channel scale e (C,) of ``image`` (H, W, C) = e * max(n.l, 0) on a matte ball.
+
+    Least squares ``e = sum(I s) / sum(s^2)`` over the pixels inside ``radius_fraction``
+    of the radius with shading ``s = n.l >= min_shading`` and, per channel, not clipped
+    (``saturated`` (H, W, C) bool, None = nothing clipped). Returns (e, info) with the
+    number of pixels and the relative RMS residual per channel.
+    Raises :class:`CalibrationError` when a channel has fewer than :data:`MIN_FIT_PIXELS`
+    usable pixels or no light (e <= 0).
+    """
+    image = np.asarray(image, dtype=np.float64)
+    if image.ndim == 2:
+        image = image[:, :, None]
+    mask, N = ball.normals(image.shape[:2], radius_fraction)
+    l = np.asarray(light, dtype=np.float64)
+    l = l / np.linalg.norm(l)
+    s = N @ l
+    lit = s >= min_shading
+    vals = image[mask]  # (P, C)
+    sat = None if saturated is None else np.asarray(saturated)[mask]
+    e = np.empty(image.shape[2])
+    rel_rms, used = [], []
+    for c in range(image.shape[2]):
+        ok = lit if sat is None else lit & ~sat[:, c]
+        k = int(ok.sum())
+        if k < MIN_FIT_PIXELS:
+            raise CalibrationError(
+                f"only {k} lit, unclipped pixels on the matte ball in channel {c} (need {MIN_FIT_PIXELS})", "matte")
+        ss, ii = s[ok], vals[ok, c]
+        e[c] = float(ss @ ii / (ss @ ss))
+        if not e[c] > 0:
+            raise CalibrationError("the matte ball is dark in this image (no light?)", "matte")
+        rel_rms.append(float(np.sqrt(np.mean((ii - e[c] * ss) ** 2)) / e[c]))
+        used.append(k)
+    return e, {"pixels": used, "relative_rms": rel_rms}
+
+
+def normalise_intensities(E: np.ndarray) -> np.ndarray:
+    """Intensities (m, C) scaled so that their mean over lights and channels is 1."""
+    E = np.asarray(E, dtype=np.float64)
+    return E / E.mean()
