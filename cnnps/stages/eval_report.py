@@ -88,9 +88,10 @@ def format_table(metrics: dict, shipped: dict | None = None) -> str:
     lines = ["angular error in degrees: mean / median", fmt(head), "  ".join("-" * w for w in widths)]
     lines += [fmt(r) for r in rows]
     if shipped is not None:
-        lines += ["", "CNN-PS K=...: the model this run trained (K test-time rotations); "
-                  f"shipped K=10: the model cnnps ships ({shipped.get('label', 'cnnps/models/weights')}); "
-                  "Lambertian LS: least squares. Same captures, same pixels."]
+        ks = ", ".join(_label(m) for m in methods if m.startswith("cnn_k"))
+        lines += ["", f"{ks}: the model this run trained, K test-time rotations averaged;",
+                  f"shipped K=10: the model cnnps ships ({shipped.get('label', 'cnnps/models/weights')});",
+                  "Lambertian LS: least squares. Every column on the same captures and pixels."]
     return "\n".join(lines)
 
 

@@ -223,5 +223,6 @@ def test_the_table_puts_another_model_beside_the_trained_one():
     assert cells(lines[3]) == [("12.30", "11.30"), ("7.50", "6.50"), ("14.40", "13.40")]
     assert lines[5].startswith("mean over captures")
     assert cells(lines[5]) == [("8.65", "7.65"), ("5.00", "4.00"), ("11.70", "10.70")]
-    assert "shipped K=10: the model cnnps ships (v9 m.pt)" in lines[-1]
+    assert lines[-3] == "CNN-PS K=10: the model this run trained, K test-time rotations averaged;"
+    assert lines[-2] == "shipped K=10: the model cnnps ships (v9 m.pt);"
     assert "shipped" not in format_table(metrics)  # without another model: the table as before
