@@ -82,11 +82,11 @@ def loader_rate(files, w: int, batch: int, device: torch.device, seconds: float)
             "what": "ShardStream float16 batches" if device.type == "cuda" else "ShardDataset float32 tensors"}
 
 
-def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: float) -> dict:
+def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: float, masks: str = "counter") -> dict:
     from cnnps.models.optimiser import make_model, train_step
     from cnnps.stages.train import Params
 
-    p = Params(batch_size=batch)
+    p = Params(batch_size=batch, dropout_masks=masks)
     stream = ShardStream(files, w, 4096, seed=0, prefetch=0)
     it = stream.iter_epoch(0)
     maps, normals = next(it)
@@ -100,6 +100,7 @@ def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: flo
 
     def step(i):
         s = (i % nb) * batch
+        model.set_mask_key((p.seed, 0, i) if masks == "counter" else None)  # as the stage's eager steps
         return train_step(model, opt, maps[s:s + batch], normals[s:s + batch], device, p.precision, p.channels_last)
 
     for i in range(3):  # warm-up
@@ -118,12 +119,12 @@ def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: flo
             "step_seconds": dt / n}
 
 
-def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path) -> dict:
+def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path, masks: str = "counter") -> dict:
     from cnnps.stages import train
 
     every = max(1, steps // 2)
     params = train.Params(batch_size=batch, max_steps=steps, epochs=1000, val_every=every, checkpoint_every=every,
-                          shards=str(shards), device=device, progress=True)
+                          shards=str(shards), device=device, progress=True, dropout_masks=masks)
     t = time.perf_counter()
     m = train.run(params, work)
     wall = time.perf_counter() - t
@@ -135,7 +136,7 @@ def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path) ->
             "val_rows": m["val_rows"], "params": {k: v for k, v in dataclasses.asdict(params).items()
                                                   if k in ("batch_size", "max_steps", "val_every", "checkpoint_every",
                                                            "val_max_rows", "prefetch", "channels_last", "fused_adam",
-                                                           "precision", "num_workers")}}
+                                                           "precision", "num_workers", "dropout_masks")}}
 
 
 def main() -> None:
@@ -147,6 +148,9 @@ def main() -> None:
     ap.add_argument("--synthetic", type=int, default=12, help="scenes of synthetic shards when no --shards exist")
     ap.add_argument("--seconds", type=float, default=20.0, help="for the loader and the bare step each")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--compare-masks", action="store_true",
+                    help="also measure the bare step and the stage with torch's dropout masks (the former default), "
+                         "first, in the same run")
     args = ap.parse_args()
 
     from cnnps.models.devices import resolve_device
@@ -167,6 +171,15 @@ def main() -> None:
                      "load_average_before": [round(x, 2) for x in os.getloadavg()]}
         if device.type == "cuda":
             res["gpu"] = torch.cuda.get_device_name(device)
+        if args.compare_masks:
+            print(f"torch dropout masks: bare step ({args.seconds:g} s), then the stage ({args.steps} steps) ...",
+                  flush=True)
+            before = {"bare_step": bare_step_rate(files, w, args.batch_size, device, args.seconds, "torch"),
+                      "stage": stage_rate(shards, args.batch_size, args.steps, str(device), Path(tmp) / "torch",
+                                          "torch")}
+            res["torch_masks"] = before
+            print(f"  bare {before['bare_step']['samples_per_s']:,.0f}, stage {before['stage']['samples_per_s']:,.0f}"
+                  " samples/s", flush=True)
         print(f"loader alone ({args.seconds:g} s) ...", flush=True)
         res["loader"] = loader_rate(files, w, args.batch_size, device, args.seconds)
         print(f"  {res['loader']['samples_per_s']:,.0f} samples/s\nbare step ({args.seconds:g} s) ...", flush=True)
@@ -175,6 +188,10 @@ def main() -> None:
         res["stage"] = stage_rate(shards, args.batch_size, args.steps, str(device), Path(tmp) / "run")
         res["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
     st, bare = res["stage"], res["bare_step"]
+    if "torch_masks" in res:
+        res["speedup_vs_torch_masks"] = {
+            "bare_step": round(bare["samples_per_s"] / res["torch_masks"]["bare_step"]["samples_per_s"], 3),
+            "stage": round(st["samples_per_s"] / res["torch_masks"]["stage"]["samples_per_s"], 3)}
     res["stage_over_bare"] = round(st["samples_per_s"] / bare["samples_per_s"], 3)
     sec = st["seconds"]
     steps_only = st["steps"] * args.batch_size / max(1e-9, sec["loop"] - sec["validation"] - sec["checkpoints"])

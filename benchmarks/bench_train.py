@@ -18,14 +18,19 @@ import argparse
 import json
 import os
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from cnnps.models.openmp import prefer_passive_openmp
-from cnnps.stages.train import Params
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from benchmarks.machine import cpu_info  # noqa: E402
+from cnnps.models.openmp import prefer_passive_openmp  # noqa: E402
+from cnnps.stages.train import Params  # noqa: E402
 
 prefer_passive_openmp()  # as the stage does (before torch loads); OMP_WAIT_POLICY=ACTIVE to compare
 import torch  # noqa: E402
@@ -37,7 +42,10 @@ VARIANTS = [
     dict(name="baseline fp32 bs128 (NCHW, foreach Adam)", batch_size=128, **BASELINE),
     dict(name="fp32 bs256 (NCHW, foreach Adam)", batch_size=256, **BASELINE),
     dict(name="fp32 bs128 channels_last", batch_size=128, channels_last=True, fused_adam=False),
-    dict(name="fp32 bs128 channels_last fused Adam (defaults)", batch_size=128),
+    dict(name="fp32 bs128 channels_last fused Adam, torch dropout masks (before)", batch_size=128,
+         dropout_masks="torch"),
+    dict(name="fp32 bs128 channels_last fused Adam counter masks (defaults)", batch_size=128),
+    dict(name="fp32 bs64 counter masks", batch_size=64),
     dict(name="fp32 bs256 channels_last fused Adam", batch_size=256),
     dict(name="fp32 bs512 channels_last fused Adam", batch_size=512),
     dict(name="bf16 bs128 channels_last fused Adam", batch_size=128, precision="bf16"),
@@ -70,6 +78,7 @@ class Runner:
         self.maps, self.normals = maps, normals
         self.rng = np.random.default_rng(1)
         self.load_s = 0.0
+        self.steps = 0
         t0 = time.perf_counter()
         self.step()  # compiles when compiled
         self.first_step_s = time.perf_counter() - t0
@@ -82,6 +91,9 @@ class Runner:
         x = torch.from_numpy(self.maps[idx].astype(np.float32)).unsqueeze(1)
         y = torch.from_numpy(self.normals[idx])
         self.load_s += time.perf_counter() - t0
+        counter = self.p.dropout_masks == "counter" and self.model is self.raw  # as the stage does
+        self.raw.set_mask_key((self.p.seed, 0, self.steps) if counter else None)
+        self.steps += 1
         return train_step(self.model, self.opt, x, y, self.dev, self.p.precision, self.p.channels_last)
 
     def run_for(self, seconds: float) -> float:
@@ -91,6 +103,35 @@ class Runner:
             self.step()
             steps += 1
         return steps * self.p.batch_size / (time.perf_counter() - t0)
+
+
+def roofline(w: int, samples_per_s: dict[str, float]) -> dict:
+    """The floating-point operations of one training sample (forward and backward of the
+    network as trained, counted by torch's FlopCounterMode: a multiply-add is 2) against
+    the best float32 GEMM rate of this machine's 2 threads (2048^3 matmuls), measured now:
+    the share of that peak each variant reaches."""
+    import torch.nn.functional as F
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from cnnps.models.network import CNNPS
+
+    torch.set_num_threads(2)
+    model = CNNPS(w=w).train()
+    x = torch.rand(64, 1, w, w)
+    with FlopCounterMode(display=False) as fc:
+        F.mse_loss(model(x), torch.zeros(64, 3)).backward()
+    flop = fc.get_total_flops() / len(x)
+    a, b = torch.rand(2048, 2048), torch.rand(2048, 2048)
+    torch.mm(a, b)
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        torch.mm(a, b)
+        best = min(best, time.perf_counter() - t0)
+    gemm = 2 * 2048**3 / best
+    return {"flop_per_sample_train": round(flop), "gemm_fp32_gflop_per_s": round(gemm / 1e9, 1),
+            "samples_per_s_at_gemm_peak": round(gemm / flop),
+            "share_of_gemm_peak": {k: round(v * flop / gemm, 3) for k, v in samples_per_s.items()}}
 
 
 def accuracy(steps: int) -> list[dict]:
@@ -141,16 +182,22 @@ def main():
         res.append({"variant": r.name, "threads": r.threads, "samples_per_s": round(best[r.name], 1),
                      "vs_first": round(best[r.name] / base, 2), "first_step_s": round(r.first_step_s, 2)})
         print(json.dumps(res[-1]))
+    roof = roofline(a.w, best)
+    print(f"roofline: {roof['flop_per_sample_train'] / 1e6:.0f} MFLOP a training sample, GEMM "
+          f"{roof['gemm_fp32_gflop_per_s']} GFLOP/s -> at most {roof['samples_per_s_at_gemm_peak']:,} samples/s; "
+          + json.dumps(roof["share_of_gemm_peak"]), flush=True)
     acc = accuracy(a.accuracy_steps) if a.accuracy_steps else None
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps({
         "command": f"benchmarks/bench_train.py --seconds {a.seconds} --rounds {a.rounds} --w {a.w}"
                    + (f" --only {a.only}" if a.only else "") + (f" --accuracy-steps {a.accuracy_steps}" if acc else ""),
-        "machine": f"2 CPU cores shared with other jobs; load average {load_before:.1f} before, "
+        "machine": f"2 CPU cores; load average {load_before:.1f} before, "
                    f"{os.getloadavg()[0]:.1f} after (variants interleaved, best of {a.rounds} rounds)",
+        "cpu": cpu_info(),
         "torch": torch.__version__,
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
         "results": res,
+        "roofline": roof,
         "bf16_accuracy": acc,
     }, indent=1))
 

@@ -328,8 +328,10 @@ class Trainer:
         that fails, this step is redone eagerly (RNG restored) and training stays eager."""
         p = self.params
         if step_model is self.model:
+            self._mask_key(eager=True)
             return train_step(self.model, self.opt, maps, normals, self.device, p.precision, p.channels_last), step_model
         rng = rng_states(self.device)
+        self._mask_key(eager=False)
         try:
             return train_step(step_model, self.opt, maps, normals, self.device, p.precision, p.channels_last), step_model
         except Exception as exc:  # noqa: BLE001 - any compiler failure: train eagerly
@@ -337,8 +339,18 @@ class Trainer:
                        "training eagerly", file=sys.stderr)
             set_rng_states(*rng, self.device)
             self.opt.zero_grad(set_to_none=True)
+            self._mask_key(eager=True)
             loss = train_step(self.model, self.opt, maps, normals, self.device, p.precision, p.channels_last)
             return loss, self.model
+
+    def _mask_key(self, eager: bool) -> None:
+        """Eager steps with ``dropout_masks: counter`` draw their masks from the stream keyed
+        by (seed, rank, step) (:func:`cnnps.models.network.counter_dropout`); a compiled
+        model keeps torch's generator."""
+        p = self.params
+        counter = eager and getattr(p, "dropout_masks", "torch") == "counter"
+        net = getattr(self.model, "module", self.model)  # DistributedDataParallel wraps the network
+        net.set_mask_key((p.seed, self.info.rank, self.step) if counter else None)
 
     def _mean_loss(self, total: torch.Tensor, n: int) -> float:
         return mean_over_ranks(float(total) / n, self.info, self.device)

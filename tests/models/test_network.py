@@ -164,3 +164,43 @@ def test_fast_cpu_model_matches_original(monkeypatch, use_mkldnn, w):
     with torch.no_grad():
         model.fc2.bias.add_(1.0)
         assert (fast(x) - out_nchw).abs().max() < 1e-6
+
+
+def test_counter_dropout_masks_follow_their_key_and_rate():
+    """Dropout from the counter-based stream: the drop rate and scale of nn.Dropout, the
+    same mask for the same key (what makes a resumed run exact), another for another key,
+    and laid out in the tensor's memory order (channels_last)."""
+    from cnnps.models.network import counter_dropout
+
+    x = torch.ones(64, 16, 32, 32).contiguous(memory_format=torch.channels_last)
+    y = counter_dropout(x, 0.2, (0, 0, 7, 1))
+    kept = y != 0
+    n = kept.numel()
+    assert abs(1 - kept.float().mean().item() - 0.2) < 7 * (0.2 * 0.8 / n) ** 0.5  # seeded: no flake
+    assert torch.all(y[kept] == 1 / 0.8)  # scale 1 / (1 - p), p exact to 2^-33
+    assert y.is_contiguous(memory_format=torch.channels_last)
+    assert torch.equal(y, counter_dropout(x, 0.2, (0, 0, 7, 1)))
+    assert not torch.equal(kept, counter_dropout(x, 0.2, (0, 0, 8, 1)) != 0)
+    assert not torch.equal(kept, counter_dropout(x, 0.2, (0, 0, 7, 2)) != 0)
+    # the bits are laid out in memory order: a contiguous (NCHW) copy of the input draws the
+    # same bits in its own order, so as many elements are kept, at other places
+    plain = counter_dropout(x.contiguous(), 0.2, (0, 0, 7, 1))
+    assert plain.is_contiguous() and (plain != 0).float().mean().item() == kept.float().mean().item()
+
+
+def test_counter_masks_apply_only_while_training_on_a_cpu_with_a_key():
+    from cnnps.models.network import CNNPS
+
+    torch.manual_seed(0)
+    model = CNNPS(w=8)
+    x = torch.rand(4, 1, 8, 8)
+    model.train()
+    model.set_mask_key((1, 0, 5))
+    a, b = model(x), model(x)
+    assert torch.equal(a, b)  # the same key: the same masks, whatever torch's generator does
+    model.set_mask_key((1, 0, 6))
+    assert not torch.equal(a, model(x))
+    model.eval()
+    e = model(x)
+    model.set_mask_key(None)
+    assert torch.equal(e, model(x))  # no dropout at all in eval mode

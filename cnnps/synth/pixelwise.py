@@ -1,0 +1,614 @@
+"""Observation maps generated pixel by pixel, in torch, on CPU or CUDA (PX-Net style:
+Logothetis et al., ICCV 2021): no mesh and no renderer, one BSDF evaluation per
+(pixel, light), a few seeded global effects, then the same map rule as
+:mod:`cnnps.ps.obsmap`. Design notes, the comparison with Cycles and the speed:
+``docs/pixelwise.md``.
+
+- :func:`generate` ``(batch_size, *, generator, device, ...)`` -> ``(maps (B, 1, w, w),
+  normals (B, 3))`` float32: per pixel a normal (:func:`sample_normals`), a material
+  (:func:`sample_materials`, the materials stage's ``materials.ranges``), a light subset
+  by the extract rules (:func:`light_subsets`), radiance from :func:`shade`, the effects
+  of :class:`Effects`, and the map (:func:`observation_maps_torch`).
+- :func:`shade` ``(normals (P, 3), lights (m, 3), params)`` -> ``(P, m)`` grey values:
+  Blender 5's Principled BSDF as :func:`cnnps.synth.bsdf.to_blender_inputs` sets it up,
+  under a sun of irradiance 1 (a white Lambertian patch facing the light reads 1),
+  view (0, 0, 1), grey = mean of R, G, B (``cnnps.io.capture``'s default).
+- :func:`observation_maps_torch` ``(I (P, m), lights (m, 3), w, light_mask)``: the torch
+  form of :func:`cnnps.ps.obsmap.observation_maps` (cell of a light, mean on collisions,
+  each map scaled to a largest cell of 1).
+
+Frame: x right, y up, z toward the camera; orthographic view v = (0, 0, 1).
+
+Example::
+
+    g = torch.Generator().manual_seed(0)
+    maps, normals = generate(256, generator=g, effects=Effects(cast_shadow=0.3, ambient=0.05))
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+import torch
+
+from cnnps.infra.errors import ConfigError
+from cnnps.synth.bsdf import DEFAULT_CATEGORIES, PARAM_NAMES, MaterialRanges
+from cnnps.synth.lights import hemisphere_lights
+
+DEFAULT_WIDTH = 32
+E_TABLE_SIZE = 32  # GGX directional albedo table: 32 roughness x 32 cos(view) nodes, like Cycles'
+
+
+# --------------------------------------------------------------------------- normals
+
+
+def sample_normals(
+    n: int, *, generator: torch.Generator, device="cpu", grazing_fraction: float = 0.1, grazing_max_nz: float = 0.3
+) -> torch.Tensor:
+    """(n, 3) float32 unit normals facing the camera (n_z > 0).
+
+    Distribution: the normals a camera sees on real objects. A surface element with normal
+    n covers an image area proportional to its projected area n_z, so over a closed convex
+    object the visible normals have density ∝ n_z on the hemisphere (cosine-weighted; a
+    sphere's image gives exactly this), NOT uniform over the solid angle (which would
+    over-weight the limb by 1/n_z). Non-convex objects (DiLiGenT's) add occluding contours
+    and creases, where n_z → 0 is more common than on a sphere, and the network's errors
+    concentrate there; so a share ``grazing_fraction`` of the normals have n_z uniform in
+    (0, ``grazing_max_nz``] (uniform azimuth), the rest are cosine-weighted.
+    Draws (in order): n uniforms (which kind), 2n uniforms (cosine), 2n (grazing).
+    """
+    if not 0.0 <= grazing_fraction <= 1.0:
+        raise ConfigError(f"grazing_fraction must be in [0, 1], got {grazing_fraction}")
+    u = torch.rand(n, 3, generator=generator, device=device, dtype=torch.float64)
+    kind = u[:, 0]
+    # cosine-weighted: n_z = sqrt(1 - u) (Malley), azimuth uniform
+    nz_cos = torch.sqrt(1.0 - u[:, 1])
+    g = torch.rand(n, 1, generator=generator, device=device, dtype=torch.float64)[:, 0]
+    nz_graze = (1.0 - g) * grazing_max_nz  # (0, max]
+    nz = torch.where(kind < grazing_fraction, nz_graze, nz_cos).clamp(1e-3, 1.0)
+    phi = 2.0 * math.pi * u[:, 2]
+    r = torch.sqrt(torch.clamp(1.0 - nz * nz, min=0.0))
+    out = torch.stack([r * torch.cos(phi), r * torch.sin(phi), nz], dim=1)
+    return out.to(torch.float32)
+
+
+# --------------------------------------------------------------------------- materials
+
+
+def sample_materials(
+    n: int,
+    *,
+    ranges: MaterialRanges | dict | None = None,
+    categories=DEFAULT_CATEGORIES,
+    generator: torch.Generator,
+    device="cpu",
+) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """n paper-parameter rows (``base_color`` (n, 3), the others (n,), float32) and the
+    category index of each row (into ``categories``, drawn uniformly).
+
+    Uniform draws from the same :class:`cnnps.synth.bsdf.MaterialRanges` (params.yaml's
+    ``materials.ranges``) with the same rules as :func:`cnnps.synth.bsdf.sample_parameters`,
+    including the near-mirror exclusion (specular > ``high_specular`` draws roughness above
+    ``high_specular_min_roughness``), but from a torch generator and on ``device``."""
+    if ranges is None:
+        ranges = MaterialRanges()
+    elif isinstance(ranges, dict):
+        ranges = MaterialRanges.from_dict(ranges)
+    cats = [ranges.get(c) for c in categories]
+    if not cats:
+        raise ConfigError("categories must name at least one material category")
+    cat = torch.randint(len(cats), (n,), generator=generator, device=device)
+    u = {
+        "base_color": torch.rand(n, 3, generator=generator, device=device),
+        **{k: torch.rand(n, generator=generator, device=device) for k in PARAM_NAMES[1:]},
+    }
+
+    def table(fn):
+        return torch.tensor([fn(c) for c in cats], dtype=torch.float32, device=device)[cat]
+
+    out = {}
+    for name in PARAM_NAMES:
+        lo = table(lambda c: getattr(c, name)[0])
+        hi = table(lambda c: getattr(c, name)[1])
+        uu = u[name]
+        if uu.ndim == 2:
+            lo, hi = lo[:, None], hi[:, None]
+        out[name] = lo + uu * (hi - lo)
+    r_lo = table(lambda c: c.roughness[0])
+    r_hi = table(lambda c: c.roughness[1])
+    floor = torch.maximum(r_lo, table(lambda c: c.high_specular_min_roughness))
+    high = out["specular"] > table(lambda c: c.high_specular)
+    out["roughness"] = torch.where(high & (floor > r_lo), floor + u["roughness"] * (r_hi - floor), out["roughness"])
+    return out, cat
+
+
+# --------------------------------------------------------------------------- Principled BSDF
+
+
+def fresnel_dielectric(cos_i: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
+    """Unpolarised dielectric Fresnel reflectance (Cycles' ``fresnel_dielectric_cos``)."""
+    c = cos_i.abs()
+    g2 = eta * eta - 1.0 + c * c
+    tir = g2 < 0
+    g = torch.sqrt(g2.clamp(min=0.0))
+    a = (g - c) / (g + c).clamp(min=1e-12)
+    b = (c * (g + c) - 1.0) / (c * (g - c) + 1.0)
+    f = 0.5 * a * a * (1.0 + b * b)
+    return torch.where(tir, torch.ones_like(f), f)
+
+
+def ggx_d(alpha2: torch.Tensor, cos_nh: torch.Tensor) -> torch.Tensor:
+    """GGX (Trowbridge-Reitz) normal distribution, ∫ D(h) (n·h) dh = 1."""
+    c2 = cos_nh * cos_nh
+    return alpha2 / (math.pi * (1.0 + (alpha2 - 1.0) * c2) ** 2)
+
+
+def ggx_lambda(alpha2: torch.Tensor, cos_n: torch.Tensor) -> torch.Tensor:
+    """Smith Λ of GGX (Heitz 2014, Eq. 72)."""
+    c2 = (cos_n * cos_n).clamp(min=1e-12)
+    return 0.5 * (torch.sqrt(1.0 + alpha2 * (1.0 / c2 - 1.0).clamp(min=0.0)) - 1.0)
+
+
+def ggx_single(alpha2, cos_nh, cos_nv, cos_nl):
+    """D G2 / (4 cos_nv): the single-scattering GGX lobe with F = 1, times cos_nl (the
+    form Cycles' ``bsdf_microfacet_eval`` returns); height-correlated Smith G2."""
+    g2 = 1.0 / (1.0 + ggx_lambda(alpha2, cos_nv) + ggx_lambda(alpha2, cos_nl))
+    return ggx_d(alpha2, cos_nh) * g2 / (4.0 * cos_nv)
+
+
+def _vndf_reflections(alpha: torch.Tensor, mu: torch.Tensor, u1: torch.Tensor, u2: torch.Tensor):
+    """Heitz 2018 visible-normal sampling (as Cycles' ``microfacet_ggx_sample_vndf``) for
+    the view (sqrt(1 - mu²), 0, mu) at points (u1, u2) of the unit square; returns (view ·
+    microfacet normal, z of the reflected direction), broadcast over the inputs."""
+    sin = torch.sqrt((1.0 - mu * mu).clamp(0.0, 1.0))
+    vx, vz = alpha * sin, mu + 0.0 * alpha
+    ln = torch.sqrt(vx * vx + vz * vz)
+    vx, vz = vx / ln, vz / ln
+    # T1 = (0, 1, 0) (the view has no y), T2 = Vh x T1 = (-vz, 0, vx)
+    r = torch.sqrt(u1)
+    phi = 2.0 * math.pi * u2
+    t1 = r * torch.cos(phi)
+    t2 = r * torch.sin(phi)
+    s = 0.5 * (1.0 + vz)
+    t2 = (1.0 - s) * torch.sqrt((1.0 - t1 * t1).clamp(min=0.0)) + s * t2
+    wz = torch.sqrt((1.0 - t1 * t1 - t2 * t2).clamp(min=0.0))
+    nx = -t2 * vz + wz * vx
+    ny = t1
+    nz = t2 * vx + wz * vz
+    hx, hy, hz = alpha * nx, alpha * ny, nz.clamp(min=0.0)
+    hl = torch.sqrt(hx * hx + hy * hy + hz * hz)
+    hx, hz = hx / hl, hz / hl
+    cos_vh = sin * hx + mu * hz
+    return cos_vh, 2.0 * cos_vh * hz - mu
+
+
+def _grid(k: int, dtype=torch.float64, device="cpu"):
+    u = (torch.arange(k, dtype=dtype, device=device) + 0.5) / k
+    a, b = torch.meshgrid(u, u, indexing="ij")
+    return a.reshape(1, -1), b.reshape(1, -1)
+
+
+@lru_cache(maxsize=1)
+def ggx_albedo_table(size: int = E_TABLE_SIZE, samples: int = 96) -> tuple[np.ndarray, np.ndarray]:
+    """(E (size, size) indexed [roughness node, cos(view) node], E_avg (size,)): the
+    directional albedo of the single-scattering GGX lobe (F = 1) and its cosine-weighted
+    average, on nodes roughness = sqrt(alpha) = i/(size-1), mu = j/(size-1), computed by
+    stratified visible-normal quadrature (samples x samples points). Cycles' ``ggx_E`` and
+    ``ggx_Eavg`` tables hold the same integrals on the same axes."""
+    r = torch.linspace(0.0, 1.0, size, dtype=torch.float64)
+    mu = torch.linspace(0.0, 1.0, size, dtype=torch.float64).clamp(min=1e-4)
+    u1, u2 = _grid(samples)
+    alpha = (r * r).clamp(min=1e-7)[:, None, None]
+    a2 = alpha * alpha
+    m = mu[None, :, None]
+    _, oz = _vndf_reflections(alpha, m, u1[None], u2[None])
+    li = ggx_lambda(a2, m)
+    w = torch.where(oz > 0, (1.0 + li) / (1.0 + li + ggx_lambda(a2, oz.clamp(min=1e-6))), torch.zeros_like(oz))
+    E = w.mean(dim=2)
+    E[0, :] = 1.0  # a mirror reflects everything
+    mus = torch.linspace(0.0, 1.0, size, dtype=torch.float64)
+    E_avg = 2.0 * torch.trapezoid(E * mus[None, :], mus, dim=1)
+    return E.numpy().astype(np.float32), E_avg.numpy().astype(np.float32)
+
+
+def _ggx_energy(rough: torch.Tensor, mu: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """E(rough, mu) (bilinear) and E_avg(rough) (linear) from :func:`ggx_albedo_table`."""
+    E_np, Eavg_np = ggx_albedo_table()
+    E = torch.from_numpy(E_np).to(rough.device)
+    Eavg = torch.from_numpy(Eavg_np).to(rough.device)
+    n = E.shape[0]
+    t = rough.clamp(0.0, 1.0) * (n - 1)
+    i0 = t.floor().long().clamp(max=n - 2)
+    f = t - i0
+    s = mu.clamp(0.0, 1.0) * (n - 1)
+    j0 = s.floor().long().clamp(max=n - 2)
+    g = s - j0
+    e = (E[i0, j0] * (1 - f) * (1 - g) + E[i0 + 1, j0] * f * (1 - g) + E[i0, j0 + 1] * (1 - f) * g
+         + E[i0 + 1, j0 + 1] * f * g)
+    ea = Eavg[i0] * (1 - f) + Eavg[i0 + 1] * f
+    return e.clamp(min=1e-4), ea
+
+
+def _multiscatter(rough, mu, Fss):
+    """Cycles' ``microfacet_ggx_preserve_energy`` factor on the single-scattering lobe:
+    1 + Fms (1 - E)/E with Fms = Fss E_avg / (1 - Fss (1 - E_avg)) (Kulla & Conty 2017);
+    and E (the lobe's F = 1 albedo at this view). Fss (..., C)."""
+    E, Eavg = _ggx_energy(rough, mu)
+    missing = ((1.0 - E) / E)[..., None]
+    Eavg = Eavg[..., None]
+    Fms = Fss * Eavg / (1.0 - Fss * (1.0 - Eavg))
+    return 1.0 + Fms * missing, E
+
+
+def specular_eta(specular: torch.Tensor, ior: float = 1.5) -> torch.Tensor:
+    """The IOR Cycles' Principled uses for ``IOR`` = ``ior`` and ``Specular IOR Level`` =
+    ``specular`` (:func:`cnnps.synth.bsdf.to_blender_inputs`): F0 = F0(ior) · 2 · level,
+    eta = (1 + √F0)/(1 − √F0); 1 (no specular layer) at level 0."""
+    f0 = ((ior - 1.0) / (ior + 1.0)) ** 2 * 2.0 * specular.clamp(min=0.0)
+    sf = torch.sqrt(f0.clamp(0.0, 0.999999))
+    return (1.0 + sf) / (1.0 - sf)
+
+
+def _fresnel_layer_average(alpha: torch.Tensor, mu: torch.Tensor, eta: torch.Tensor, k: int = 8) -> torch.Tensor:
+    """(P,) the dielectric Fresnel averaged over the F = 1 GGX lobe seen from mu
+    (the quantity of Cycles' ``ggx_gen_schlick_ior_s`` table), by k x k stratified
+    visible-normal quadrature."""
+    u1, u2 = _grid(k, alpha.dtype, alpha.device)
+    a = alpha.clamp(min=1e-7)[:, None]
+    m = mu[:, None]
+    cos_vh, oz = _vndf_reflections(a, m, u1, u2)
+    a2 = a * a
+    li = ggx_lambda(a2, m)
+    w = torch.where(oz > 0, (1.0 + li) / (1.0 + li + ggx_lambda(a2, oz.clamp(min=1e-6))), torch.zeros_like(oz))
+    F = fresnel_dielectric(cos_vh, eta[:, None])
+    return (F * w).sum(1) / w.sum(1).clamp(min=1e-12)
+
+
+def kulla_conty_fss(eta: torch.Tensor) -> torch.Tensor:
+    """Cosine-weighted average of the dielectric Fresnel (Kulla & Conty 2017 fit, eta ≥ 1)."""
+    return (eta - 1.0) / (4.08567 + 1.00071 * eta)
+
+
+def shade(
+    normals: torch.Tensor,
+    lights: torch.Tensor,
+    params: dict[str, torch.Tensor],
+    *,
+    diffuse_model: str = "lambert",
+    sheen_model: str = "disney",
+    multiscatter: bool = True,
+    rgb: bool = False,
+) -> torch.Tensor:
+    """(P, m) grey pixel values (mean of R, G, B; ``rgb=True``: (P, m, 3)) of P surface
+    points with unit ``normals`` (P, 3) under m suns of irradiance 1 from unit ``lights``
+    (m, 3) or (P, m, 3), seen from v = (0, 0, 1); ``params`` the paper's parameters per
+    point (``base_color`` (P, 3), the others (P,)). A white Lambertian patch facing a
+    light reads 1 (the capture renderer's scale: pixel = π · BSDF · cos).
+
+    The model is Blender 5's Principled BSDF as :func:`cnnps.synth.bsdf.to_blender_inputs`
+    sets it up (``docs/pixelwise.md`` lists what is Cycles' and what is the papers'):
+    metal (weight ``metallic``): GGX, F = Schlick(F0 = base_color) (F82-tint with a white
+    tint), multiple scattering by energy compensation; dielectric (weight 1 − metallic):
+    a GGX specular layer with the real dielectric Fresnel at the IOR that gives
+    F0 = 0.08 · specular, the same compensation, over a diffuse base attenuated by the
+    layer's albedo (Cycles' ``closure_layering_weight``); the diffuse is Lambertian
+    (``diffuse_model="lambert"``, Blender's Diffuse Roughness 0) or Burley 2012 with its
+    retro-reflection (``"burley"``, the paper's). Sheen: ``"disney"`` (Burley 2012:
+    sheen · tint · (1 − l·h)^5, added) or ``"none"``; weight sheen · (1 − metallic),
+    tint mix(white, base_color, sheen_tint).
+    """
+    dt = normals.dtype
+    n = normals[:, None, :]  # (P, 1, 3)
+    L = lights if lights.ndim == 3 else lights[None]
+    cos_nl = (n * L).sum(-1)  # (P, m)
+    cos_nv = normals[:, 2:3].clamp(min=1e-4)  # (P, 1)
+    hx, hy, hz = L[..., 0], L[..., 1], L[..., 2] + 1.0
+    hl = torch.sqrt(hx * hx + hy * hy + hz * hz).clamp(min=1e-12)
+    cos_nh = ((n[..., 0] * hx + n[..., 1] * hy + n[..., 2] * hz) / hl).clamp(min=0.0)
+    cos_lh = (hz / hl)  # = v·h = l·h
+    lit = (cos_nl > 0) & (normals[:, 2:3] > 0)
+    cnl = cos_nl.clamp(min=0.0)
+
+    base = params["base_color"].to(dt)  # (P, 3)
+    metallic = params["metallic"].to(dt)[:, None]
+    specular = params["specular"].to(dt)
+    rough = params["roughness"].to(dt).clamp(0.0, 1.0)
+    sheen = params["sheen"].to(dt)[:, None]
+    sheen_tint = params["sheen_tint"].to(dt)[:, None]
+
+    alpha = rough * rough
+    a2 = (alpha * alpha)[:, None]
+    singular = (alpha * alpha <= 5e-7)[:, None]  # Cycles evaluates no lobe this sharp
+    lobe = ggx_single(a2, cos_nh, cos_nv, cnl) * ~singular  # (P, m)
+    mu = cos_nv[:, 0]
+
+    # metal: F82-tint with white tint = Schlick(F0 = base)
+    schlick = (1.0 - cos_lh).clamp(0.0, 1.0) ** 5  # (P, m)
+    if multiscatter:
+        ms_metal, _ = _multiscatter(rough, mu, base + (1.0 - base) / 21.0)  # (P, 3)
+    else:
+        ms_metal = torch.ones_like(base)
+
+    # dielectric specular layer
+    eta = specular_eta(specular)
+    F_d = fresnel_dielectric(cos_lh, eta[:, None])  # (P, m)
+    if multiscatter:
+        ms_d, E = _multiscatter(rough, mu, kulla_conty_fss(eta)[:, None])  # (P, 1)
+    else:
+        ms_d = torch.ones_like(mu)[:, None]
+        E, _ = _ggx_energy(rough, mu)
+    has_spec = eta > 1.0 + 1e-6
+    layer_albedo = torch.where(
+        has_spec & ~singular[:, 0], (E * ms_d[:, 0]) * _fresnel_layer_average(alpha, mu, eta), torch.zeros_like(mu)
+    )
+    layer_albedo = torch.where(singular[:, 0] & has_spec, fresnel_dielectric(mu, eta), layer_albedo)
+    diffuse_w = (1.0 - layer_albedo).clamp(0.0, 1.0)[:, None]  # (P, 1)
+
+    if diffuse_model == "lambert":
+        fd = cnl
+    elif diffuse_model == "burley":
+        fd90 = 0.5 + 2.0 * rough[:, None] * cos_lh * cos_lh
+        fl = (1.0 - cnl) ** 5
+        fv = (1.0 - cos_nv) ** 5
+        fd = cnl * (1.0 + (fd90 - 1.0) * fl) * (1.0 + (fd90 - 1.0) * fv)
+    else:
+        raise ConfigError(f"diffuse_model must be 'lambert' or 'burley', got {diffuse_model!r}")
+    if sheen_model not in ("disney", "none"):
+        raise ConfigError(f"sheen_model must be 'disney' or 'none', got {sheen_model!r}")
+    tint = 1.0 + sheen_tint * (base - 1.0)  # (P, 3)
+    w_sheen = (sheen * (1.0 - metallic)) * tint if sheen_model == "disney" else torch.zeros_like(base)
+    d = 1.0 - metallic  # (P, 1)
+    if rgb:
+        F_metal = base[:, None, :] + (1.0 - base[:, None, :]) * schlick[..., None]
+        out = (d[..., None] * ((diffuse_w * fd)[..., None] * base[:, None, :] + (math.pi * F_d * lobe * ms_d)[..., None])
+               + metallic[..., None] * math.pi * F_metal * (lobe[..., None] * ms_metal[:, None, :])
+               + w_sheen[:, None, :] * (schlick * cnl)[..., None])
+        return out * lit[..., None]
+    # grey = mean over R, G, B; every term is linear in a per-pixel colour, so the mean
+    # is taken on the (P,) coefficients and the (P, m) work is done once
+    c_diff = d * diffuse_w * base.mean(1, keepdim=True)
+    c_spec = d * math.pi * ms_d
+    c_m0 = metallic * math.pi * (base * ms_metal).mean(1, keepdim=True)
+    c_m1 = metallic * math.pi * ((1.0 - base) * ms_metal).mean(1, keepdim=True)
+    c_sheen = w_sheen.mean(1, keepdim=True)
+    out = c_diff * fd + lobe * (c_spec * F_d + c_m0 + c_m1 * schlick) + c_sheen * schlick * cnl
+    return out * lit
+
+
+# --------------------------------------------------------------------------- light subsets
+
+
+def light_subsets(
+    lights: torch.Tensor,
+    n: int,
+    *,
+    generator: torch.Generator,
+    min_lights: int = 50,
+    max_lights: int = 1300,
+    cone_min_deg: float = 20.0,
+    cone_max_deg: float = 90.0,
+    sparse_fraction: float = 0.0,
+    sparse_min_lights: int = 6,
+) -> torch.Tensor:
+    """(n, m) bool per-pixel light subsets by the extract rules
+    (:func:`cnnps.synth.training_samples.sample_light_masks`): a cone about +z of
+    half-angle U(cone_min_deg, cone_max_deg), widened to hold min(min_lights, m) lights,
+    k ~ U{min(min_lights, m) .. min(max_lights, m)} lights of it at random; a share
+    ``sparse_fraction`` of pixels use k log-uniform in [sparse_min_lights, min_lights)
+    (:func:`cnnps.synth.training_samples.sparse_subset_sizes`'s law)."""
+    dev = lights.device
+    m = lights.shape[0]
+    z = lights[:, 2].clamp(-1.0, 1.0)
+    lo, hi = min(min_lights, m), min(max_lights, m)
+    half = cone_min_deg + (cone_max_deg - cone_min_deg) * torch.rand(n, generator=generator, device=dev, dtype=torch.float64)
+    cos_half = torch.cos(torch.deg2rad(half)).to(z.dtype)
+    z_lo = torch.sort(z, descending=True).values[lo - 1]
+    in_cone = z[None, :] >= torch.minimum(cos_half, z_lo)[:, None]
+    n_in = in_cone.sum(1)
+    k = torch.randint(lo, hi + 1, (n,), generator=generator, device=dev)
+    if sparse_fraction > 0:
+        a = max(1, min(int(sparse_min_lights), lo))
+        b = max(a, lo - 1)
+        sp = torch.rand(n, generator=generator, device=dev) < sparse_fraction
+        uu = torch.rand(n, generator=generator, device=dev, dtype=torch.float64)
+        ks = torch.floor(torch.exp(math.log(a) + uu * (math.log(b + 1) - math.log(a)))).long().clamp(a, b)
+        k = torch.where(sp, ks, k)
+    k = torch.minimum(k, n_in)
+    keys = torch.rand(n, m, generator=generator, device=dev)
+    keys = torch.where(in_cone, keys, torch.full_like(keys, 2.0))
+    kth = torch.sort(keys, dim=1).values.gather(1, (k - 1).clamp(min=0)[:, None])
+    return (keys <= kth) & (k[:, None] > 0)
+
+
+# --------------------------------------------------------------------------- effects
+
+
+@dataclass(frozen=True)
+class Effects:
+    """Global effects and capture realism, each off at 0.
+
+    - ``cast_shadow``: probability that a pixel has an occluder: a spherical cap of
+      directions (axis at a random azimuth, elevation U(0°, 45°), half-angle U(20°, 60°))
+      whose lights reach the pixel only through the ambient and indirect terms;
+    - ``interreflection``: light bounced off a nearby lit surface (random normal facing the
+      pixel's hemisphere, albedo U(0, 1)^3): per pixel r ~ U(0, interreflection) and
+      indirect value r · ρ_pixel · ρ_neighbour · max(0, n_neighbour · l) (ρ_pixel the pixel's
+      diffuse, or for metals its base, colour; per channel, then grey);
+    - ``ambient``: a ~ U(0, ambient) per pixel times the pixel's brightest chosen value,
+      added to every light (as :func:`cnnps.synth.training_samples.add_ambient`);
+    - ``intensity_error``: per batch and light factor max(1 + N(0, σ), 0)
+      (:func:`cnnps.synth.training_samples.light_gains`' law);
+    - ``noise``: read and shot noise with per-pixel levels U(0, noise)
+      (:func:`cnnps.synth.training_samples.add_noise`'s law), clipped at 0.
+    """
+
+    cast_shadow: float = 0.0
+    interreflection: float = 0.0
+    ambient: float = 0.0
+    intensity_error: float = 0.0
+    noise: float = 0.0
+
+    def __post_init__(self):
+        for name in ("cast_shadow", "interreflection", "ambient", "intensity_error", "noise"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
+                raise ConfigError(f"pixelwise effect {name} must be in [0, 1], got {v!r}")
+
+
+def cast_shadow_mask(lights: torch.Tensor, n: int, probability: float, *, generator: torch.Generator) -> torch.Tensor:
+    """(n, m) bool, True where the light is blocked by the pixel's occluder (see :class:`Effects`)."""
+    dev = lights.device
+    u = torch.rand(n, 4, generator=generator, device=dev)
+    has = u[:, 0] < probability
+    if not probability:
+        return torch.zeros(n, lights.shape[0], dtype=torch.bool, device=dev)
+    az = 2.0 * math.pi * u[:, 1]
+    el = torch.deg2rad(45.0 * u[:, 2])
+    half = torch.deg2rad(20.0 + 40.0 * u[:, 3])
+    axis = torch.stack([torch.cos(el) * torch.cos(az), torch.cos(el) * torch.sin(az), torch.sin(el)], 1).to(lights.dtype)
+    inside = (axis @ lights.T) >= torch.cos(half).to(lights.dtype)[:, None]
+    return inside & has[:, None]
+
+
+# --------------------------------------------------------------------------- observation maps
+
+
+def light_cells_torch(lights: torch.Tensor, w: int = DEFAULT_WIDTH) -> torch.Tensor:
+    """(m,) or (..., m) flat cell index row * w + col of unit directions, as
+    :func:`cnnps.ps.obsmap.light_cells` (computed in float64, truncated, clipped)."""
+    L = lights.to(torch.float64)
+    col = (w * (L[..., 0] + 1.0) / 2.0).long().clamp(0, w - 1)
+    row = (w * (L[..., 1] + 1.0) / 2.0).long().clamp(0, w - 1)
+    return row * w + col
+
+
+def observation_maps_torch(
+    intensities: torch.Tensor, lights: torch.Tensor, w: int = DEFAULT_WIDTH, light_mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    """(P, w, w) float32 maps, the rule of :func:`cnnps.ps.obsmap.observation_maps`:
+    values max(I, 0) (0 where ``light_mask`` is False), summed per cell and divided by the
+    number of lights used in it, each map divided by its largest cell (an all-dark map stays
+    0). ``lights`` (m, 3) shared, or (P, m, 3) per pixel."""
+    I = intensities.to(torch.float32)
+    P, m = I.shape
+    v = I.clamp(min=0.0)
+    v = torch.where(torch.isnan(v), torch.zeros_like(v), v)
+    if light_mask is not None:
+        v = torch.where(light_mask, v, torch.zeros_like(v))
+        cnt = light_mask.to(torch.float32)
+    else:
+        cnt = torch.ones_like(v)
+    cell = light_cells_torch(lights, w)
+    cell = cell.expand(P, m) if cell.ndim == 1 else cell
+    sums = torch.zeros(P, w * w, dtype=torch.float32, device=I.device).scatter_add_(1, cell, v)
+    counts = torch.zeros(P, w * w, dtype=torch.float32, device=I.device).scatter_add_(1, cell, cnt)
+    maps = sums / counts.clamp(min=1.0)
+    peak = maps.amax(1, keepdim=True)
+    maps = maps / torch.where(peak > 0, peak, torch.ones_like(peak))
+    return maps.view(P, w, w)
+
+
+# --------------------------------------------------------------------------- the generator
+
+
+def default_lights(generator: torch.Generator, n: int = 1300, jitter_deg: float = 3.0, min_elevation_deg: float = 5.0):
+    """(n, 3) float64 numpy light set for one batch: :func:`cnnps.synth.lights.hemisphere_lights`
+    (the render stage's jittered spiral) with a seed drawn from ``generator``."""
+    seed = int(torch.randint(0, 2**62, (1,), generator=generator).item())
+    return hemisphere_lights(n, jitter_deg, seed=seed, min_elevation_deg=min_elevation_deg)
+
+
+def generate(
+    batch_size: int,
+    *,
+    generator: torch.Generator,
+    device="cpu",
+    ranges: MaterialRanges | dict | None = None,
+    categories=DEFAULT_CATEGORIES,
+    lights=None,
+    n_lights: int = 1300,
+    w: int = DEFAULT_WIDTH,
+    min_lights: int = 50,
+    max_lights: int = 1300,
+    cone_min_deg: float = 20.0,
+    cone_max_deg: float = 90.0,
+    sparse_fraction: float = 0.0,
+    sparse_min_lights: int = 6,
+    grazing_fraction: float = 0.1,
+    effects: Effects = Effects(),
+    diffuse_model: str = "lambert",
+    sheen_model: str = "disney",
+    return_details: bool = False,
+):
+    """``batch_size`` training samples: (maps (B, 1, w, w) float32, normals (B, 3) float32),
+    on ``device``, the same for the same generator state (the generator lives on the CPU:
+    every random draw is made there and moved, so CPU and CUDA give the same draws).
+
+    ``lights``: (m, 3) directions shared by the batch, or None: a jittered spiral of
+    ``n_lights`` (:func:`default_lights`) drawn from the generator. Steps:
+    :func:`sample_normals`, :func:`sample_materials`, :func:`light_subsets`, :func:`shade`,
+    effects (:class:`Effects`: cast shadows, inter-reflection, then gains, ambient, noise),
+    :func:`observation_maps_torch`. ``return_details=True`` adds a dict of the draws
+    (params, category, mask, intensities, lights).
+    """
+    if batch_size < 1:
+        raise ConfigError(f"batch_size must be >= 1, got {batch_size}")
+    g = generator
+    if lights is None:
+        lights = default_lights(g, n_lights)
+    Lcpu = torch.as_tensor(np.asarray(lights), dtype=torch.float32)
+    Lcpu = Lcpu / Lcpu.norm(dim=1, keepdim=True)
+    B = batch_size
+    normals = sample_normals(B, generator=g, grazing_fraction=grazing_fraction)
+    params, cat = sample_materials(B, ranges=ranges, categories=categories, generator=g)
+    mask = light_subsets(Lcpu, B, generator=g, min_lights=min_lights, max_lights=max_lights, cone_min_deg=cone_min_deg,
+                         cone_max_deg=cone_max_deg, sparse_fraction=sparse_fraction, sparse_min_lights=sparse_min_lights)
+    fx = effects
+    m = Lcpu.shape[0]
+    # every effect draws from the generator whether on or off, so turning one on changes no other draw
+    blocked = cast_shadow_mask(Lcpu, B, fx.cast_shadow, generator=g)
+    ir = torch.rand(B, 7, generator=g)
+    gains = torch.clamp(1.0 + fx.intensity_error * torch.randn(m, generator=g), min=0.0)
+    amb = fx.ambient * torch.rand(B, 1, generator=g)
+    s_noise = fx.noise * torch.rand(B, 2, generator=g)
+    z_noise = torch.randn(B, m, generator=g) if fx.noise else None
+
+    dev = torch.device(device)
+    normals_d, L = normals.to(dev), Lcpu.to(dev)
+    params_d = {k: v.to(dev) for k, v in params.items()}
+    mask_d = mask.to(dev)
+    I = shade(normals_d, L, params_d, diffuse_model=diffuse_model, sheen_model=sheen_model)
+    if fx.cast_shadow:
+        I = torch.where(blocked.to(dev), torch.zeros_like(I), I)
+    if fx.interreflection:
+        ir = ir.to(dev)
+        r = fx.interreflection * ir[:, 0:1]
+        # neighbour normal: the pixel's normal turned by up to 90° towards a random azimuth
+        az = 2.0 * math.pi * ir[:, 1]
+        tilt = 0.5 * math.pi * ir[:, 2]
+        t = torch.stack([torch.cos(az), torch.sin(az), torch.zeros_like(az)], 1)
+        t = t - (t * normals_d).sum(1, keepdim=True) * normals_d
+        t = t / t.norm(dim=1, keepdim=True).clamp(min=1e-6)
+        n2 = torch.cos(tilt)[:, None] * normals_d + torch.sin(tilt)[:, None] * t
+        rho2 = ir[:, 3:6]
+        rho_pix = torch.where(params_d["metallic"][:, None] > 0.5, params_d["base_color"],
+                              params_d["base_color"] * (1.0 - params_d["metallic"][:, None]))
+        lit2 = (n2 @ L.T).clamp(min=0.0)  # (B, m)
+        I = I + r * (rho_pix * rho2).mean(1, keepdim=True) * lit2
+    if fx.intensity_error:
+        I = I * gains.to(dev)[None]
+    if fx.ambient:
+        top = torch.where(mask_d, I, torch.zeros_like(I)).amax(1, keepdim=True)
+        I = I + amb.to(dev) * top
+    if fx.noise:
+        s = s_noise.to(dev)
+        peak = torch.where(mask_d, I, torch.zeros_like(I)).amax(1)
+        var = (s[:, 0] * peak)[:, None] ** 2 + (s[:, 1] ** 2 * peak)[:, None] * I.clamp(min=0.0)
+        I = (I + torch.sqrt(var) * z_noise.to(dev)).clamp(min=0.0)
+    maps = observation_maps_torch(I, L, w, light_mask=mask_d)[:, None]
+    if return_details:
+        return maps, normals_d, {"params": params_d, "category": cat, "mask": mask_d, "intensities": I, "lights": L}
+    return maps, normals_d
