@@ -1,4 +1,5 @@
-"""Where a training loop's wall time goes: waiting for batches, validation, checkpoints.
+"""Where a training loop's wall time goes: waiting for batches, per-pixel maps, validation,
+checkpoints.
 
 The train stage reports it in ``metrics.json`` under ``seconds`` (see
 :meth:`StepClock.summary`), so the cost of the loop's extras is measured at the speed the
@@ -16,7 +17,9 @@ from contextlib import contextmanager
 
 import torch
 
-PARTS = ("data_wait", "validation", "checkpoints")
+# pixelwise: making the per-pixel rows of mixed batches (train.pixelwise < 1; with per-pixel maps
+# only, making a batch is what the loop waits for: data_wait)
+PARTS = ("data_wait", "pixelwise", "validation", "checkpoints")
 
 
 class StepClock:

@@ -27,6 +27,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -155,6 +156,36 @@ def open_training_data(extract_dir: str | Path, verify: bool = True) -> Training
     return TrainingData(manifest, manifest_url, manifest_sha256, w, train_files, val_files)
 
 
+PIXELWISE_MIN_LIGHTS = 50  # the fewest lights of a dense per-pixel map (cnnps.synth.pixelwise.generate)
+PIXELWISE_VAL_ROWS = 10000  # per-pixel validation maps when there are no val shards
+
+
+def pixelwise_only_data(w: int) -> TrainingData:
+    """What training reads when every map is made per pixel (``train.pixelwise: 1``): no
+    manifest, no shards; ``w`` is the maps' width."""
+    return TrainingData({}, "", "pixelwise", int(w), [], [])
+
+
+class GeneratedBatches:
+    """Per-pixel batches (:mod:`cnnps.synth.pixelwise`) where the shard dataset would be:
+    the same ``set_epoch`` / ``set_skip`` / iteration, one batch per step, each made from
+    a generator seeded by (seed, rank, step), so a resumed run makes what an uninterrupted
+    one made. ``steps``: the batches of one pass (the run's steps)."""
+
+    def __init__(self, make, steps: int):
+        self.make, self.steps, self.skip = make, int(steps), 0
+
+    def set_epoch(self, epoch: int) -> None:
+        pass
+
+    def set_skip(self, batches: int) -> None:
+        self.skip = int(batches)
+
+    def __iter__(self):
+        for step in range(self.skip, self.steps):
+            yield self.make(step)
+
+
 def load_init_weights(init: str | None, w: int) -> tuple[dict | None, str | None]:
     """(state_dict, weights SHA-256) of the cnnps checkpoint ``init`` (``train.init``),
     or (None, None). The SHA-256, not the path, enters the run key."""
@@ -181,11 +212,13 @@ def write_plots(out_dir: Path, history: dict) -> None:
 
 def train(params, data: TrainingData, out_dir: Path, run_key: str, info: DistInfo, device: torch.device,
           init_state: dict | None = None, init_sha: str | None = None, *,
-          stop_after_step: int | None = None) -> dict:
+          stop_after_step: int | None = None, make_pixelwise=None) -> dict:
     """Train (resuming the newest checkpoint of ``run_key``); returns the final metrics.
     ``stop_after_step`` (tests only) raises ``KeyboardInterrupt`` after that step, like a
-    killed run."""
+    killed run. ``make_pixelwise(n, generator, device, w) -> (maps (n, 1, w, w), normals
+    (n, 3))`` makes the per-pixel rows of ``params.pixelwise``."""
     trainer = Trainer(params, data, out_dir, run_key, info, device, init_state, init_sha)
+    trainer.make_pixelwise = make_pixelwise
     trainer.resume()
     trainer.load_validation()
     trainer.run_steps(stop_after_step)
@@ -202,6 +235,7 @@ class Trainer:
         self.ckpt_dir = self.out_dir / "checkpoints"
         self.init_sha = init_sha
         self.main = info.is_main
+        self.make_pixelwise = None  # (n, generator, device, w) -> per-pixel (maps, normals); see train()
         self._build_model(init_state)
         self._build_stream()
         self.step = 0
@@ -225,9 +259,17 @@ class Trainer:
             torch.manual_seed(params.seed + 1_000_003 * info.rank)  # each rank its own dropout masks
 
     def _build_stream(self) -> None:
-        """This rank's share of the training shards, its steps per epoch and the run's total."""
+        """This rank's share of the training shards, its steps per epoch and the run's total;
+        with ``pixelwise`` the share of each batch made per pixel (all of it: no stream)."""
         params, info, data = self.params, self.info, self.data
-        self.stream = ShardStream(data.train_files, data.w, params.batch_size // info.world_size, seed=params.seed,
+        rank_batch = params.batch_size // info.world_size
+        share = float(getattr(params, "pixelwise", 0.0))
+        self.generated = rank_batch if not data.train_files else min(rank_batch - 1, round(share * rank_batch))
+        if not data.train_files:
+            self.stream = None
+            self.steps_per_epoch = self.total_steps = int(params.max_steps)
+            return
+        self.stream = ShardStream(data.train_files, data.w, rank_batch - self.generated, seed=params.seed,
                                   buffer_rows=params.shuffle_buffer, rank=info.rank, world_size=info.world_size,
                                   prefetch=params.prefetch)
         self.steps_per_epoch = rank_steps_per_epoch(self.stream)
@@ -279,9 +321,15 @@ class Trainer:
 
     def load_validation(self) -> None:
         """The validation sample (rank 0 only: it alone validates)."""
-        if self.main:
+        if not self.main:
+            return
+        if self.data.val_files or not self.generated:
             self.val_maps, self.val_normals = load_val(self.data.val_files, self.data.w, self.params.val_max_rows,
                                                        self.params.seed)
+        else:  # per-pixel maps only: a fixed per-pixel set of this seed
+            n = min(self.params.val_max_rows, PIXELWISE_VAL_ROWS)
+            maps, normals = self._pixelwise(n, ("val",), torch.device("cpu"))
+            self.val_maps, self.val_normals = maps[:, 0].numpy().astype(np.float16), normals.numpy()
 
     def validate(self) -> dict:
         return val_errors(self.raw, self.val_maps, self.val_normals, self.device, self.params.precision)
@@ -352,6 +400,23 @@ class Trainer:
         net = getattr(self.model, "module", self.model)  # DistributedDataParallel wraps the network
         net.set_mask_key((p.seed, self.info.rank, self.step) if counter else None)
 
+    def _pixelwise(self, n: int, key: tuple, device: torch.device | None = None):
+        """``n`` per-pixel (maps (n, 1, w, w) float32, normals (n, 3)) on ``device`` (the
+        training device), from a generator seeded by (seed, *key) alone (the caller's
+        ``make_pixelwise``, e.g. :func:`cnnps.synth.pixelwise.generate`)."""
+        from cnnps.infra.hashing import derive_seed64
+
+        if self.make_pixelwise is None:
+            raise ConfigError("train.pixelwise needs a per-pixel map maker (the train stage passes one)")
+        gen = torch.Generator().manual_seed(derive_seed64("pixelwise", self.params.seed, *key) & ((1 << 63) - 1))
+        return self.make_pixelwise(n, gen, device or self.device, self.data.w)
+
+    def _mix(self, maps: torch.Tensor, normals: torch.Tensor):
+        """The shard batch with this step's per-pixel rows appended (float32 on the device)."""
+        gm, gn = self._pixelwise(self.generated, (self.info.rank, self.step))
+        maps = torch.cat([maps.to(self.device).float(), gm.to(memory_format=torch.contiguous_format)])
+        return maps, torch.cat([normals.to(self.device).float(), gn])
+
     def _mean_loss(self, total: torch.Tensor, n: int) -> float:
         return mean_over_ranks(float(total) / n, self.info, self.device)
 
@@ -359,8 +424,12 @@ class Trainer:
         """Step until ``total_steps``: log the loss every ``log_every`` steps, validate
         every ``val_every``, checkpoint every ``checkpoint_every`` and at the end."""
         p, info = self.params, self.info
-        ds = ShardDataset(self.stream, float32=self.device.type != "cuda")  # a GPU converts float16 itself
-        loader = self._loader(ds)
+        if self.stream is None:  # per-pixel maps only, made on the training device
+            ds = loader = GeneratedBatches(lambda step: self._pixelwise(self.generated, (self.info.rank, step)),
+                                           self.total_steps)
+        else:
+            ds = ShardDataset(self.stream, float32=self.device.type != "cuda")  # a GPU converts float16 itself
+            loader = self._loader(ds)
         bar = progress_bar(total=self.total_steps * p.batch_size, initial=self.step * p.batch_size,
                            desc="train" if not info.enabled else f"train ({info.world_size} processes)",
                            unit="sample", unit_scale=True, disable=not p.progress or not self.main, leave=True)
@@ -373,7 +442,11 @@ class Trainer:
             epoch, skip = divmod(self.step, self.steps_per_epoch)
             ds.set_epoch(epoch)
             ds.set_skip(skip)
-            for maps, normals in clock.waiting(fed(loader, self.device)):
+            batches = loader if self.stream is None else fed(loader, self.device)  # generated: on the device
+            for maps, normals in clock.waiting(batches):
+                if self.stream is not None and self.generated:
+                    with clock.part("pixelwise"):
+                        maps, normals = self._mix(maps, normals)
                 loss, step_model = self._train_step(step_model, maps, normals)
                 self.step += 1
                 step = self.step
@@ -405,6 +478,15 @@ class Trainer:
 
     # -- the end -----------------------------------------------------------------------
 
+    def _fewest_lights(self) -> int | None:
+        """The fewest lights of any training map (shards' and per-pixel ones)."""
+        fewest = [fewest_lights(self.data.manifest)] if self.stream is not None else []
+        if self.generated:
+            sparse = float(getattr(self.params, "pixelwise_sparse_fraction", 0.0)) > 0
+            fewest.append(SPARSE_MIN_LIGHTS_DEFAULT if sparse else PIXELWISE_MIN_LIGHTS)
+        fewest = [f for f in fewest if f is not None]
+        return min(fewest) if fewest else None
+
     def finish(self) -> dict:
         """Last validation, a checkpoint if none was written, plots, ``model.pt`` and
         ``metrics.json`` (rank 0); the metrics (rank 0's, on every rank)."""
@@ -424,7 +506,8 @@ class Trainer:
             "train_loss": self.history["loss"][-1][1] if self.history["loss"] else None,
             **v,
             "val_rows": len(self.val_maps),
-            "train_rows": int(sum(u[2] for u in self.stream.units)),  # all ranks together
+            "train_rows": int(sum(u[2] for u in self.stream.units)) if self.stream is not None else 0,  # all ranks
+            "pixelwise_share": round(self.generated / max(1, p.batch_size // info.world_size), 4),
             "samples_per_s": round(ran * p.batch_size / self.seconds, 1) if ran > 0 and self.seconds > 0 else None,
             "seconds": self.clock.summary(self.seconds) if self.clock is not None else None,
             "device": str(self.device),
@@ -438,7 +521,7 @@ class Trainer:
                 config={"w": self.data.w, "dropout": p.dropout},
                 meta={"steps": step, "val_mean_deg": v.get("val_mean_deg"), "val_median_deg": v.get("val_median_deg"),
                       "data_manifest_sha256": self.data.manifest_sha256, "params": dataclasses.asdict(p),
-                      "min_lights": fewest_lights(self.data.manifest),
+                      "min_lights": self._fewest_lights(),
                       **({"init_weights_sha256": self.init_sha} if self.init_sha else {})},
             )
             write_sha256_file(self.out_dir / "model.pt")  # model.pt.sha256: load_checkpoint verifies it

@@ -81,13 +81,13 @@ split), ``plots/loss.csv``
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from cnnps.infra.errors import ConfigError
 from cnnps.infra.hashing import stable_hash
-from cnnps.infra.options import check_fields
+from cnnps.infra.options import Range, check_fields
 from cnnps.models.openmp import prefer_passive_openmp  # torch-free (torch loads in run)
 
 
@@ -119,6 +119,13 @@ class Params:
     # ~4x cheaper than torch's and resume-exact with no RNG state (cnnps.models.network.counter_dropout);
     # "torch" = torch's generator, as before. CUDA and compiled models always use torch's.
     dropout_masks: Literal["counter", "torch"] = "counter"
+    # per-pixel maps (cnnps.synth.pixelwise) in every batch: this share of its rows, the rest
+    # from the Cycles shards; 1 = per-pixel maps only (no renders or shards: a core install or
+    # a GPU machine trains; needs max_steps, and validates on a fixed per-pixel set)
+    pixelwise: Annotated[float, Range(ge=0.0, le=1.0)] = 0.0
+    pixelwise_effects: dict[str, float] = field(default_factory=dict)  # cnnps.synth.pixelwise.Effects, e.g. {ambient: 0.05}
+    pixelwise_sparse_fraction: Annotated[float, Range(ge=0.0, le=1.0)] = 0.0  # per-pixel maps of 6..49 lights
+    w: Annotated[int, Range(ge=2)] = 32  # map width of per-pixel-only training (shards carry their own)
     num_workers: int = 0  # DataLoader worker processes; 0 = load in the main process
     prefetch: int = 2  # row groups decoded ahead in a background thread (0 = none); batches do not change
     progress: bool = True
@@ -150,7 +157,15 @@ class Params:
             raise ConfigError(f"train.precision must be fp32 or bf16, got {self.precision!r}")
         if self.shards is not None and (not isinstance(self.shards, str) or not self.shards.strip()):
             raise ConfigError(f"train.shards must be a folder path or URL, got {self.shards!r}")
-        check_fields(self, "train.")  # the declared choices (dropout_masks)
+        check_fields(self, "train.")  # the declared choices and ranges (dropout_masks, pixelwise, w)
+        effects = ("cast_shadow", "interreflection", "ambient", "intensity_error", "noise")
+        for k, v in self.pixelwise_effects.items():
+            if k not in effects:
+                raise ConfigError(f"train.pixelwise_effects: unknown effect {k!r}; effects: {', '.join(effects)}")
+            if not 0.0 <= float(v) <= 1.0:
+                raise ConfigError(f"train.pixelwise_effects.{k} must be a number in [0, 1], got {v!r}")
+        if self.pixelwise >= 1.0 and not self.max_steps:
+            raise ConfigError("train.pixelwise: 1 (per-pixel maps only) needs train.max_steps: there are no epochs")
 
     def result_key(self) -> dict:
         """Params that change the trained weights (a resume needs them equal). ``init``
@@ -183,8 +198,28 @@ def run(params: Params, data_dir: Path, *, _stop_after_step: int | None = None) 
 
     data_dir = Path(data_dir)
     with training.training_processes(params) as (info, device):
-        data = training.open_training_data(params.shards or data_dir / "extract")
+        if params.pixelwise >= 1.0:
+            data = training.pixelwise_only_data(params.w)  # no shards at all
+        else:
+            data = training.open_training_data(params.shards or data_dir / "extract")
         init_state, init_sha = training.load_init_weights(params.init, data.w)
         key = run_key(params, data.manifest_sha256, init_sha)
         return training.train(params, data, data_dir / "train", key, info, device, init_state, init_sha,
-                              stop_after_step=_stop_after_step)
+                              stop_after_step=_stop_after_step, make_pixelwise=pixelwise_maker(params))
+
+
+def pixelwise_maker(params: Params):
+    """``(n, generator, device, w) -> (maps, normals)``: per-pixel training maps
+    (:func:`cnnps.synth.pixelwise.generate`) with ``train.pixelwise_effects`` and
+    ``train.pixelwise_sparse_fraction``; None when ``train.pixelwise`` is 0."""
+    if not params.pixelwise:
+        return None
+    from cnnps.synth import pixelwise
+
+    effects = pixelwise.Effects(**{k: float(v) for k, v in params.pixelwise_effects.items()})
+
+    def make(n, generator, device, w):
+        return pixelwise.generate(n, generator=generator, device=device, w=w, effects=effects,
+                                  sparse_fraction=params.pixelwise_sparse_fraction)
+
+    return make

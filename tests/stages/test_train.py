@@ -266,3 +266,46 @@ def test_compile_failure_falls_back_to_eager(dataset, tmp_path, monkeypatch, cap
     for k in sr["model"]:
         torch.testing.assert_close(sr["model"][k], sg["model"][k], rtol=0, atol=0)
     assert got["steps"] == ref["steps"] == 4
+
+
+def test_per_pixel_maps_only_train_without_shards_and_resume_exactly(tmp_path):
+    """train.pixelwise: 1 needs no renders or shards (a core install or a GPU machine
+    trains); each step's maps come from a generator seeded by the step, so a killed run
+    resumes to the weights of an uninterrupted one; validation is a fixed per-pixel set."""
+    params = train.Params(pixelwise=1.0, w=16, max_steps=6, checkpoint_every=3, val_every=0, val_max_rows=200,
+                          pixelwise_effects={"ambient": 0.05, "cast_shadow": 0.2}, **BASE)
+    a, b = tmp_path / "a", tmp_path / "b"
+    ma = train.run(params, a)
+    with pytest.raises(KeyboardInterrupt):
+        train.run(params, b, _stop_after_step=4)
+    mb = train.run(params, b)
+    sa, sb = _weights(a), _weights(b)
+    assert sa["step"] == sb["step"] == 6
+    for k in sa["model"]:
+        torch.testing.assert_close(sa["model"][k], sb["model"][k], rtol=1e-5, atol=1e-6)
+    assert ma["val_rows"] == 200 and ma["train_rows"] == 0 and ma["pixelwise_share"] == 1.0
+    assert ma["val_mean_deg"] == pytest.approx(mb["val_mean_deg"], abs=1e-4) and ma["val_mean_deg"] < 90
+    assert not (a / "extract").exists()
+    from cnnps.models.checkpoint import load_checkpoint
+
+    _model, config, meta = load_checkpoint(a / "train/model.pt")
+    assert config["w"] == 16 and meta["min_lights"] == training.PIXELWISE_MIN_LIGHTS  # cnnps predict warns below it
+    with pytest.raises(Exception, match="train.max_steps"):
+        train.Params(pixelwise=1.0)
+
+
+def test_a_share_of_per_pixel_maps_joins_the_shard_batches(dataset, tmp_path):
+    """train.pixelwise: 0.25 of each batch is made per pixel, the rest read from the shards
+    (fewer shard rows a step); the run is reproducible, and differs from shards alone."""
+    params = dict(max_steps=5, val_every=0, **BASE)
+    mixed = train.Params(pixelwise=0.25, **params)
+    r1 = train.run(mixed, fresh_copy(dataset, tmp_path / "m1"))
+    r2 = train.run(mixed, fresh_copy(dataset, tmp_path / "m2"))
+    plain = train.run(train.Params(**params), fresh_copy(dataset, tmp_path / "p"))
+    assert r1["pixelwise_share"] == 0.25 and plain["pixelwise_share"] == 0.0
+    assert r1["train_loss"] == r2["train_loss"] and r1["val_mean_deg"] == r2["val_mean_deg"]
+    assert r1["train_loss"] != plain["train_loss"]
+    assert r1["seconds"]["pixelwise"] > 0  # the generation's time is reported as its own part
+    w1, w2 = _weights(tmp_path / "m1"), _weights(tmp_path / "m2")
+    for k in w1["model"]:
+        assert torch.equal(w1["model"][k], w2["model"][k])
