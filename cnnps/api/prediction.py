@@ -664,8 +664,8 @@ def predict_folder(
     method, model, device, precision = opts["method"], opts["model"], opts["device"], opts["precision"]
     grey, linearize, saturated, sparse_fill = opts["grey"], opts["linearize"], opts["saturated"], opts["sparse_fill"]
     if method == "cnn":
-        _resolve_model(model)
-        _torch_device(device)  # before the capture is read
+        model = _resolve_model(model)  # verified once, before the capture is read; later a plain path
+        _torch_device(device)
     if not capture_dir.is_dir():
         raise InputError(capture_dir, "capture folder not found" if not capture_dir.exists() else "not a folder")
     _check_out_dir(out_dir, capture_dir)
