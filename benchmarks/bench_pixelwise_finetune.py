@@ -40,12 +40,13 @@ EFFECTS = {"cast_shadow": 0.3, "interreflection": 0.3, "ambient": 0.05, "intensi
 VARIANTS = {"cycles": 0.0, "cycles+pixelwise": 0.5, "pixelwise": 1.0}
 
 
-def finetune(share: float, shards: Path, steps: int, work: Path) -> tuple[Path, dict]:
+def finetune(share: float, shards: Path, steps: int, work: Path, init: Path | None = None) -> tuple[Path, dict]:
+    """``steps`` steps from ``init`` (default: the shipped weights); the model and its timing."""
     from cnnps.models.shipped import weights_path
     from cnnps.stages import train
 
     params = train.Params(pixelwise=share, pixelwise_effects=EFFECTS, pixelwise_sparse_fraction=0.2,
-                          shards=str(shards), init=str(weights_path()), max_steps=steps, epochs=1000, lr=1e-4,
+                          shards=str(shards), init=str(init or weights_path()), max_steps=steps, epochs=1000, lr=1e-4,
                           batch_size=128, val_every=0, checkpoint_every=steps, progress=False)
     t0 = time.perf_counter()
     metrics = train.run(params, work)

@@ -408,8 +408,11 @@ class Trainer:
 
         if self.make_pixelwise is None:
             raise ConfigError("train.pixelwise needs a per-pixel map maker (the train stage passes one)")
-        gen = torch.Generator().manual_seed(derive_seed64("pixelwise", self.params.seed, *key) & ((1 << 63) - 1))
-        return self.make_pixelwise(n, gen, device or self.device, self.data.w)
+        device = device or self.device
+        # draws on the device that makes the maps: a CPU generator would feed a GPU too slowly
+        gen = torch.Generator(device=device if device.type == "cuda" else "cpu")
+        gen.manual_seed(derive_seed64("pixelwise", self.params.seed, *key) & ((1 << 63) - 1))
+        return self.make_pixelwise(n, gen, device, self.data.w)
 
     def _mix(self, maps: torch.Tensor, normals: torch.Tensor):
         """The shard batch with this step's per-pixel rows appended (float32 on the device)."""

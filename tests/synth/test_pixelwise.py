@@ -247,3 +247,25 @@ def test_effects_are_validated():
         px.Effects(ambient=-0.1)
     with pytest.raises(ConfigError):
         px.shade(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([[0.0, 0.0, 1.0]]), _params(1), diffuse_model="oren")
+
+
+def test_lights_given_as_a_tensor_match_lights_given_as_an_array():
+    L = hemisphere_lights(200, 3.0, seed=2)
+    a = px.generate(16, generator=torch.Generator().manual_seed(4), lights=L)
+    b = px.generate(16, generator=torch.Generator().manual_seed(4), lights=torch.from_numpy(L))
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_generator_draws_on_the_gpu_and_repeats():
+    fx = px.Effects(cast_shadow=0.3, interreflection=0.3, ambient=0.05, intensity_error=0.05, noise=0.01)
+
+    def make(seed):
+        g = torch.Generator(device="cuda").manual_seed(seed)
+        return px.generate(256, generator=g, device="cuda", effects=fx, sparse_fraction=0.2)
+
+    a, b, c = make(1), make(1), make(2)
+    assert a[0].is_cuda and torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    assert not torch.equal(a[1], c[1])
+    n = a[1].norm(dim=1)
+    assert torch.allclose(n, torch.ones_like(n), atol=1e-5) and float(a[0].amax()) == 1.0

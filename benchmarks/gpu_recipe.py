@@ -1,0 +1,334 @@
+"""Train CNN-PS on a lent GPU from per-pixel maps alone, within 10-minute calls.
+
+A GPU machine gets only the checkout (no renders, no shards, nothing downloadable), so
+it trains on maps made on the device by :mod:`cnnps.synth.pixelwise` (preset
+``gpu-train-pixelwise``). Two steps::
+
+    # 1. measure there: per-pixel generation (maps/s), the train step (samples/s) by batch
+    #    size and precision, and a short learning-rate probe; writes measure.json
+    python3 benchmarks/gpu_recipe.py measure --out $OUT
+
+    # 2. train, resuming from the folder's newest checkpoint; stops cleanly before
+    #    --seconds (every chunk ends with a checkpoint), so a call never loses work
+    python3 benchmarks/gpu_recipe.py train --data-dir /root/gpu-run --seconds 540 \\
+        --measure $OUT/measure.json --budget-seconds 1200 --pack $OUT
+
+The first ``train`` call fixes the plan (batch size, learning rate, precision from
+``measure.json``, and the total steps = the measured rate x ``--budget-seconds``) in
+``DATA_DIR/plan.json``; later calls read it, so every call continues the same run (the
+train stage's resume key holds them). ``--pack DIR`` copies the plan, the metrics, the
+model and the newest checkpoint (in pieces under 15 MiB) to DIR; ``--restore DIR`` puts
+them back into an empty data folder, for a machine that went cold between calls.
+
+Without a GPU both steps run on the CPU (``--device cpu``, a few steps; tests/benchmarks
+run them so).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from cnnps.models.openmp import prefer_passive_openmp  # noqa: E402
+
+PRESET = "gpu-train-pixelwise"
+PIECE = 15 * 2**20  # bytes per piece of a packed checkpoint (a returned file may hold 16 MiB)
+
+
+def machine() -> dict:
+    import torch
+
+    from benchmarks.machine import cpu_info
+
+    info = {"cpu": cpu_info(), "torch": torch.__version__}
+    if torch.cuda.is_available():
+        p = torch.cuda.get_device_properties(0)
+        info["gpu"] = {"name": p.name, "memory_gib": round(p.total_memory / 2**30, 1),
+                       "multiprocessors": p.multi_processor_count}
+    return info
+
+
+def preset_params(**overrides):
+    """The train section of the ``gpu-train-pixelwise`` preset, with ``overrides``."""
+    from cnnps.pipeline.config import build_params, load_config, preset_path
+
+    p = build_params(load_config(preset_path(PRESET)), "train", check_files=False)
+    return dataclasses.replace(p, **overrides)
+
+
+def _sync(device):
+    import torch
+
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def _generator(device, seed: int):
+    """A generator on the device that makes the maps, as the train stage uses."""
+    import torch
+
+    return torch.Generator(device=device if device.type == "cuda" else "cpu").manual_seed(seed)
+
+
+def generation_rate(device, batch: int, seconds: float, params) -> dict:
+    """Per-pixel maps/s of the preset's draws (effects, sparse share) at ``batch``."""
+    from cnnps.stages.train import pixelwise_maker
+
+    make = pixelwise_maker(params)
+    g = _generator(device, 0)
+    make(batch, g, device, params.w)
+    _sync(device)
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds or n == 0:
+        make(batch, g, device, params.w)
+        n += 1
+    _sync(device)
+    return {"batch": batch, "maps_per_s": round(n * batch / (time.perf_counter() - t0))}
+
+
+def step_rate(device, params, seconds: float) -> dict:
+    """Bare train-step samples/s (random sparse maps already on the device)."""
+    import torch
+
+    from cnnps.models.optimiser import compile_model, make_model, train_step
+
+    B, w = params.batch_size, params.w
+    model, opt = make_model(w, params, device)
+    step_model = compile_model(model, params)
+    g = torch.Generator(device=device).manual_seed(0)
+    maps = (torch.rand(B, 1, w, w, device=device, generator=g) > 0.9).float()
+    normals = torch.nn.functional.normalize(torch.randn(B, 3, device=device, generator=g), dim=1)
+    t0 = time.perf_counter()
+    for _ in range(3):
+        train_step(step_model, opt, maps, normals, device, params.precision, params.channels_last)
+    _sync(device)
+    first = time.perf_counter() - t0
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds or n < 3:
+        train_step(step_model, opt, maps, normals, device, params.precision, params.channels_last)
+        n += 1
+    _sync(device)
+    return {"batch_size": B, "precision": params.precision, "compile": params.compile,
+            "samples_per_s": round(n * B / (time.perf_counter() - t0)), "warmup_s": round(first, 1)}
+
+
+def lr_probe(device, params, steps: int, val_n: int = 4096) -> dict:
+    """Train ``steps`` steps from scratch on per-pixel maps at ``params.lr``; the mean
+    angular error (deg) on ``val_n`` held per-pixel maps, and the last 20 steps' loss."""
+    import torch
+
+    from cnnps.models.optimiser import make_model, train_step
+    from cnnps.stages.train import pixelwise_maker
+
+    make = pixelwise_maker(params)
+    model, opt = make_model(params.w, params, device)
+    losses = []
+    t0 = time.perf_counter()
+    for s in range(steps):
+        maps, normals = make(params.batch_size, _generator(device, 1000 + s), device, params.w)
+        losses.append(train_step(model, opt, maps, normals, device, params.precision, params.channels_last))
+    vm, vn = make(val_n, _generator(device, 7), device, params.w)
+    model.eval()
+    with torch.no_grad():
+        pred = torch.nn.functional.normalize(model(vm.contiguous(memory_format=torch.channels_last)).float(), dim=1)
+    err = torch.rad2deg(torch.acos((pred * vn).sum(1).clamp(-1, 1))).mean()
+    return {"lr": params.lr, "steps": steps, "loss_last20": round(float(torch.stack(losses[-20:]).mean()), 5),
+            "val_mean_deg": round(float(err), 2), "seconds": round(time.perf_counter() - t0, 1)}
+
+
+def measure(args) -> dict:
+    import torch
+
+    device = torch.device(args.device)
+    res = {"command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": machine(),
+           "device": str(device)}
+    base = preset_params(device=device.type)
+    res["generation"] = [generation_rate(device, b, args.seconds, base) for b in args.batches]
+    print("generation", res["generation"], flush=True)
+    steps = []
+    for b in args.batches:
+        for prec in args.precisions:
+            r = step_rate(device, dataclasses.replace(base, batch_size=b, precision=prec), args.seconds)
+            steps.append(r)
+            print("step", r, flush=True)
+    if args.compile:
+        best = max(steps, key=lambda r: r["samples_per_s"])
+        try:
+            r = step_rate(device, dataclasses.replace(base, batch_size=best["batch_size"], precision=best["precision"],
+                                                      compile=True), args.seconds)
+            steps.append(r)
+            print("step", r, flush=True)
+        except Exception as exc:  # compile is optional: record why it failed
+            steps.append({"compile": True, "error": f"{type(exc).__name__}: {exc}"[:300]})
+    res["step"] = steps
+    ok = [r for r in steps if "samples_per_s" in r]
+    # the fastest setting, unless the generator cannot keep up with it at that batch
+    best = max(ok, key=lambda r: r["samples_per_s"])
+    gen = {g["batch"]: g["maps_per_s"] for g in res["generation"]}
+    res["chosen"] = {"batch_size": best["batch_size"], "precision": best["precision"], "compile": best["compile"],
+                     "step_samples_per_s": best["samples_per_s"],
+                     "generation_maps_per_s": gen.get(best["batch_size"])}
+    if args.lr_steps:
+        probes = [lr_probe(device, dataclasses.replace(base, batch_size=best["batch_size"], precision=best["precision"],
+                                                       lr=lr), args.lr_steps, args.probe_maps) for lr in args.lrs]
+        for p in probes:
+            print("lr", p, flush=True)
+        res["lr_probe"] = probes
+        res["chosen"]["lr"] = min(probes, key=lambda p: p["val_mean_deg"])["lr"]
+    else:
+        res["chosen"]["lr"] = base.lr
+    # samples/s of the whole loop (generation + step), what the plan budgets with
+    g = res["chosen"]["generation_maps_per_s"] or math.inf
+    res["chosen"]["loop_samples_per_s_est"] = round(1 / (1 / best["samples_per_s"] + 1 / g))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "measure.json").write_text(json.dumps(res, indent=1) + "\n")
+    print(json.dumps(res["chosen"]), flush=True)
+    return res
+
+
+def make_plan(args, data_dir: Path) -> dict:
+    plan_file = data_dir / "plan.json"
+    if plan_file.is_file():
+        return json.loads(plan_file.read_text())
+    if args.measure:
+        chosen = json.loads(Path(args.measure).read_text())["chosen"]
+    else:
+        chosen = {"batch_size": args.batch_size, "precision": args.precision, "lr": args.lr, "compile": False,
+                  "loop_samples_per_s_est": None}
+    rate = chosen.get("loop_samples_per_s_est")
+    total = args.total_steps or max(1, int(args.budget_seconds * rate / chosen["batch_size"]))
+    plan = {"batch_size": chosen["batch_size"], "precision": chosen["precision"], "lr": chosen["lr"],
+            "compile": bool(chosen.get("compile")), "total_steps": total,
+            "lr_milestones": sorted({max(1, int(total * 0.7)), max(2, int(total * 0.9))}),
+            "budget_seconds": args.budget_seconds, "loop_samples_per_s_est": rate, "device": args.device}
+    data_dir.mkdir(parents=True, exist_ok=True)
+    plan_file.write_text(json.dumps(plan, indent=1) + "\n")
+    return plan
+
+
+def newest_checkpoint(data_dir: Path) -> Path | None:
+    cks = sorted((data_dir / "train" / "checkpoints").glob("step-*.pt"))
+    return cks[-1] if cks else None
+
+
+def train(args) -> dict:
+    prefer_passive_openmp()
+    from cnnps.stages import train as train_stage
+
+    data_dir = Path(args.data_dir)
+    if args.restore:
+        restore(Path(args.restore), data_dir)
+    plan = make_plan(args, data_dir)
+    deadline = time.monotonic() + args.seconds
+    ck = newest_checkpoint(data_dir)
+    done = int(ck.stem.split("-")[1]) if ck else 0
+    chunk_t = None
+    stop = min(plan["total_steps"], args.stop_at_step or plan["total_steps"])
+    while done < stop:
+        left = deadline - time.monotonic()
+        # steps per chunk: about --chunk-seconds at the rate seen so far
+        rate = (plan["loop_samples_per_s_est"] or 1000) / plan["batch_size"] if chunk_t is None else chunk_t
+        steps = max(1, min(stop - done, int(rate * min(args.chunk_seconds, left - 25))))
+        if left < 40 or steps < 1:
+            break
+        p = preset_params(device=args.device, batch_size=plan["batch_size"], precision=plan["precision"],
+                          lr=plan["lr"], compile=plan["compile"], lr_milestones=tuple(plan["lr_milestones"]),
+                          max_steps=done + steps, checkpoint_every=max(1, steps), val_every=0,
+                          val_max_rows=args.val_rows,
+                          progress=args.progress)
+        t0 = time.monotonic()
+        metrics = train_stage.run(p, data_dir)
+        chunk_t = steps / max(1e-6, time.monotonic() - t0)
+        done += steps
+        print(f"steps {done}/{plan['total_steps']}  {chunk_t * plan['batch_size']:.0f} samples/s in this chunk  "
+              f"val {metrics.get('val_mean_deg')}", flush=True)
+    summary = {"steps_done": done, "total_steps": plan["total_steps"], "plan": plan}
+    (data_dir / "progress.json").write_text(json.dumps(summary, indent=1) + "\n")
+    if args.pack:
+        pack(data_dir, Path(args.pack))
+    return summary
+
+
+def pack(data_dir: Path, out: Path) -> None:
+    """plan, metrics, model and the newest checkpoint (in pieces) into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    for name in ("plan.json", "progress.json", "train/metrics.json", "train/model.pt"):
+        if (data_dir / name).is_file():
+            shutil.copy(data_dir / name, out / Path(name).name)
+    ck = newest_checkpoint(data_dir)
+    if ck is None:
+        return
+    blob = ck.read_bytes()
+    for i in range(0, len(blob), PIECE):
+        (out / f"{ck.stem}.part{i // PIECE:02d}").write_bytes(blob[i:i + PIECE])
+
+
+def restore(src: Path, data_dir: Path) -> None:
+    """The inverse of :func:`pack` into ``data_dir`` (only where it has no checkpoint)."""
+    if newest_checkpoint(data_dir) is not None or not src.is_dir():
+        return
+    parts = sorted(src.glob("step-*.part*"))
+    if not parts:
+        return
+    ckdir = data_dir / "train" / "checkpoints"
+    ckdir.mkdir(parents=True, exist_ok=True)
+    stem = parts[0].name.split(".part")[0]
+    tmp = ckdir / f".{stem}.tmp"
+    with open(tmp, "wb") as f:
+        for part in parts:
+            f.write(part.read_bytes())
+    os.replace(tmp, ckdir / f"{stem}.pt")
+    if (src / "plan.json").is_file():
+        shutil.copy(src / "plan.json", data_dir / "plan.json")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    m = sub.add_parser("measure")
+    m.add_argument("--out", default=".")
+    m.add_argument("--device", default="cuda")
+    m.add_argument("--seconds", type=float, default=4.0)
+    m.add_argument("--batches", type=int, nargs="+", default=[512, 2048, 8192])
+    m.add_argument("--precisions", nargs="+", default=["fp32", "bf16"])
+    m.add_argument("--compile", action="store_true")
+    m.add_argument("--lrs", type=float, nargs="+", default=[5e-4, 1e-3, 2e-3, 4e-3])
+    m.add_argument("--lr-steps", type=int, default=200)
+    m.add_argument("--probe-maps", type=int, default=4096, help="per-pixel maps that score each learning rate")
+    t = sub.add_parser("train")
+    t.add_argument("--data-dir", required=True)
+    t.add_argument("--device", default="cuda")
+    t.add_argument("--seconds", type=float, default=540)
+    t.add_argument("--chunk-seconds", type=float, default=120)
+    t.add_argument("--measure", help="measure.json: the batch size, precision and lr it chose")
+    t.add_argument("--budget-seconds", type=float, default=1200, help="the run's planned training time (all calls)")
+    t.add_argument("--total-steps", type=int, default=0, help="instead of the budget")
+    t.add_argument("--batch-size", type=int, default=2048)
+    t.add_argument("--precision", default="bf16")
+    t.add_argument("--lr", type=float, default=1e-3)
+    t.add_argument("--val-rows", type=int, default=10000, help="per-pixel validation maps (at each chunk's end)")
+    t.add_argument("--stop-at-step", type=int, default=0, help="end this call there (the plan stays)")
+    t.add_argument("--pack")
+    t.add_argument("--restore")
+    t.add_argument("--progress", action="store_true")
+    args = ap.parse_args(argv)
+    if args.cmd == "measure":
+        measure(args)
+    else:
+        print(json.dumps(train(args)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
