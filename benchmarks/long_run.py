@@ -1,0 +1,317 @@
+"""A training run longer than a session: a fixed checkout, data outside the work tree, a
+CPU-time ledger, and a fallback to committed weights.
+
+    .venv/bin/python benchmarks/long_run.py start v4 --preset cpu-train-v4 [--commit HEAD] [--root /work/runs]
+    .venv/bin/python benchmarks/long_run.py resume v4 [--root /work/runs] [--stages render extract train]
+    .venv/bin/python benchmarks/long_run.py save v4 [--root /work/runs]      # then commit benchmarks/runs/v4/
+    .venv/bin/python benchmarks/long_run.py status v4
+
+The work tree is laid anew every session and only git is certain, but a folder outside
+it often survives. So a run lives in ``ROOT/NAME/``:
+
+- ``code/``: a clone of this repository at one commit (``start --commit``), so editing the
+  work tree never changes the code that is running; the stages run with ``PYTHONPATH``
+  set to it (the interpreter is this one's: its packages, that commit's ``cnnps``);
+- ``params.yaml``: the preset with ``data_dir`` set to ``ROOT/NAME/data`` (absolute);
+- ``data/``: the stage outputs; every stage skips the work it finds done (scenes, shards)
+  and the train stage resumes from its newest checkpoint, so ``resume`` after a kill
+  continues exactly where the folder left off;
+- ``ledger.json``: wall and CPU seconds of every stage call (the stage's whole process
+  tree, sampled every ``--poll`` seconds, so a killed call loses at most that much), with
+  the CPU model of the machine it ran on.
+
+What git carries, in ``benchmarks/runs/NAME/``: ``run.json`` (commit, preset, params),
+``ledger.json`` and at most one ``intermediate.pt`` (``save``: the newest checkpoint's
+weights, replaced each time, never a second file). ``resume`` on a machine where
+``ROOT/NAME`` is gone clones the same commit again and regenerates the data (the stages
+are deterministic and seeded; the ledger records the time it took again). If the train
+stage then has no checkpoint but ``intermediate.pt`` exists, training restarts from those
+weights with the rest of its schedule (:func:`continue_schedule`): the steps left, the
+milestones still ahead, the learning rate reached; Adam's moments start afresh (the one
+thing such a fallback loses).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+STAGES = ["meshes", "materials", "render", "extract", "train", "eval"]
+
+
+CARRIED = REPO / "benchmarks" / "runs"  # what git carries of every run
+
+
+def _write_json(path: Path, data) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(data, indent=1) + "\n")
+    os.replace(tmp, path)
+
+
+# ----------------------------------------------------------------------------- the schedule
+
+
+def continue_schedule(train: dict, step: int, init: str) -> dict:
+    """The train section that continues a run of ``train`` from the weights of its step
+    ``step`` (``init``) as a new run: ``max_steps`` the steps left, ``lr_milestones`` those
+    ahead (shifted by ``step``), ``lr`` the rate reached at ``step``.
+
+    >>> continue_schedule({"max_steps": 100, "lr": 1e-3, "lr_milestones": [50, 80], "lr_gamma": 0.1}, 60, "w.pt")
+    {'max_steps': 40, 'lr': 0.0001, 'lr_milestones': [20], 'lr_gamma': 0.1, 'init': 'w.pt'}
+    """
+    total = int(train.get("max_steps") or 0)
+    if not 0 <= step < total:
+        raise ValueError(f"step {step} is not inside the run's {total} steps")
+    ms = [int(m) for m in train.get("lr_milestones") or []]
+    gamma = float(train.get("lr_gamma", 0.1))
+    passed = sum(step >= m for m in ms)
+    out = dict(train)
+    out.update(max_steps=total - step, lr=float(train["lr"]) * gamma**passed,
+               lr_milestones=[m - step for m in ms if m > step], init=init)
+    return out
+
+
+# ----------------------------------------------------------------------------- CPU time
+
+
+def tree_cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of ``pid`` and its descendants (alive, and the exited ones
+    their parents waited for), from /proc."""
+    tick = os.sysconf("SC_CLK_TCK")
+    children: dict[int, list[int]] = {}
+    stats: dict[int, list[str]] = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            raw = (d / "stat").read_text()
+        except OSError:
+            continue
+        fields = raw[raw.rindex(")") + 2:].split()  # after "pid (comm) "
+        stats[int(d.name)] = fields
+        children.setdefault(int(fields[1]), []).append(int(d.name))
+    total, todo = 0.0, [pid]
+    while todo:
+        p = todo.pop()
+        f = stats.get(p)
+        if f is None:
+            continue
+        total += sum(int(x) for x in f[11:15]) / tick  # utime stime cutime cstime
+        todo.extend(children.get(p, []))
+    return total
+
+
+def run_timed(cmd: list[str], env: dict, cwd: Path, poll: float, on_sample) -> int:
+    """Run ``cmd``; every ``poll`` seconds (and at the end) call ``on_sample(wall, cpu)``."""
+    t0 = time.monotonic()
+    proc = subprocess.Popen(cmd, env=env, cwd=cwd)
+    last = [0.0]
+    done = threading.Event()
+
+    def sample():
+        while not done.wait(poll):
+            try:
+                last[0] = max(last[0], tree_cpu_seconds(proc.pid))
+            except OSError:
+                pass
+            on_sample(time.monotonic() - t0, last[0])
+
+    th = threading.Thread(target=sample, daemon=True)
+    th.start()
+    try:
+        rc = proc.wait()
+    finally:
+        done.set()
+        th.join()
+    # the waited-for child's own total (exact), never below what was sampled
+    on_sample(time.monotonic() - t0, max(last[0], _children_cpu() - run_timed.base))
+    return rc
+
+
+def _children_cpu() -> float:
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+run_timed.base = 0.0
+
+
+# ----------------------------------------------------------------------------- the run
+
+
+class Run:
+    def __init__(self, name: str, root: Path, carried: Path = CARRIED):
+        self.name, self.dir = name, Path(root) / name
+        self.carried = Path(carried) / name  # in git: run.json, ledger.json, intermediate.pt
+        self.code, self.data = self.dir / "code", self.dir / "data"
+        self.params, self.ledger = self.dir / "params.yaml", self.dir / "ledger.json"
+
+    def record(self) -> dict:
+        return json.loads((self.carried / "run.json").read_text())
+
+    def create(self, commit: str, preset: str) -> dict:
+        """Clone the repository at ``commit`` into ``code/`` and write ``params.yaml``."""
+        sha = subprocess.run(["git", "-C", str(REPO), "rev-parse", commit], check=True, capture_output=True,
+                             text=True).stdout.strip()
+        if self.code.exists():
+            shutil.rmtree(self.code)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        subprocess.run(["git", "clone", "-q", "--no-checkout", str(REPO), str(self.code)], check=True)
+        subprocess.run(["git", "-C", str(self.code), "checkout", "-q", "--detach", sha], check=True)
+        src = self.code / "cnnps" / "presets" / f"{preset}.yaml"
+        if not src.is_file():
+            raise SystemExit(f"{src}: no preset {preset!r} at commit {sha[:12]}")
+        params = yaml.safe_load(src.read_text())
+        params["data_dir"] = str(self.data)
+        meshes = params.get("meshes") or {}
+        if meshes.get("mesh_dir") and not Path(meshes["mesh_dir"]).is_absolute():
+            # relative to the repository the preset was written for (e.g. ../shared/data/meshes)
+            meshes["mesh_dir"] = str((REPO / meshes["mesh_dir"]).resolve())
+        _write_json(self.dir / "run.json", {"name": self.name, "commit": sha, "preset": preset})
+        self.params.write_text(yaml.safe_dump(params, sort_keys=False))
+        return {"commit": sha, "preset": preset, "params": params}
+
+    def ensure(self) -> list[str]:
+        """Rebuild what did not survive from the record in git; what was rebuilt."""
+        rec, notes = self.record(), []
+        if not (self.code / ".git").is_dir() or not self.params.is_file():
+            self.create(rec["commit"], rec["preset"])
+            notes.append(f"cloned {rec['commit'][:12]} again into {self.code}")
+        if not any((self.data / "train" / "checkpoints").glob("step-*.pt")):
+            w = self.carried / "intermediate.pt"
+            if w.is_file():
+                step = int(self._meta(w)["steps"])
+                params = yaml.safe_load(self.params.read_text())
+                base = rec["params"]["train"]
+                if step < int(base.get("max_steps") or 0):
+                    params["train"] = continue_schedule(base, step, str(w))
+                    self.params.write_text(yaml.safe_dump(params, sort_keys=False))
+                    notes.append(f"no checkpoint: training continues from {w.name} (step {step})")
+        return notes
+
+    @staticmethod
+    def _meta(weights: Path) -> dict:
+        from cnnps.models.checkpoint import load_checkpoint
+
+        return load_checkpoint(weights)[2]
+
+    def run_stage(self, stage: str, poll: float) -> int:
+        from benchmarks.machine import cpu_info
+
+        env = dict(os.environ, PYTHONPATH=str(self.code))
+        ledger = json.loads(self.ledger.read_text()) if self.ledger.is_file() else {"calls": []}
+        entry = {"stage": stage, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "cpu": cpu_info()["model"],
+                 "logical_cpus": os.cpu_count(), "wall_s": 0.0, "cpu_s": 0.0, "finished": False}
+        ledger["calls"].append(entry)
+
+        def on_sample(wall, cpu):
+            entry.update(wall_s=round(wall, 1), cpu_s=round(cpu, 1))
+            _write_json(self.ledger, ledger)
+
+        run_timed.base = _children_cpu()
+        cmd = [sys.executable, "-c", "import cnnps, sys; assert cnnps.__file__.startswith(sys.argv[1]), cnnps.__file__; "
+               "from cnnps.pipeline.cli import main; sys.argv = ['cnnps'] + sys.argv[2:]; main()",
+               str(self.code), "run-stage", stage, "--params", str(self.params)]
+        rc = run_timed(cmd, env, self.code, poll, on_sample)
+        entry.update(finished=rc == 0, exit=rc)
+        _write_json(self.ledger, ledger)
+        return rc
+
+    def totals(self) -> dict:
+        ledger = json.loads(self.ledger.read_text()) if self.ledger.is_file() else {"calls": []}
+        out: dict[str, dict] = {}
+        for c in ledger["calls"]:
+            t = out.setdefault(c["stage"], {"cpu_hours": 0.0, "wall_hours": 0.0, "calls": 0})
+            t["cpu_hours"] += c["cpu_s"] / 3600
+            t["wall_hours"] += c["wall_s"] / 3600
+            t["calls"] += 1
+        for t in out.values():
+            t["cpu_hours"], t["wall_hours"] = round(t["cpu_hours"], 3), round(t["wall_hours"], 3)
+        return out
+
+    def save(self) -> Path | None:
+        """Ledger and the newest checkpoint's weights into git's folder (one weights file)."""
+        dst = self.carried
+        if self.ledger.is_file():
+            shutil.copy(self.ledger, dst / "ledger.json")
+        cks = sorted((self.data / "train" / "checkpoints").glob("step-*.pt"))
+        if not cks:
+            return None
+        import torch
+
+        from cnnps.models.checkpoint import save_checkpoint
+        from cnnps.models.network import CNNPS
+
+        state = torch.load(cks[-1], map_location="cpu", weights_only=True)
+        params = yaml.safe_load(self.params.read_text())
+        train = params.get("train") or {}
+        manifest = self.data / "extract" / "manifest.json"  # shards carry their map width
+        w = json.loads(manifest.read_text())["w"] if manifest.is_file() and train.get("pixelwise", 0) < 1 else train.get("w", 32)
+        net = CNNPS(w=int(w), dropout=float(train.get("dropout", 0.2)))
+        net.load_state_dict(state["model"])
+        out = dst / "intermediate.pt"
+        done = int(cks[-1].stem.split("-")[1]) + int(self._offset())
+        save_checkpoint(out, net, meta={"steps": done, "run": self.name, "commit": self.record()["commit"]})
+        return out
+
+    def _offset(self) -> int:
+        """Steps done before this folder's run began (a fallback continues a saved step)."""
+        params = yaml.safe_load(self.params.read_text())
+        base = self.record()["params"]["train"]
+        return int(base.get("max_steps") or 0) - int(params["train"].get("max_steps") or 0)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("cmd", choices=["start", "resume", "save", "status"])
+    ap.add_argument("name")
+    ap.add_argument("--root", type=Path, default=Path("/work/runs"))
+    ap.add_argument("--preset")
+    ap.add_argument("--commit", default="HEAD")
+    ap.add_argument("--stages", nargs="+", default=STAGES, choices=STAGES)
+    ap.add_argument("--poll", type=float, default=30.0)
+    ap.add_argument("--carried", type=Path, default=CARRIED, help="the runs' folder in git")
+    a = ap.parse_args(argv)
+    run = Run(a.name, a.root, a.carried)
+    if a.cmd == "start":
+        if not a.preset:
+            ap.error("start needs --preset")
+        made = run.create(a.commit, a.preset)
+        _write_json(run.carried / "run.json", {"name": a.name, **made})
+        print(f"{run.dir}: code at {made['commit'][:12]}, data in {run.data}; record in {run.carried}/run.json")
+        return 0
+    if a.cmd == "resume":
+        for note in run.ensure():
+            print(note, flush=True)
+        for stage in a.stages:
+            rc = run.run_stage(stage, a.poll)
+            if rc:
+                print(f"stage {stage} exited with {rc}; the ledger has its time", file=sys.stderr)
+                return rc
+        print(json.dumps(run.totals(), indent=1))
+        return 0
+    if a.cmd == "save":
+        out = run.save()
+        print(f"saved {run.carried}/ledger.json" + (f" and {out}" if out else " (no checkpoint yet)"))
+        return 0
+    print(json.dumps({"dir": str(run.dir), "exists": run.dir.is_dir(), "totals": run.totals()}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

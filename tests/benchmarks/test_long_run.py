@@ -1,0 +1,88 @@
+"""benchmarks/long_run.py: the schedule a fallback continues with, the CPU time of a process
+tree, and a run that lives outside the work tree (a clone at a fixed commit), records its
+stages' time and rebuilds what did not survive."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import yaml
+
+from benchmarks import long_run
+
+REPO = long_run.REPO
+
+
+def test_continue_schedule_keeps_the_rest_of_the_plan():
+    base = {"max_steps": 100, "lr": 1e-3, "lr_milestones": [50, 80], "lr_gamma": 0.1, "batch_size": 128}
+    out = long_run.continue_schedule(base, 60, "w.pt")
+    assert out == {**base, "max_steps": 40, "lr": pytest.approx(1e-4), "lr_milestones": [20], "init": "w.pt"}
+    assert long_run.continue_schedule(base, 10, "w.pt")["lr_milestones"] == [40, 70]
+    with pytest.raises(ValueError):
+        long_run.continue_schedule(base, 100, "w.pt")
+
+
+def test_tree_cpu_seconds_counts_the_children():
+    busy = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.6: pass\ntime.sleep(30)"
+    # a parent that starts a busy child: the child's CPU time belongs to the tree
+    proc = subprocess.Popen([sys.executable, "-c", f"import subprocess, sys; subprocess.run([sys.executable, '-c', {busy!r}])"],
+                            start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while long_run.tree_cpu_seconds(proc.pid) < 0.6 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert long_run.tree_cpu_seconds(proc.pid) >= 0.6
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)  # the parent and its busy child
+        proc.wait()
+
+
+@pytest.mark.skipif(shutil.which("git") is None or not (REPO / ".git").exists(), reason="needs git and a clone")
+def test_a_run_outside_the_work_tree(tmp_path):
+    root, carried = tmp_path / "runs", tmp_path / "carried"
+    args = ["--root", str(root), "--carried", str(carried)]
+    assert long_run.main(["start", "r", "--preset", "demo", "--commit", "HEAD", *args]) == 0
+    rec = json.loads((carried / "r" / "run.json").read_text())
+    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    assert rec["commit"] == head and rec["preset"] == "demo"
+    params = yaml.safe_load((root / "r" / "params.yaml").read_text())
+    assert params["data_dir"] == str(root / "r" / "data")
+    # one stage, run by the clone's code (the command asserts where cnnps came from)
+    assert long_run.main(["resume", "r", "--stages", "meshes", "--poll", "0.5", *args]) == 0
+    calls = json.loads((root / "r" / "ledger.json").read_text())["calls"]
+    assert [c["stage"] for c in calls] == ["meshes"] and calls[0]["finished"] and calls[0]["cpu_s"] > 0
+    assert any((root / "r" / "data" / "meshes").iterdir())
+
+    import torch
+
+    from cnnps.models.checkpoint import load_checkpoint, save_checkpoint
+    from cnnps.models.network import CNNPS
+
+    # save: the newest training checkpoint's weights become the one intermediate.pt in git
+    net = CNNPS(w=32)
+    ck = root / "r" / "data" / "train" / "checkpoints"
+    ck.mkdir(parents=True)
+    torch.save({"model": net.state_dict(), "step": 10}, ck / "step-00000010.pt")
+    assert long_run.main(["save", "r", *args]) == 0
+    saved, _, meta = load_checkpoint(carried / "r" / "intermediate.pt")
+    assert meta["steps"] == 10 and meta["commit"] == head
+    assert all(torch.equal(v, net.state_dict()[k]) for k, v in saved.state_dict().items())
+    assert json.loads((carried / "r" / "ledger.json").read_text())["calls"][0]["stage"] == "meshes"
+
+    # the machine comes back bare: the clone and the data are gone, the weights of step 60 are in git
+    shutil.rmtree(root)
+    save_checkpoint(carried / "r" / "intermediate.pt", CNNPS(w=32), meta={"steps": 60})
+    rec["params"]["train"].update(max_steps=100, lr=1e-3, lr_milestones=[50, 80], lr_gamma=0.1)
+    (carried / "r" / "run.json").write_text(json.dumps(rec))
+    notes = long_run.Run("r", root, carried).ensure()
+    assert len(notes) == 2 and (root / "r" / "code" / ".git").is_dir()
+    train = yaml.safe_load((root / "r" / "params.yaml").read_text())["train"]
+    assert train["init"] == str(carried / "r" / "intermediate.pt") and train["max_steps"] == 40
+    assert train["lr_milestones"] == [20] and train["lr"] == pytest.approx(1e-4)
