@@ -202,7 +202,8 @@ def _cnn_predictor(model_path, device, precision, batch_size):
     return MapPredictor(net, device=torch_device, precision=precision, batch_size=batch_size), meta, how
 
 
-def _cnn_tile(predictor, I, present, lights, rotations, bar, fill: bool = False) -> tuple[np.ndarray, int]:
+def _cnn_tile(predictor, I, present, lights, rotations, bar, fill: bool = False,
+              views: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """(n, 3) float64 normals of one tile and how many of its pixels were filled:
     :func:`cnnps.models.inference.rotated_normals` (what ``predict_normals`` computes), with
     a per-pixel light mask for missing observations and, with ``fill``, the virtual
@@ -216,7 +217,7 @@ def _cnn_tile(predictor, I, present, lights, rotations, bar, fill: bool = False)
         f = lambertian_fill(I, lights, light_mask=present, w=predictor.w)
         I, lights, present, n_filled = f.intensities, f.lights, f.light_mask, int(f.filled.sum())
     N = np.asarray(rotated_normals(predictor, I, lights, rotations, light_mask=present, progress=bar,
-                                   pixel_chunk=PIXEL_CHUNK), dtype=np.float64)
+                                   pixel_chunk=PIXEL_CHUNK, views=views), dtype=np.float64)
     if N.shape != (n, 3) or not np.all(np.isfinite(N)):
         raise CnnpsError(f"the model returned invalid normals (shape {N.shape} or NaN values)")
     return N, n_filled
@@ -324,9 +325,12 @@ def stack_from_arrays(images, mask: np.ndarray, intensities: np.ndarray, grey: s
 
 
 def tile_normals(stack, lights: np.ndarray, mask: np.ndarray, setup: MethodSetup, *, sparse_fill: str,
-                 tile_pixels: int, progress: bool) -> tuple[np.ndarray, TileCounts]:
+                 tile_pixels: int, progress: bool, intrinsics: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, TileCounts]:
     """(H, W, 3) float32 unit normals (zeros outside ``mask``) from the stack, tile by
-    tile, and what was counted on the way."""
+    tile, and what was counted on the way. ``intrinsics``: a pinhole camera's K (the
+    network then sees each pixel's lights in its own view frame; least squares does not
+    depend on the view)."""
     from cnnps.ps.least_squares import least_squares_masked
     from cnnps.ps.rotation import normalize
     from cnnps.ps.sparse_fill import should_fill
@@ -351,8 +355,14 @@ def tile_normals(stack, lights: np.ndarray, mask: np.ndarray, setup: MethodSetup
                 if bar is not None:
                     bar.update(stop - start)
             else:
+                views = None
+                if intrinsics is not None:
+                    from cnnps.ps.camera import view_directions
+
+                    rows, cols = np.divmod(_tile_pixels_index(row_start, mask, start, stop), W)
+                    views = view_directions(intrinsics, rows, cols)
                 N, filled = _cnn_tile(setup.predictor, I, None if missing is None else ~missing, lights,
-                                      setup.rotations, bar, fill)
+                                      setup.rotations, bar, fill, views)
                 counts.filled += filled
             flat_normal[_tile_pixels_index(row_start, mask, start, stop)] = normalize(N).astype(np.float32)
     finally:
@@ -409,7 +419,7 @@ def _tile_notes(setup: MethodSetup, counts: TileCounts, n_saturated: int) -> lis
 
 
 def make_record(setup: MethodSetup, counts: TileCounts, stack, *, n_images: int, image_size, options: dict,
-                sparse_fill: str, dropped: list[int] | None = None) -> dict:
+                sparse_fill: str, dropped: list[int] | None = None, intrinsics: np.ndarray | None = None) -> dict:
     """What ``prediction.json`` records about a run (without its timing and notes)."""
     from cnnps.io.capture import SATURATION_LEVEL
     from cnnps.ps.sparse_fill import should_fill
@@ -419,6 +429,8 @@ def make_record(setup: MethodSetup, counts: TileCounts, stack, *, n_images: int,
         "method": setup.method,
         "model": None if setup.model_path is None else str(setup.model_path),
         "rotations": setup.rotations,
+        "camera": ({"model": "orthographic"} if intrinsics is None
+                   else {"model": "perspective", "intrinsics": np.asarray(intrinsics).tolist()}),
     }
     if setup.predictor is not None:
         record["precision"] = getattr(setup.predictor, "precision", setup.precision)
@@ -521,6 +533,7 @@ def predict(
     *,
     intensities=None,
     normal_gt=None,
+    intrinsics=None,
     method: Method = "cnn",
     model=None,
     rotations: Count = 10,
@@ -547,6 +560,10 @@ def predict(
         intensities: (m, 3) RGB (or (m,)) light intensities, divided out of each image's
             channels (None: all 1).
         normal_gt: (H, W, 3) ground-truth normals to score against (optional).
+        intrinsics: (3, 3) pinhole camera matrix K (OpenCV convention: fx, fy, cx, cy in
+            pixels, (0, 0) the centre of the top-left pixel), or None: an orthographic
+            camera. With K, each pixel's lights are turned into the frame where its view
+            is +z before its map is built (:mod:`cnnps.ps.camera`).
         method: "cnn" (the network) or "lambertian" (least squares, the classic baseline).
         model: a checkpoint path (None: the shipped model, its SHA-256 checked).
         rotations: K test-time rotations about the view axis, averaged (10 = the paper).
@@ -593,6 +610,7 @@ def predict(
     t0 = time.perf_counter()
     opts = check_options({k: v for k, v in locals().items() if k not in _ARRAYS + ("t0",)})
     images, lights, mask, intensities, normal_gt = _arrays(images, lights, mask, intensities, normal_gt)
+    intrinsics = None if intrinsics is None else _intrinsics(intrinsics)
     setup = prepare_method(method, model, opts["rotations"], device, precision, opts["batch_size"],
                            opts["shadow_threshold"])
     warnings = [] if setup.predictor is None else _sparse_warning(setup.model_path, setup.meta, images.shape[0],
@@ -600,9 +618,9 @@ def predict(
     with stack_from_arrays(images, mask, intensities, grey, linearize, _saturation(saturated)) as stack:
         t_load = time.perf_counter() - t0
         normal, counts = tile_normals(stack, lights, mask, setup, sparse_fill=sparse_fill,
-                                      tile_pixels=opts["tile_pixels"], progress=progress)
+                                      tile_pixels=opts["tile_pixels"], progress=progress, intrinsics=intrinsics)
         record = make_record(setup, counts, stack, n_images=images.shape[0], image_size=mask.shape,
-                             options=opts, sparse_fill=sparse_fill)
+                             options=opts, sparse_fill=sparse_fill, intrinsics=intrinsics)
     notes = list(counts.notes)
     errors = stats = None
     if normal_gt is not None:
@@ -672,6 +690,7 @@ def predict_folder(
     write_surface = _surface_writer() if depth else None
 
     capture = scan_capture(capture_dir, drop=drop, grey=grey, linearize=linearize)
+    intrinsics = _read_intrinsics(capture_dir / INTRINSICS_FILE)
     setup = prepare_method(method, model, opts["rotations"], device, precision, opts["batch_size"],
                            opts["shadow_threshold"])
     warnings = [] if setup.predictor is None else _sparse_warning(setup.model_path, setup.meta, capture.n_images,
@@ -682,10 +701,11 @@ def predict_folder(
                            progress=progress) as stack:
         t_load = time.perf_counter() - t0
         normal, counts = tile_normals(stack, capture.lights, capture.mask, setup, sparse_fill=sparse_fill,
-                                      tile_pixels=opts["tile_pixels"], progress=progress)
+                                      tile_pixels=opts["tile_pixels"], progress=progress, intrinsics=intrinsics)
         record = {"capture": str(capture_dir),
                   **make_record(setup, counts, stack, n_images=capture.n_images, image_size=capture.shape,
-                                options=opts, sparse_fill=sparse_fill, dropped=capture.dropped)}
+                                options=opts, sparse_fill=sparse_fill, dropped=capture.dropped,
+                                intrinsics=intrinsics)}
     notes = capture.notes + counts.notes
     score = None if capture.normal_gt is None else _score(normal, capture.normal_gt, capture.mask, capture_dir, notes)
     _write_outputs(out_dir, normal, capture.mask, record, score, write_surface,
@@ -697,7 +717,30 @@ def predict_folder(
     return result
 
 
-_ARRAYS = ("images", "lights", "mask", "intensities", "normal_gt")
+_ARRAYS = ("images", "lights", "mask", "intensities", "normal_gt", "intrinsics")
+INTRINSICS_FILE = "intrinsics.txt"  # in a capture folder: K, 3 rows of 3 numbers; present = a perspective camera
+
+
+def _intrinsics(K) -> np.ndarray:
+    from cnnps.ps.camera import check_intrinsics
+
+    try:
+        return check_intrinsics(K)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _read_intrinsics(path: Path) -> np.ndarray | None:
+    """K from a capture's intrinsics.txt, None when there is none; InputError naming the
+    file when it is not a valid pinhole matrix."""
+    if not path.is_file():
+        return None
+    from cnnps.ps.camera import check_intrinsics
+
+    try:
+        return check_intrinsics(np.loadtxt(path, dtype=np.float64, ndmin=2))
+    except ValueError as exc:
+        raise InputError(path, str(exc)) from None
 
 
 def with_defaults(options: dict) -> dict:

@@ -111,6 +111,7 @@ def predict_normals(
     progress: bool = True,
     pixel_chunk: int = PIXEL_CHUNK,
     sparse_fill: str = "auto",
+    views: np.ndarray | None = None,
 ) -> np.ndarray:
     """Unit normals (P, 3) float32 for P pixels from their (P, m) intensities
     (:func:`rotated_normals` with a :class:`MapPredictor` of ``model``).
@@ -123,6 +124,8 @@ def predict_normals(
     ``DEFAULT_BATCH_CUDA`` = 4096 on CUDA).
     sparse_fill: 'auto' | 'on' | 'off': virtual Lambertian observations for sparse captures
     (:mod:`cnnps.ps.sparse_fill`; 'auto' = below ``FILL_BELOW`` = 50 images).
+    views: (P, 3) per-pixel view directions of a perspective camera (see
+    :func:`rotated_normals`); None = orthographic.
     """
     intensities = np.asarray(intensities, dtype=np.float32)
     lights = np.asarray(lights, dtype=np.float64)
@@ -146,7 +149,7 @@ def predict_normals(
         bar = progress_bar(total=P * int(rotations), unit="map", unit_scale=True, desc="cnn-ps", leave=False)
     try:
         return rotated_normals(predictor, intensities, lights, rotations, light_mask=light_mask, progress=bar,
-                               pixel_chunk=pixel_chunk)
+                               pixel_chunk=pixel_chunk, views=views)
     finally:
         if bar is not None:
             bar.close()
@@ -161,6 +164,7 @@ def rotated_normals(
     progress=None,
     pixel_chunk: int = PIXEL_CHUNK,
     read_ahead: int = 1,
+    views: np.ndarray | None = None,
 ) -> np.ndarray:
     """(P, 3) float32 normals: K-rotation test-time averaging, pixels in chunks.
 
@@ -171,9 +175,17 @@ def rotated_normals(
     (:func:`cnnps.infra.prefetch.prefetched`; numpy releases the GIL), so building the next
     chunk's maps overlaps the network on this one. ``light_mask`` (P, m): False drops an
     observation (e.g. saturated). ``progress``: a tqdm bar updated per map.
+
+    ``views`` (P, 3): each pixel's unit view direction (toward the camera) under a
+    perspective camera (:func:`cnnps.ps.camera.view_directions`). Each pixel's lights are
+    then turned by the smallest rotation R that takes its view to +z, the maps are built
+    from those (the K rotations about z follow, as for any pixel), and the averaged
+    answer is turned back by R^T: exact for isotropic materials, whose reflectance depends
+    only on n.l, n.v and l.v. None is the orthographic camera.
     """
     from cnnps.infra.prefetch import prefetched
-    from cnnps.ps.obsmap import observation_maps_multi
+    from cnnps.ps.camera import view_rotations
+    from cnnps.ps.obsmap import observation_maps_multi, observation_maps_per_pixel
 
     angles = rotation_angles(int(rotations))
     rotated = np.stack([rotate_z(lights, a) for a in angles])
@@ -184,13 +196,25 @@ def rotated_normals(
     def maps_of(start: int) -> np.ndarray:
         stop = min(start + chunk, P)
         mask = None if light_mask is None else light_mask[start:stop]
-        return observation_maps_multi(intensities[start:stop], rotated, w=predictor.w, light_mask=mask)
+        if views is None:
+            return observation_maps_multi(intensities[start:stop], rotated, w=predictor.w, light_mask=mask)
+        Rv = view_rotations(views[start:stop])
+        own = np.einsum("nij,mj->nmi", Rv, np.asarray(lights, np.float64))  # (n, m, 3) in each view frame
+        # a light behind the view plane (l.v <= 0) has no cell of its own on the map (it would
+        # fold onto the light mirrored above it), and orthographic captures never have one
+        ahead = own[..., 2] > 0
+        mask = ahead if mask is None else mask & ahead
+        per = np.stack([rotate_z(own, a) for a in angles])
+        return observation_maps_per_pixel(intensities[start:stop], per, w=predictor.w, light_mask=mask)
 
     out = np.empty((P, 3), dtype=np.float32)
     for start, maps in zip(starts, prefetched(maps_of, starts, depth=read_ahead)):
         K, n = maps.shape[:2]
         preds = predictor(maps.reshape(K * n, predictor.w, predictor.w), progress=progress).reshape(K, n, 3)
-        out[start:start + n] = preds[0] if K == 1 else average_rotated_predictions(preds, angles)
+        pred = preds[0] if K == 1 else average_rotated_predictions(preds, angles)
+        if views is not None:  # back from each pixel's view frame: n = R^T (R n)
+            pred = np.einsum("nji,nj->ni", view_rotations(views[start:start + n]), np.asarray(pred, np.float64))
+        out[start:start + n] = pred
     return out
 
 

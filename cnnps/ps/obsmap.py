@@ -130,6 +130,54 @@ def observation_maps_multi(
     return out.reshape(R, P, w, w)
 
 
+def observation_maps_per_pixel(
+    intensities: np.ndarray,
+    lights: np.ndarray,
+    w: int = DEFAULT_WIDTH,
+    *,
+    light_mask: np.ndarray | None = None,
+    dtype=np.float32,
+) -> np.ndarray:
+    """Maps whose light directions differ from pixel to pixel (lights rotated into each
+    pixel's view frame under a perspective camera, or near point lights).
+
+    lights: (R, P, m, 3) unit directions, R configurations (e.g. K rotations about z) of
+    each pixel's m lights. Returns (R, P, w, w); ``[r, p]`` is
+    ``observation_maps(intensities[p:p+1], lights[r, p], w, light_mask[p:p+1])[0]``: the
+    same rule (values clipped at 0, averaged per cell over the lights used, scaled so the
+    largest cell is 1), with a cell index per pixel and light.
+    """
+    P, m = _pixels_by_lights(intensities)
+    lights = np.asarray(lights)
+    if lights.ndim != 4 or lights.shape[1:] != (P, m, 3):
+        raise ValueError(f"lights must be (R, {P}, {m}, 3) to match intensities, got {lights.shape}")
+    R, ww = lights.shape[0], w * w
+    v = np.clip(np.nan_to_num(intensities.astype(np.float64), nan=0.0), 0.0, None)
+    cnt = np.ones((P, m))
+    if light_mask is not None:
+        light_mask = np.asarray(light_mask, dtype=bool)
+        if light_mask.shape != (P, m):
+            raise ValueError(f"light_mask must be {(P, m)}, got {light_mask.shape}")
+        v = np.where(light_mask, v, 0.0)
+        cnt = light_mask.astype(np.float64)
+    row, col = light_cells(lights.reshape(-1, 3), w)
+    base = (np.arange(R * P, dtype=np.int64) * ww)[:, None]
+    flat = (base + (row * w + col).reshape(R * P, m)).ravel()
+    sums = np.bincount(flat, np.broadcast_to(v, (R, P, m)).ravel(), R * P * ww)
+    counts = np.bincount(flat, np.broadcast_to(cnt, (R, P, m)).ravel(), R * P * ww)
+    maps = (sums / np.maximum(counts, 1.0)).reshape(R * P, ww)
+    peak = maps.max(axis=1, keepdims=True)
+    maps = np.divide(maps, peak, out=np.zeros_like(maps), where=peak > 0)
+    return maps.astype(dtype, copy=False).reshape(R, P, w, w)
+
+
+def _pixels_by_lights(intensities) -> tuple[int, int]:
+    shape = np.shape(intensities)
+    if len(shape) != 2:
+        raise ValueError(f"intensities must be (P, m), got {shape}")
+    return shape
+
+
 class _Plan:
     """How one light configuration groups its m lights into cells.
 
