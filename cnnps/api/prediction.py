@@ -40,6 +40,7 @@ there) and out of the least squares; their number is recorded.
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from dataclasses import dataclass, field
@@ -50,9 +51,10 @@ import numpy as np
 
 from cnnps.infra.errors import CnnpsError, ConfigError, InputError
 from cnnps.infra.machine import Device
-from cnnps.infra.options import Count, UnitFraction, check_arguments, label
+from cnnps.infra.options import Count, Positive, UnitFraction, check_arguments, label
 from cnnps.io.capture import Grey
 from cnnps.io.srgb import Linearize
+from cnnps.ps.near_lights import DEFAULT_ROUNDS, DEFAULT_TOLERANCE
 from cnnps.ps.sparse_fill import SparseFill
 
 Method = Literal["cnn", "lambertian"]  # the network, or the least-squares Lambertian baseline
@@ -73,6 +75,8 @@ class Prediction:
         types, saturated observations, tiling, seconds, notes, notices, warnings).
     errors: (H, W) float64 angular errors in degrees where scored (0 elsewhere) and
     stats: ``mean_deg``, ``median_deg``, ... when ground truth was given, else None.
+    depth: under point lights, (H, W) float64 depth along the optical axis found by the
+    rounds (the unit of the light positions, NaN outside the mask), else None.
     """
 
     normals: np.ndarray
@@ -80,6 +84,7 @@ class Prediction:
     record: dict
     errors: np.ndarray | None = None
     stats: dict | None = None
+    depth: np.ndarray | None = None
 
     @property
     def notes(self) -> list[str]:
@@ -325,13 +330,15 @@ def stack_from_arrays(images, mask: np.ndarray, intensities: np.ndarray, grey: s
 
 
 def tile_normals(stack, lights: np.ndarray, mask: np.ndarray, setup: MethodSetup, *, sparse_fill: str,
-                 tile_pixels: int, progress: bool, intrinsics: np.ndarray | None = None
-                 ) -> tuple[np.ndarray, TileCounts]:
+                 tile_pixels: int, progress: bool, intrinsics: np.ndarray | None = None,
+                 near: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, TileCounts]:
     """(H, W, 3) float32 unit normals (zeros outside ``mask``) from the stack, tile by
     tile, and what was counted on the way. ``intrinsics``: a pinhole camera's K (the
     network then sees each pixel's lights in its own view frame; least squares does not
-    depend on the view)."""
-    from cnnps.ps.least_squares import least_squares_masked
+    depend on the view). ``near``: (positions (m, 3), depth (H, W)) of point lights: each
+    pixel's lights come from its surface point at that depth, and its values are divided
+    by 1 / r^2 (:mod:`cnnps.ps.near_lights`; needs ``intrinsics``; no sparse fill)."""
+    from cnnps.ps.least_squares import least_squares_masked, least_squares_per_pixel
     from cnnps.ps.rotation import normalize
     from cnnps.ps.sparse_fill import should_fill
 
@@ -341,14 +348,25 @@ def tile_normals(stack, lights: np.ndarray, mask: np.ndarray, setup: MethodSetup
     flat_normal = normal.reshape(-1, 3)
     row_start = np.concatenate([[0], np.cumsum(mask.sum(axis=1))])
     counts = TileCounts()
-    fill = setup.method == "cnn" and should_fill(sparse_fill, stack.m)
+    fill = setup.method == "cnn" and should_fill(sparse_fill, stack.m) and near is None
     bar = _tile_bar(stack.P, setup, progress)
+    if near is not None:  # each pixel's (m, 3) float64 lights live for one tile: bound their memory
+        tile_pixels = min(tile_pixels, max(1024, NEAR_TILE_BYTES // (64 * stack.m)))
     try:
         for start, stop in stack.tiles(tile_pixels):
             I, missing = stack.read(start, stop)  # (n, m) float32, (n, m) bool saturated or None
             if missing is not None:
                 counts.saturated_pixels += int(missing.any(axis=1).sum())
-            if setup.method == "lambertian":
+            tile_lights = lights
+            if near is not None:
+                I, tile_lights = _near_tile(I, near, intrinsics, _tile_pixels_index(row_start, mask, start, stop), W)
+            if setup.method == "lambertian" and near is not None:
+                N, _albedo, valid = least_squares_per_pixel(
+                    I, tile_lights, missing, shadow_threshold=setup.shadow_threshold, return_valid=True)
+                counts.invalid += int((~valid).sum())
+                if bar is not None:
+                    bar.update(stop - start)
+            elif setup.method == "lambertian":
                 N, _albedo, valid = least_squares_masked(
                     I, lights, missing, shadow_threshold=setup.shadow_threshold, return_valid=True)
                 counts.invalid += int((~valid).sum())
@@ -361,7 +379,7 @@ def tile_normals(stack, lights: np.ndarray, mask: np.ndarray, setup: MethodSetup
 
                     rows, cols = np.divmod(_tile_pixels_index(row_start, mask, start, stop), W)
                     views = view_directions(intrinsics, rows, cols)
-                N, filled = _cnn_tile(setup.predictor, I, None if missing is None else ~missing, lights,
+                N, filled = _cnn_tile(setup.predictor, I, None if missing is None else ~missing, tile_lights,
                                       setup.rotations, bar, fill, views)
                 counts.filled += filled
             flat_normal[_tile_pixels_index(row_start, mask, start, stop)] = normalize(N).astype(np.float32)
@@ -372,6 +390,20 @@ def tile_normals(stack, lights: np.ndarray, mask: np.ndarray, setup: MethodSetup
     counts.notes = _tile_notes(setup, counts, stack.n_saturated)
     _report_rate(setup, stack.P, counts.seconds)
     return normal, counts
+
+
+NEAR_TILE_BYTES = 1 << 27  # per-pixel light directions of one tile under point lights (and their copies)
+
+
+def _near_tile(I: np.ndarray, near, K: np.ndarray, flat_index: np.ndarray, W: int):
+    """A tile's values divided by each light's 1 / r^2 at its surface points, and its
+    (n, m, 3) light directions, from ``near`` = (positions, depth)."""
+    from cnnps.ps.near_lights import pixel_lights, surface_points
+
+    positions, depth = near
+    rows, cols = np.divmod(flat_index, W)
+    dirs, scale = pixel_lights(surface_points(K, rows, cols, depth.reshape(-1)[flat_index]), positions)
+    return (I / scale).astype(np.float32), dirs
 
 
 RATE_MIN_SECONDS = 5.0  # shorter runs say too little about the machine's speed
@@ -418,8 +450,49 @@ def _tile_notes(setup: MethodSetup, counts: TileCounts, n_saturated: int) -> lis
     return notes
 
 
+def capture_normals(stack, lights: np.ndarray, mask: np.ndarray, setup: MethodSetup, options: dict, *,
+                    intrinsics: np.ndarray | None, positions: np.ndarray | None, progress: bool):
+    """(normal, counts, lights record, depth or None): :func:`tile_normals` once under
+    distant lights; under point lights (``positions``) the rounds of
+    :func:`cnnps.api.near_field.run_rounds`, whose depth comes back."""
+    tiles = {"sparse_fill": options["sparse_fill"], "tile_pixels": options["tile_pixels"], "progress": progress,
+             "intrinsics": intrinsics}
+    if positions is None:
+        normal, counts = tile_normals(stack, lights, mask, setup, **tiles)
+        return normal, counts, {"model": "directional"}, None
+    from dataclasses import replace
+
+    from cnnps.api.near_field import run_rounds
+
+    quick = replace(setup, rotations=1) if setup.method == "cnn" else setup
+
+    def normals_at(depth, final):
+        return tile_normals(stack, lights, mask, setup if final else quick, near=(positions, depth), **tiles)
+
+    field = run_rounds(normals_at, mask, intrinsics, positions, distance=options["distance"],
+                       rounds=options["rounds"], tolerance=options["depth_tolerance"],
+                       final_pass=setup.method == "cnn" and int(setup.rotations) > 1,
+                       values=functools.partial(_gather, stack))
+    counts = field.counts
+    counts.notes.append(f"point lights: {field.report['rounds']} rounds of normals and depth, last median depth "
+                        f"change {field.report['final_change']:.2g}"
+                        + ("" if field.report["converged"] else f" (tolerance {field.report['tolerance']:g} not reached)"))
+    return field.normal, counts, field.report, field.depth
+
+
+def _gather(stack, index: np.ndarray) -> np.ndarray:
+    """(n, m) float32 values of the stack's pixels ``index`` (sorted), read tile by tile."""
+    out = np.empty((len(index), stack.m), dtype=np.float32)
+    for start, stop in stack.tiles(DEFAULT_TILE_PIXELS):
+        lo, hi = np.searchsorted(index, [start, stop])
+        if hi > lo:
+            out[lo:hi] = stack.read(start, stop)[0][index[lo:hi] - start]
+    return out
+
+
 def make_record(setup: MethodSetup, counts: TileCounts, stack, *, n_images: int, image_size, options: dict,
-                sparse_fill: str, dropped: list[int] | None = None, intrinsics: np.ndarray | None = None) -> dict:
+                sparse_fill: str, dropped: list[int] | None = None, intrinsics: np.ndarray | None = None,
+                lights: dict | None = None) -> dict:
     """What ``prediction.json`` records about a run (without its timing and notes)."""
     from cnnps.io.capture import SATURATION_LEVEL
     from cnnps.ps.sparse_fill import should_fill
@@ -431,11 +504,13 @@ def make_record(setup: MethodSetup, counts: TileCounts, stack, *, n_images: int,
         "rotations": setup.rotations,
         "camera": ({"model": "orthographic"} if intrinsics is None
                    else {"model": "perspective", "intrinsics": np.asarray(intrinsics).tolist()}),
+        "lights": lights or {"model": "directional"},
     }
     if setup.predictor is not None:
         record["precision"] = getattr(setup.predictor, "precision", setup.precision)
         record["precision_choice"] = setup.precision_how
-        record["sparse_fill"] = {"mode": sparse_fill, "used": should_fill(sparse_fill, n_images),
+        record["sparse_fill"] = {"mode": sparse_fill,
+                                 "used": should_fill(sparse_fill, n_images) and (lights or {}).get("model") != "point",
                                  "filled_pixels": int(counts.filled)}
     record.update({
         "shadow_threshold": setup.shadow_threshold,
@@ -534,6 +609,7 @@ def predict(
     intensities=None,
     normal_gt=None,
     intrinsics=None,
+    light_positions=None,
     method: Method = "cnn",
     model=None,
     rotations: Count = 10,
@@ -546,6 +622,9 @@ def predict(
     saturated: Saturated = "exclude",
     sparse_fill: SparseFill = "auto",
     tile_pixels: Count = DEFAULT_TILE_PIXELS,
+    distance: Positive | None = None,
+    rounds: Count = DEFAULT_ROUNDS,
+    depth_tolerance: Positive = DEFAULT_TOLERANCE,
     progress: bool = False,
 ) -> Prediction:
     """Surface normals of one object from its images under known lights, in memory.
@@ -564,6 +643,11 @@ def predict(
             pixels, (0, 0) the centre of the top-left pixel), or None: an orthographic
             camera. With K, each pixel's lights are turned into the frame where its view
             is +z before its map is built (:mod:`cnnps.ps.camera`).
+        light_positions: (m, 3) point-light positions in the capture frame, origin at the
+            camera's optical centre (needs ``intrinsics``; ``lights`` may then be None).
+            Each pixel's lights and 1 / r^2 fall-off then come from its surface point, found
+            in rounds of normals and depth (:mod:`cnnps.ps.near_lights`); ``intensities``
+            are the lights' radiant intensities.
         method: "cnn" (the network) or "lambertian" (least squares, the classic baseline).
         model: a checkpoint path (None: the shipped model, its SHA-256 checked).
         rotations: K test-time rotations about the view axis, averaged (10 = the paper).
@@ -580,6 +664,12 @@ def predict(
         sparse_fill: "auto" (below 50 images), "on" or "off": virtual Lambertian
             observations for pixels a Lambertian fit explains (:mod:`cnnps.ps.sparse_fill`).
         tile_pixels: mask pixels computed at a time (memory ~ tile_pixels x m x 8 bytes).
+        distance: point lights: the object's median depth along the optical axis, in the
+            unit of the positions (None: the lights' median distance from the camera). It
+            starts the rounds and fixes the depth's scale, which normals cannot.
+        rounds: point lights: the most rounds of normals -> depth -> lights.
+        depth_tolerance: point lights: stop when the median relative depth change of a
+            round is below this.
         progress: show progress bars.
 
     Returns:
@@ -609,25 +699,30 @@ def predict(
     """
     t0 = time.perf_counter()
     opts = check_options({k: v for k, v in locals().items() if k not in _ARRAYS + ("t0",)})
-    images, lights, mask, intensities, normal_gt = _arrays(images, lights, mask, intensities, normal_gt)
     intrinsics = None if intrinsics is None else _intrinsics(intrinsics)
+    positions = None if light_positions is None else _positions(light_positions, intrinsics, np.shape(images)[0])
+    if positions is not None and lights is None:
+        from cnnps.ps.near_lights import directions_from_positions
+
+        lights = directions_from_positions(positions)
+    images, lights, mask, intensities, normal_gt = _arrays(images, lights, mask, intensities, normal_gt)
     setup = prepare_method(method, model, opts["rotations"], device, precision, opts["batch_size"],
                            opts["shadow_threshold"])
     warnings = [] if setup.predictor is None else _sparse_warning(setup.model_path, setup.meta, images.shape[0],
                                                                    _fills(sparse_fill, images.shape[0]))
     with stack_from_arrays(images, mask, intensities, grey, linearize, _saturation(saturated)) as stack:
         t_load = time.perf_counter() - t0
-        normal, counts = tile_normals(stack, lights, mask, setup, sparse_fill=sparse_fill,
-                                      tile_pixels=opts["tile_pixels"], progress=progress, intrinsics=intrinsics)
+        normal, counts, light_record, depth = capture_normals(stack, lights, mask, setup, opts, intrinsics=intrinsics,
+                                                              positions=positions, progress=progress)
         record = make_record(setup, counts, stack, n_images=images.shape[0], image_size=mask.shape,
-                             options=opts, sparse_fill=sparse_fill, intrinsics=intrinsics)
+                             options=opts, sparse_fill=sparse_fill, intrinsics=intrinsics, lights=light_record)
     notes = list(counts.notes)
     errors = stats = None
     if normal_gt is not None:
         score = _score(normal, normal_gt, mask, None, notes)
         errors, stats = score.errors, score.stats
     record = _finish_record(record, t0, t_load, notes, _notices(linearize, record["image_types"]), warnings)
-    return Prediction(normal, mask, record, errors, stats)
+    return Prediction(normal, mask, record, errors, stats, depth)
 
 
 def _fills(sparse_fill: str, n_images: int) -> bool:
@@ -700,14 +795,18 @@ def predict_folder(
     with build_pixel_stack(capture, scratch_dir=scratch, memory_limit=limit, saturation=_saturation(saturated),
                            progress=progress) as stack:
         t_load = time.perf_counter() - t0
-        normal, counts = tile_normals(stack, capture.lights, capture.mask, setup, sparse_fill=sparse_fill,
-                                      tile_pixels=opts["tile_pixels"], progress=progress, intrinsics=intrinsics)
+        normal, counts, light_record, _depth = capture_normals(
+            stack, capture.lights, capture.mask, setup, opts, intrinsics=intrinsics,
+            positions=capture.light_positions, progress=progress)
         record = {"capture": str(capture_dir),
                   **make_record(setup, counts, stack, n_images=capture.n_images, image_size=capture.shape,
                                 options=opts, sparse_fill=sparse_fill, dropped=capture.dropped,
-                                intrinsics=intrinsics)}
+                                intrinsics=intrinsics, lights=light_record)}
     notes = capture.notes + counts.notes
     score = None if capture.normal_gt is None else _score(normal, capture.normal_gt, capture.mask, capture_dir, notes)
+    if write_surface is not None and intrinsics is not None:  # depth along the optical axis
+        scale = light_record.get("start_distance", opts["distance"] or 1.0)
+        write_surface = functools.partial(write_surface, intrinsics=intrinsics, distance=scale)
     _write_outputs(out_dir, normal, capture.mask, record, score, write_surface,
                    lambda r: _finish_record(r, t0, t_load, notes, _notices(linearize, r["image_types"]), warnings))
     result = dict(record)
@@ -717,7 +816,7 @@ def predict_folder(
     return result
 
 
-_ARRAYS = ("images", "lights", "mask", "intensities", "normal_gt", "intrinsics")
+_ARRAYS = ("images", "lights", "mask", "intensities", "normal_gt", "intrinsics", "light_positions")
 INTRINSICS_FILE = "intrinsics.txt"  # in a capture folder: K, 3 rows of 3 numbers; present = a perspective camera
 
 
@@ -728,6 +827,20 @@ def _intrinsics(K) -> np.ndarray:
         return check_intrinsics(K)
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+
+
+def _positions(positions, intrinsics, m: int) -> np.ndarray:
+    from cnnps.ps.near_lights import check_positions
+
+    if intrinsics is None:
+        raise ConfigError("light_positions need intrinsics (point lights are placed relative to a pinhole camera)")
+    try:
+        positions = check_positions(positions)
+    except ValueError as exc:
+        raise ConfigError(f"light_positions: {exc}") from None
+    if positions.shape[0] != m:
+        raise ConfigError(f"light_positions must be ({m}, 3) for {m} images, got shape {positions.shape}")
+    return positions
 
 
 def _read_intrinsics(path: Path) -> np.ndarray | None:

@@ -67,6 +67,7 @@ class Range:
 
 Count = Annotated[int, Range(ge=1)]  # an integer >= 1 (rotations, batch sizes, tiles)
 UnitFraction = Annotated[float, Range(ge=0.0, lt=1.0)]  # a number in [0, 1) (relative thresholds)
+Positive = Annotated[float, Range(gt=0.0)]  # a number > 0 (distances, tolerances)
 
 _FLAGS: contextvars.ContextVar[bool] = contextvars.ContextVar("cnnps_option_flags", default=False)
 

@@ -6,6 +6,12 @@ A capture folder holds:
 - ``light_directions.txt``: m lines ``lx ly lz`` (camera frame: x right, y up, z toward
   the camera); normalised to unit length on load;
 - ``light_intensities.txt``: m lines ``r g b``; each image channel is divided by it;
+- or, for point lights near the object, ``light_positions.txt`` in place of
+  ``light_directions.txt``: m lines ``x y z`` in the capture frame with the origin at the
+  camera's optical centre, any length unit (the intensities are then radiant
+  intensities: irradiance I / r^2 on a surface facing the light at distance r). It needs
+  ``intrinsics.txt`` (a pinhole camera's K, read by :func:`cnnps.api.prediction.predict_folder`);
+  when both light files are there, the positions are used (a note says so);
 - ``mask.png``: non-zero = object;
 - optional ground truth ``Normal_gt.mat`` (variable ``Normal_gt``) or ``normal_gt.npy``,
   both H x W x 3.
@@ -92,7 +98,7 @@ class Capture:
     root: Path
     filenames: list[str]
     images: np.ndarray | None  # (m, H, W) float32 grey, intensity-normalised; None from scan_capture
-    lights: np.ndarray  # (m, 3) float64 unit directions
+    lights: np.ndarray  # (m, 3) float64 unit directions (point lights: seen from the optical axis at their median distance)
     intensities: np.ndarray  # (m, 3) float64 RGB light intensities (already divided out)
     mask: np.ndarray  # (H, W) bool
     normal_gt: np.ndarray | None = None  # (H, W, 3) float32 or None
@@ -102,6 +108,7 @@ class Capture:
     paths: list[Path] = field(default_factory=list)  # the image files, in light order
     linearize: str | None = None  # "srgb" | "none" | None (not chosen: integer images taken as linear)
     first_kind: str | None = None  # stored pixel type of the first image ("uint8", "uint16", "float32")
+    light_positions: np.ndarray | None = None  # (m, 3) float64 point-light positions (light_positions.txt), or None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -204,9 +211,39 @@ def read_filenames(root: Path) -> list[str]:
     return names
 
 
-def _read_lights(root: Path, m: int) -> tuple[np.ndarray, np.ndarray]:
+POSITIONS_FILE = "light_positions.txt"
+INTRINSICS_FILE = "intrinsics.txt"
+
+
+def _read_positions(root: Path, m: int, notes: list[str]) -> np.ndarray | None:
+    """Point-light positions from light_positions.txt (None without one); InputError
+    naming the file for a wrong count, a light behind the camera, or no intrinsics.txt."""
+    from cnnps.ps.near_lights import check_positions
+
+    path = root / POSITIONS_FILE
+    if not path.is_file():
+        return None
+    pos, lines = _read_vectors(path, "x y z")
+    if len(pos) != m:
+        raise InputError(path, f"has {len(pos)} light positions but filenames.txt lists {m} images")
+    try:
+        pos = check_positions(pos)
+    except ValueError as exc:
+        raise InputError(path, str(exc)) from None
+    if not (root / INTRINSICS_FILE).is_file():
+        raise InputError(path, f"point lights need a perspective camera: add {INTRINSICS_FILE} (K, 3 x 3) to the folder")
+    if (root / "light_directions.txt").is_file():
+        notes.append(f"{POSITIONS_FILE} and light_directions.txt are both present: the point lights are used")
+    return pos
+
+
+def _read_lights(root: Path, m: int, positions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     dpath = root / "light_directions.txt"
     ipath = root / "light_intensities.txt"
+    if positions is not None:
+        from cnnps.ps.near_lights import directions_from_positions
+
+        return directions_from_positions(positions), _read_intensities(ipath, m)
     dirs, dlines = _read_vectors(dpath, "lx ly lz")
     if len(dirs) != m:
         raise InputError(dpath, f"has {len(dirs)} light directions but filenames.txt lists {m} images")
@@ -215,14 +252,17 @@ def _read_lights(root: Path, m: int) -> tuple[np.ndarray, np.ndarray]:
     if bad.size:
         raise InputError(dpath, f"line {dlines[bad[0]]}: zero-length light direction")
     dirs = dirs / norms[:, None]
+    return dirs, _read_intensities(ipath, m)
 
+
+def _read_intensities(ipath: Path, m: int) -> np.ndarray:
     ints, ilines = _read_vectors(ipath, "r g b")
     if len(ints) != m:
         raise InputError(ipath, f"has {len(ints)} light intensities but filenames.txt lists {m} images")
     bad = np.flatnonzero(np.any(ints <= 0, axis=1))
     if bad.size:
         raise InputError(ipath, f"line {ilines[bad[0]]}: light intensities must be > 0, got {ints[bad[0]].tolist()}")
-    return dirs, ints
+    return ints
 
 
 # ----------------------------------------------------------------------------- ground truth
@@ -433,7 +473,8 @@ def scan_capture(
 
     names = read_filenames(root)
     m_all = len(names)
-    lights, intensities = _read_lights(root, m_all)
+    positions = _read_positions(root, m_all, notes)
+    lights, intensities = _read_lights(root, m_all, positions)
 
     if drop is None and root.name in DEFAULT_DROPS:
         dropped = [i for i in DEFAULT_DROPS[root.name] if i < m_all]
@@ -448,6 +489,8 @@ def scan_capture(
         raise ConfigError(f"{root}: only {keep.size} images left after dropping {len(dropped)}; need at least {MIN_IMAGES}")
     names = [names[i] for i in keep]
     lights, intensities = lights[keep], intensities[keep]
+    if positions is not None:
+        positions = positions[keep]
 
     paths = []
     for n in names:
@@ -486,6 +529,7 @@ def scan_capture(
         paths=paths,
         linearize=linearize,
         first_kind=kind,
+        light_positions=positions,
     )
 
 

@@ -6,7 +6,9 @@ at once) writes, into one folder:
 
 - ``depth.npy``: H x W float32 heights along +z (toward the camera) in pixel units
   (orthographic camera, 1 x 1 pixels), NaN outside the mask, mean 0 over each
-  4-connected component of the mask;
+  4-connected component of the mask; with a pinhole camera (``intrinsics=K``) the depth
+  along the optical axis instead (positive, each component scaled to the median
+  ``distance``: the unit of the light positions under point lights, else up to scale);
 - ``depth.png``: a picture of it: the heights colour-mapped (TURBO: blue far, red near),
   shaded by the normals under a light from the upper left, black outside the mask;
 - ``surface.ply``: a binary PLY triangle mesh (trimesh) with vertex normals. Its vertices
@@ -16,7 +18,9 @@ at once) writes, into one folder:
   block of pixel centres gives two triangles when all four are in the mask and one when
   three are (so diagonal mask borders stay smooth); faces wind counter-clockwise seen
   from +z, so their normals face the camera. Mask pixels with no 2 x 2 block around them
-  (isolated pixels, one-pixel-wide lines) carry no triangle and are left out.
+  (isolated pixels, one-pixel-wide lines) carry no triangle and are left out. With a
+  pinhole camera the vertices are the 3D points depth x diag(1, -1, -1) K^-1 (u, v, 1)
+  (the capture frame, camera at the origin, the object at z < 0).
 
 The three files are all written under temporary names first and renamed into place
 only when every one of them is complete (:mod:`cnnps.infra.atomic`): a failure leaves the
@@ -53,8 +57,9 @@ def read_normals(path: str | Path) -> np.ndarray:
     return check_normal_array(normals, path)
 
 
-def surface_mesh(depth: np.ndarray, normals: np.ndarray, mask: np.ndarray):
-    """A ``trimesh.Trimesh`` of the masked height field (layout: module docstring)."""
+def surface_mesh(depth: np.ndarray, normals: np.ndarray, mask: np.ndarray, intrinsics=None):
+    """A ``trimesh.Trimesh`` of the masked height field, or with ``intrinsics`` (a pinhole
+    K) of the depth map's 3D points (layout: module docstring)."""
     import trimesh
 
     mask = np.asarray(mask, dtype=bool) & np.isfinite(depth)
@@ -83,7 +88,13 @@ def surface_mesh(depth: np.ndarray, normals: np.ndarray, mask: np.ndarray):
     remap = np.cumsum(used) - 1
     faces = remap[faces]
     r, c = rows[used], cols[used]
-    vertices = np.stack([c - (W - 1) / 2.0, (H - 1) / 2.0 - r, depth[r, c].astype(np.float64)], axis=1)
+    if intrinsics is None:
+        vertices = np.stack([c - (W - 1) / 2.0, (H - 1) / 2.0 - r, depth[r, c].astype(np.float64)], axis=1)
+    else:
+        from cnnps.ps.camera import OPENCV_TO_CAPTURE
+
+        rays = np.stack([c, r, np.ones(r.size)], axis=1) @ (OPENCV_TO_CAPTURE @ np.linalg.inv(intrinsics)).T
+        vertices = rays * depth[r, c].astype(np.float64)[:, None]
     n = np.asarray(normals, dtype=np.float64)[r, c]
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     return trimesh.Trimesh(vertices=vertices, faces=faces, vertex_normals=n, process=False, validate=False)
@@ -161,8 +172,9 @@ def build_surface(normals: np.ndarray, mask: np.ndarray, **options) -> Surface:
     result = integrate(normals, mask, **options)
     normals = np.asarray(normals, dtype=np.float64)
     mask = np.asarray(mask).astype(bool).reshape(result.depth.shape)
-    mesh = surface_mesh(result.depth, normals, mask)
-    picture = depth_picture(result.depth, normals, mask)
+    K = options.get("intrinsics")
+    mesh = surface_mesh(result.depth, normals, mask, K)
+    picture = depth_picture(result.depth if K is None else -result.depth, normals, mask)  # near = red
     report = result.report()
     report["integrate_seconds"] = report.pop("seconds")
     report.update(vertices=len(mesh.vertices), faces=len(mesh.faces), seconds=time.perf_counter() - t0)

@@ -182,13 +182,18 @@ def rotated_normals(
     from those (the K rotations about z follow, as for any pixel), and the averaged
     answer is turned back by R^T: exact for isotropic materials, whose reflectance depends
     only on n.l, n.v and l.v. None is the orthographic camera.
+
+    ``lights`` may also be (P, m, 3): each pixel's own light directions (point lights near
+    the object, :mod:`cnnps.ps.near_lights`); they are turned by the pixel's view rotation
+    the same way. Lights behind a pixel's view plane are left out of its map.
     """
     from cnnps.infra.prefetch import prefetched
     from cnnps.ps.camera import view_rotations
     from cnnps.ps.obsmap import observation_maps_multi, observation_maps_per_pixel
 
     angles = rotation_angles(int(rotations))
-    rotated = np.stack([rotate_z(lights, a) for a in angles])
+    per_pixel = np.ndim(lights) == 3
+    rotated = None if per_pixel else np.stack([rotate_z(lights, a) for a in angles])
     P = intensities.shape[0]
     chunk = max(1, int(pixel_chunk) // len(angles))
     starts = range(0, P, chunk)
@@ -196,10 +201,14 @@ def rotated_normals(
     def maps_of(start: int) -> np.ndarray:
         stop = min(start + chunk, P)
         mask = None if light_mask is None else light_mask[start:stop]
-        if views is None:
+        if views is None and not per_pixel:
             return observation_maps_multi(intensities[start:stop], rotated, w=predictor.w, light_mask=mask)
-        Rv = view_rotations(views[start:stop])
-        own = np.einsum("nij,mj->nmi", Rv, np.asarray(lights, np.float64))  # (n, m, 3) in each view frame
+        if per_pixel:
+            own = np.asarray(lights[start:stop], np.float64)
+            if views is not None:
+                own = np.einsum("nij,nmj->nmi", view_rotations(views[start:stop]), own)
+        else:  # (n, m, 3) in each view frame
+            own = np.einsum("nij,mj->nmi", view_rotations(views[start:stop]), np.asarray(lights, np.float64))
         # a light behind the view plane (l.v <= 0) has no cell of its own on the map (it would
         # fold onto the light mirrored above it), and orthographic captures never have one
         ahead = own[..., 2] > 0

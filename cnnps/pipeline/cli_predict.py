@@ -67,19 +67,25 @@ def predict(
     sparse_fill: Optional[str] = typer.Option(None, "--sparse-fill", metavar="auto|on|off", help=f"cnn: add virtual Lambertian observations to sparse maps, per pixel only where a Lambertian fit explains its observations; auto = with fewer than 50 images. [default: {_default('sparse_fill')}]"),
     depth: bool = typer.Option(False, "--depth", help="Also integrate the normals into depth.npy, depth.png and surface.ply."),
     tile_pixels: Optional[str] = typer.Option(None, "--tile-pixels", metavar="N", help=f"Mask pixels processed at a time (memory ~ N x images x 8 bytes). [default: {_default('tile_pixels')}]"),
+    distance: Optional[str] = typer.Option(None, "--distance", metavar="D", help="Point lights (light_positions.txt): the object's median depth along the optical axis, in the positions' unit; starts the rounds and sets depth.npy's scale. [default: the lights' median distance from the camera]"),
+    rounds: Optional[str] = typer.Option(None, "--rounds", metavar="N", help=f"Point lights: the most rounds of normals -> depth -> per-pixel lights. [default: {_default('rounds')}]"),
+    depth_tolerance: Optional[str] = typer.Option(None, "--depth-tolerance", metavar="T", help=f"Point lights: stop once a round changes the depth by less than this (median relative change). [default: {_default('depth_tolerance')}]"),
     scratch: Optional[Path] = typer.Option(None, "--scratch", metavar="DIR", help="Folder for the temporary pixel stack of large captures (default: next to --out; about pixels x images x 4 bytes)."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars (one line per bar when the output is not a terminal)."),
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Say which inference path ran and why."),
 ) -> None:
     """Predict surface normals for a capture folder."""
     from cnnps.api.prediction import predict_folder
-    from cnnps.infra.options import Count, UnitFraction, parse
+    from cnnps.infra.options import Count, Positive, UnitFraction, parse
 
     given = {"method": method, "device": device, "precision": precision, "grey": grey, "linearize": linearize,
              "saturated": saturated, "sparse_fill": sparse_fill, "model": model,
              "rotations": None if rotations is None else parse("--rotations", rotations, Count),
              "batch_size": None if batch_size is None else parse("--batch-size", batch_size, Count),
              "tile_pixels": None if tile_pixels is None else parse("--tile-pixels", tile_pixels, Count),
+             "distance": None if distance is None else parse("--distance", distance, Positive),
+             "rounds": None if rounds is None else parse("--rounds", rounds, Count),
+             "depth_tolerance": None if depth_tolerance is None else parse("--depth-tolerance", depth_tolerance, Positive),
              "shadow_threshold": (None if shadow_threshold is None
                                   else parse("--shadow-threshold", shadow_threshold, UnitFraction))}
     result = predict_folder(capture_dir, out, drop=parse_drop(drop), depth=depth, scratch_dir=scratch,

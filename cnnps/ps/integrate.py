@@ -1,4 +1,5 @@
-"""Normal integration: a normal map over a mask -> a height map (orthographic camera).
+"""Normal integration: a normal map over a mask -> a height map (orthographic camera) or a
+depth map (pinhole camera).
 
 Method
 ------
@@ -31,6 +32,18 @@ Brooks, discretised on the mask as in Quéau, Durou & Aujol's survey:
   level). A 1-megapixel mask takes a few seconds on one core
   (``benchmarks/bench_integrate.py``), where a sparse direct factorisation takes
   15 s or more and gigabytes of fill-in.
+* Perspective (``intrinsics=K``). A pinhole camera sees the surface point
+  X(u, v) = d(u, v) r(u, v) at pixel (u, v), where d > 0 is the depth (distance along the
+  optical axis) and r = diag(1, -1, -1) K^-1 (u, v, 1) the pixel's ray in the capture frame
+  (r_z = -1). The normal is orthogonal to X_u = d_u r + d r_u and X_v = d_v r + d r_v, so
+  with the log-depth zeta = log d (Quéau, Durou & Aujol's change of variable for the
+  perspective case, after Durou et al. and Wu et al.):
+  ``zeta_u = -(n . r_u) / (n . r)`` and ``zeta_v = -(n . r_v) / (n . r)``, linear in the
+  unknown zeta. Those are integrated exactly as the orthographic gradients (p = zeta_u,
+  q = -zeta_v), and d = exp(zeta + c). Nothing in the normals fixes c (a surface and its
+  copy scaled about the camera have the same normals), so each component is scaled to a
+  median depth of ``distance`` (default 1: shape up to scale). The grazing test uses
+  the cosine between the normal and the pixel's view, -n . r / |r|, in place of n_z.
 * Grazing normals. n_z is clamped to ``nz_min`` (slopes of at most 1 / nz_min pixels
   per pixel), and equations touching a pixel with n_z < nz_min are down-weighted in
   proportion (floor 1e-3), so silhouette pixels do not dominate.
@@ -60,6 +73,10 @@ References
 - D. Braess, "Towards algebraic multigrid for elliptic problems of second order",
   Computing 55:379-393, 1995.
 
+- J.-D. Durou, J.-F. Aujol and F. Courteille; Y. Quéau, J.-D. Durou and J.-F. Aujol, op.
+  cit.: the log-depth form of perspective integration (survey, section on the pinhole
+  camera).
+
 Written from these papers; no existing integrator's code was consulted.
 """
 
@@ -88,7 +105,7 @@ OVERCORRECTION = 1.8  # scale of each coarse-level correction (plain aggregation
 class Integration:
     """Result of :func:`integrate`."""
 
-    depth: np.ndarray  # (H, W) float32, NaN outside the mask, mean 0 per component
+    depth: np.ndarray  # (H, W) float32, NaN outside the mask: height, mean 0 per component (orthographic), or depth along the optical axis, median ``distance`` per component (perspective)
     pixels: int
     components: int
     equations: int
@@ -109,6 +126,7 @@ class Integration:
             "residual_rms": round(self.residual_rms, 6),
             "clamped_pixels": self.clamped,
             "cg_iterations": list(self.iterations),
+            "camera": "perspective" if self.options.get("intrinsics") is not None else "orthographic",
             "depth_min": float(d.min()) if d.size else None,
             "depth_max": float(d.max()) if d.size else None,
             "seconds": round(self.seconds, 3),
@@ -192,6 +210,31 @@ def gradients(normals: np.ndarray, mask: np.ndarray, nz_min: float = DEFAULT_NZ_
     p = -n[:, 0] / nzc
     q = -n[:, 1] / nzc
     conf = np.where(clamped, np.clip(nz / nz_min, WEIGHT_FLOOR, 1.0), 1.0)
+    return p, q, conf, clamped
+
+
+def log_depth_gradients(normals: np.ndarray, mask: np.ndarray, K: np.ndarray, nz_min: float = DEFAULT_NZ_MIN):
+    """Per-mask-pixel (p, q, confidence, clamped) of the log-depth under the pinhole camera
+    ``K``: p = d(log depth) per pixel to the right, q = -d(log depth) per pixel down (so
+    that the orthographic equations apply unchanged); the cosine between the normal and
+    the pixel's view plays n_z's part in the clamp and the confidence (see
+    :func:`gradients` and the module docstring)."""
+    if not (0.0 < nz_min <= 1.0):
+        raise ValueError(f"nz_min must be in (0, 1], got {nz_min}")
+    from cnnps.ps.camera import OPENCV_TO_CAPTURE
+
+    n = np.asarray(normals, dtype=np.float64)[mask]
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    rows, cols = np.nonzero(mask)
+    Kinv = OPENCV_TO_CAPTURE @ np.linalg.inv(K)  # capture-frame ray of (u, v, 1): columns r_u, r_v, r_0
+    ray = cols[:, None] * Kinv[:, 0] + rows[:, None] * Kinv[:, 1] + Kinv[:, 2]
+    ray_len = np.linalg.norm(ray, axis=1)
+    cos = -np.einsum("pk,pk->p", n, ray) / ray_len  # cosine between the normal and the view
+    clamped = cos < nz_min
+    n_dot_r = -np.maximum(cos, nz_min) * ray_len
+    p = -(n @ Kinv[:, 0]) / n_dot_r
+    q = (n @ Kinv[:, 1]) / n_dot_r
+    conf = np.where(clamped, np.clip(cos / nz_min, WEIGHT_FLOOR, 1.0), 1.0)
     return p, q, conf, clamped
 
 
@@ -315,11 +358,17 @@ def integrate(
     reweights: int = DEFAULT_REWEIGHTS,
     rtol: float = 1e-8,
     maxiter: int = 1000,
+    intrinsics=None,
+    distance: float = 1.0,
 ) -> Integration:
     """Integrate ``normals`` (H x W x 3, capture frame) over ``mask`` (H x W bool).
 
-    See the module docstring for the method. ``nz_min``: the smallest n_z used (steeper
-    normals are clamped and down-weighted). ``discontinuities``: robust Cauchy weighting
+    See the module docstring for the method. Orthographic (``intrinsics`` None): a height
+    map along +z in pixel units, mean 0 per 4-connected component. Perspective
+    (``intrinsics`` a 3 x 3 pinhole K, OpenCV convention): the depth along the optical
+    axis, each component scaled to the median ``distance`` (the normals fix the shape,
+    not the scale). ``nz_min``: the smallest n_z (perspective: cosine to the view) used
+    (steeper normals are clamped and down-weighted). ``discontinuities``: robust Cauchy weighting
     by ``reweights`` IRLS passes with scale ``sigma`` (pixels of height) - opt-in.
     ``rtol``: CG's relative residual target. Raises :class:`InputError` (no path) on bad
     input, ValueError on bad options.
@@ -330,7 +379,15 @@ def integrate(
         raise ValueError(f"sigma must be a positive number, got {sigma}")
     if isinstance(reweights, bool) or not isinstance(reweights, (int, np.integer)) or reweights < 0:
         raise ValueError(f"reweights must be an integer >= 0, got {reweights}")
-    p, q, conf, clamped = gradients(normals, mask, nz_min)
+    if not (np.isfinite(distance) and distance > 0):
+        raise ValueError(f"distance must be a positive number, got {distance}")
+    if intrinsics is None:
+        p, q, conf, clamped = gradients(normals, mask, nz_min)
+    else:
+        from cnnps.ps.camera import check_intrinsics
+
+        intrinsics = check_intrinsics(intrinsics)
+        p, q, conf, clamped = log_depth_gradients(normals, mask, intrinsics, nz_min)
     grid = _grid(mask, p, q, conf)
     n = p.size
 
@@ -350,12 +407,15 @@ def integrate(
         z, its = _solve(A, _rhs(n, grid.a, grid.b, w * grid.g), grid, z, rtol, maxiter)
         iterations.append(its)
 
-    # mean 0 per component
-    means = np.bincount(labels, z, n_comp) / np.bincount(labels, minlength=n_comp)
-    z = z - means[labels]
+    # mean 0 per component (orthographic), or the median depth ``distance`` (perspective)
+    if intrinsics is None:
+        shift = np.bincount(labels, z, n_comp) / np.bincount(labels, minlength=n_comp)
+    else:
+        shift = _component_medians(labels, z, n_comp) - np.log(distance)
+    z = z - shift[labels]
     residual = (z[grid.b] - z[grid.a]) - grid.g
     depth = np.full(mask.shape, np.nan, dtype=np.float32)
-    depth[mask] = z
+    depth[mask] = z if intrinsics is None else np.exp(z)
     return Integration(
         depth=depth,
         pixels=int(n),
@@ -366,8 +426,21 @@ def integrate(
         iterations=iterations,
         seconds=time.perf_counter() - t0,
         options={"nz_min": nz_min, "discontinuities": bool(discontinuities),
+                 **({} if intrinsics is None else {"intrinsics": intrinsics.tolist(), "distance": float(distance)}),
                  **({"sigma": sigma, "reweights": int(reweights)} if discontinuities else {})},
     )
+
+
+def _component_medians(labels: np.ndarray, z: np.ndarray, n_comp: int) -> np.ndarray:
+    """The median of ``z`` over each component (labels 0..n_comp-1)."""
+    if n_comp == 1:
+        return np.array([np.median(z)])
+    order = np.lexsort((z, labels))
+    counts = np.bincount(labels, minlength=n_comp)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    lo = z[order[starts + (counts - 1) // 2]]
+    hi = z[order[starts + counts // 2]]
+    return 0.5 * (lo + hi)
 
 
 def integrate_normals(normals: np.ndarray, mask: np.ndarray, **options) -> np.ndarray:

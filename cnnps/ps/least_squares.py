@@ -16,7 +16,9 @@ solved in the least-squares sense; n = b / |b| and rho = |b|.
   what ``least_squares`` gives them. If fewer than 3 usable, non-coplanar lights remain
   it falls back to every present light, then to what ``least_squares`` gives it with the
   missing observations' stored values, and is reported as not valid.
-- :func:`solve_weighted`: the one batched solver both use, the per-pixel 3 x 3 normal
+- :func:`least_squares_per_pixel`: the same with each pixel's own light directions
+  (point lights near the object), missing observations left out as above.
+- :func:`solve_weighted`: the one batched solver they use, the per-pixel 3 x 3 normal
   equations sum_j w_j l_j l_j^T b = sum_j w_j I_j l_j over each pixel's used lights.
 
 Example:
@@ -59,15 +61,18 @@ def solve_weighted(I: np.ndarray, use: np.ndarray, L: np.ndarray) -> tuple[np.nd
     """Batched normal equations over each row's used lights.
 
     I: (n, m) intensities; use: (n, m) bool, the lights each row uses; L: (m, 3) unit
-    directions. Returns (b = albedo x normal (n, 3) float64, ok (n,) bool): ok where a row
+    directions, or (n, m, 3) each row's own. Returns (b = albedo x normal (n, 3) float64, ok (n,) bool): ok where a row
     has at least 3 used, non-coplanar lights; b is 0 where not ok. Well-posed means
     det(A) > 1e-9 trace(A)^3 (det is scale dependent; the eigenvalues of A sum to the
     number of used lights).
     """
-    LL = (L[:, :, None] * L[:, None, :]).reshape(-1, 9)
     W = use.astype(np.float64)
-    A = (W @ LL).reshape(-1, 3, 3)
-    rhs = (W * I) @ L
+    if L.ndim == 3:  # each row's own lights
+        A = np.einsum("nm,nmi,nmj->nij", W, L, L)
+        rhs = np.einsum("nm,nmi->ni", W * I, L)
+    else:
+        A = (W @ (L[:, :, None] * L[:, None, :]).reshape(-1, 9)).reshape(-1, 3, 3)
+        rhs = (W * I) @ L
     tr = np.trace(A, axis1=1, axis2=2)
     ok = (use.sum(axis=1) >= 3) & (np.linalg.det(A) > 1e-9 * tr**3)
     b = np.zeros((I.shape[0], 3))
@@ -167,6 +172,49 @@ def least_squares_masked(
     albedo[solved] = a
     normals[solved] = np.divide(b[ok_any], a[:, None], out=np.zeros_like(b[ok_any]), where=a[:, None] > 0)
     valid[rows] = ok
+    if return_valid:
+        return normals, albedo, valid
+    return normals, albedo
+
+
+def least_squares_per_pixel(
+    intensities: np.ndarray,
+    lights: np.ndarray,
+    missing: np.ndarray | None = None,
+    shadow_threshold: float | None = None,
+    return_valid: bool = False,
+):
+    """Per-pixel Lambertian normals and albedo, each pixel with its own lights.
+
+    intensities: (P, m), already divided by each light's irradiance at the pixel.
+    lights: (P, m, 3) unit directions. missing: (P, m) bool or None; shadow_threshold:
+    as :func:`least_squares`. A pixel with fewer than 3 usable, non-coplanar lights falls
+    back to every present light, then to every light, and is reported as not valid.
+    Returns (normals (P, 3), albedo (P,)) [, valid (P,)], float64.
+    """
+    I = np.asarray(intensities, dtype=np.float64)
+    L = np.asarray(lights, dtype=np.float64)
+    if I.ndim != 2 or L.shape != I.shape + (3,):
+        raise ValueError(f"lights must be (P, m, 3) to match intensities {I.shape}, got {L.shape}")
+    present = np.ones(I.shape, dtype=bool) if missing is None else ~np.asarray(missing, dtype=bool)
+    I = np.where(present | np.isfinite(I), I, 0.0)
+    use = present.copy()
+    if shadow_threshold is not None:
+        t = float(shadow_threshold)
+        if not (0.0 <= t < 1.0) or not np.isfinite(t):
+            raise ValueError(f"shadow_threshold must be in [0, 1), got {shadow_threshold}")
+        peak = np.where(present, I, -np.inf).max(axis=1, keepdims=True)
+        use &= I > t * peak
+    b, valid = solve_weighted(I, use, L)
+    todo = ~valid
+    for fallback in (present, np.ones_like(present)):
+        if not todo.any():
+            break
+        b2, ok2 = solve_weighted(I[todo], fallback[todo], L[todo])
+        rows = np.flatnonzero(todo)
+        b[rows[ok2]] = b2[ok2]
+        todo[rows[ok2]] = False
+    normals, albedo = _split(b)
     if return_valid:
         return normals, albedo, valid
     return normals, albedo
