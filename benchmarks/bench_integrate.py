@@ -43,7 +43,8 @@ sys.path.insert(0, str(REPO))
 from benchmarks.machine import cpu_info  # noqa: E402
 from cnnps.infra.atomic import write_text  # noqa: E402
 from cnnps.io.surface import write_surface_outputs  # noqa: E402
-from cnnps.ps.integrate import _grid, _laplacian, _rhs, gradients, integrate  # noqa: E402
+from cnnps.ps.grid_poisson import MaskGraph  # noqa: E402
+from cnnps.ps.integrate import gradients, integrate  # noqa: E402
 from tests.support.surfaces import (  # noqa: E402
     analytic_fields,
     distorted_fraction,
@@ -73,18 +74,20 @@ def accuracy(H: int = 240, W: int = 320) -> dict:
 
 
 def direct_seconds(n: np.ndarray, mask: np.ndarray) -> float:
-    import scipy.sparse as sp
     import scipy.sparse.linalg as spla
-    from scipy.sparse.csgraph import connected_components
+    from scipy import ndimage
 
     t0 = time.perf_counter()
     p, q, conf, _ = gradients(n, mask)
-    g = _grid(mask, p, q, conf)
-    N = p.size
-    _, labels = connected_components(sp.csr_matrix((np.ones(g.a.size), (g.a, g.b)), shape=(N, N)), directed=False)
-    pins = np.unique(labels, return_index=True)[1]
-    A = _laplacian(N, g.a, g.b, g.w0, pins)
-    spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(_rhs(N, g.a, g.b, g.w0 * g.g))
+    graph = MaskGraph.of_mask(mask)
+    labels = ndimage.label(mask)[0][mask]
+    wr = np.minimum(conf, np.r_[conf[1:], 0.0])
+    wd = np.minimum(conf, conf[graph.below])
+    weighted = graph.with_weights(wr, wd, np.unique(labels, return_index=True)[1])
+    gh = 0.5 * (p + np.r_[p[1:], 0.0])
+    gv = -0.5 * (q + q[graph.below])
+    rhs = weighted.transpose_differences(weighted.wr * gh, weighted.wd * gv)
+    spla.splu(weighted.to_sparse(), permc_spec="MMD_AT_PLUS_A").solve(rhs)
     return time.perf_counter() - t0
 
 

@@ -24,14 +24,14 @@ Brooks, discretised on the mask as in Quéau, Durou & Aujol's survey:
   shape unchanged and makes the system positive definite), and afterwards shifted so
   its heights have mean 0. Separate components therefore each have mean 0: their
   relative height cannot be known from normals.
-* Solver. Conjugate gradients (scipy.sparse.linalg.cg) preconditioned by one V-cycle of
-  a plain-aggregation multigrid built on the pixel grid (2 x 2 aggregates, Galerkin
-  coarse operators P^T A P, which stay weighted graph Laplacians; damped-Jacobi
-  smoothing, weight 2/3; coarse corrections scaled by 1.8, the over-correction that
-  plain aggregation needs, after Braess; a direct solve (SuperLU) at the coarsest
-  level). A 1-megapixel mask takes a few seconds on one core
-  (``benchmarks/bench_integrate.py``), where a sparse direct factorisation takes
-  15 s or more and gigabytes of fill-in.
+* Solver. Conjugate gradients preconditioned by one V-cycle of a plain-aggregation
+  multigrid on the pixel grid (2 x 2 aggregates, whose Galerkin coarse operators stay
+  grid graph Laplacians; damped-Jacobi smoothing, weight 2/3; coarse corrections scaled
+  by 1.8, the over-correction that plain aggregation needs, after Braess; a direct solve
+  (SuperLU) at the coarsest level), all matrix-free: :mod:`cnnps.ps.grid_poisson`. A
+  1-megapixel mask takes a few seconds on one core (``benchmarks/bench_integrate.py``),
+  at about 134 bytes a pixel at peak (``benchmarks/bench_integrate_memory.py``), where a
+  sparse direct factorisation takes 15 s or more and gigabytes of fill-in.
 * Perspective (``intrinsics=K``). A pinhole camera sees the surface point
   X(u, v) = d(u, v) r(u, v) at pixel (u, v), where d > 0 is the depth (distance along the
   optical axis) and r = diag(1, -1, -1) K^-1 (u, v, 1) the pixel's ray in the capture frame
@@ -86,19 +86,17 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from scipy.sparse.csgraph import connected_components
+from scipy import ndimage
 
 from cnnps.infra.errors import InputError
+from cnnps.ps.grid_poisson import MaskGraph, solve
 
 METHOD = "least-squares Poisson integration (Horn & Brooks; Quéau, Durou & Aujol 2018), aggregation-multigrid PCG"
 DEFAULT_NZ_MIN = 0.05
 DEFAULT_SIGMA = 0.1
 DEFAULT_REWEIGHTS = 10
 WEIGHT_FLOOR = 1e-3
-_COARSEST = 2000  # unknowns solved directly at the bottom of the multigrid hierarchy
-OVERCORRECTION = 1.8  # scale of each coarse-level correction (plain aggregation under-corrects)
 
 
 @dataclass
@@ -138,7 +136,8 @@ class Integration:
 
 
 def check_inputs(normals, mask, normals_path=None, mask_path=None) -> tuple[np.ndarray, np.ndarray]:
-    """Validate a normal map and a mask; return (normals float64 (H, W, 3), mask bool (H, W)).
+    """Validate a normal map and a mask; return (normals (H, W, 3) float32 or float64 as
+    given (integers become float64), mask bool (H, W)). No copy of a float map is made.
 
     Problems raise :class:`InputError` naming ``normals_path`` / ``mask_path`` (when
     given): a shape other than H x W x 3, a mask of another size, an empty mask, NaN or
@@ -163,7 +162,8 @@ def check_inputs(normals, mask, normals_path=None, mask_path=None) -> tuple[np.n
     if zero.any():
         r, c = _first_position(mask, zero)
         raise InputError(normals_path, f"{int(zero.sum())} normals inside the mask have zero length (first at row {r}, column {c})")
-    return normals.astype(np.float64, copy=False), mask
+    del n, bad, zero
+    return (normals if np.issubdtype(normals.dtype, np.floating) else normals.astype(np.float64)), mask
 
 
 def check_normal_array(normals, path=None) -> np.ndarray:
@@ -241,108 +241,21 @@ def log_depth_gradients(normals: np.ndarray, mask: np.ndarray, K: np.ndarray, nz
 # ----------------------------------------------------------------------------- system
 
 
-@dataclass
-class _Grid:
-    rows: np.ndarray  # (P,) row of each mask pixel
-    cols: np.ndarray  # (P,) column
-    a: np.ndarray  # (E,) first pixel of each equation
-    b: np.ndarray  # (E,) second pixel (right or below neighbour)
-    g: np.ndarray  # (E,) target difference z[b] - z[a]
-    w0: np.ndarray  # (E,) base weights (grazing-normal confidence)
+def _targets(graph: MaskGraph, p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Target differences per pixel's right and lower edge, (n,) each (0 where none)."""
+    gh = np.zeros(graph.n)
+    gh[:-1] = np.where(graph.right[:-1], 0.5 * (p[:-1] + p[1:]), 0.0)
+    gv = np.take(q, graph.below).astype(np.float64)
+    gv += q
+    gv *= -0.5
+    gv[~graph.down] = 0.0
+    return gh, gv
 
 
-def _grid(mask: np.ndarray, p: np.ndarray, q: np.ndarray, conf: np.ndarray) -> _Grid:
-    H, W = mask.shape
-    index = np.full((H, W), -1, dtype=np.int64)
-    rows, cols = np.nonzero(mask)
-    index[rows, cols] = np.arange(rows.size)
-    right = mask[:, :-1] & mask[:, 1:]
-    down = mask[:-1, :] & mask[1:, :]
-    ha, hb = index[:, :-1][right], index[:, 1:][right]
-    va, vb = index[:-1, :][down], index[1:, :][down]
-    a = np.concatenate([ha, va])
-    b = np.concatenate([hb, vb])
-    g = np.concatenate([0.5 * (p[ha] + p[hb]), -0.5 * (q[va] + q[vb])])
-    w0 = np.minimum(conf[a], conf[b])
-    return _Grid(rows, cols, a, b, g, w0)
-
-
-def _laplacian(n: int, a: np.ndarray, b: np.ndarray, w: np.ndarray, pins: np.ndarray) -> sp.csr_matrix:
-    """D^T W D for the edge list, plus a unit penalty on each pinned pixel."""
-    diag = np.bincount(a, w, n) + np.bincount(b, w, n)
-    diag[pins] += 1.0
-    rows = np.concatenate([a, b, np.arange(n)])
-    cols = np.concatenate([b, a, np.arange(n)])
-    vals = np.concatenate([-w, -w, diag])
-    return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
-
-
-def _rhs(n: int, a: np.ndarray, b: np.ndarray, wg: np.ndarray) -> np.ndarray:
-    """D^T W g: each equation z[b] - z[a] = g adds w g to b and -w g to a."""
-    return np.bincount(b, wg, n) - np.bincount(a, wg, n)
-
-
-class _AggregationMultigrid:
-    """A symmetric V-cycle of plain-aggregation multigrid on the pixel grid (an SPD
-    preconditioner for CG): 2 x 2 aggregates of the current level's grid positions,
-    piecewise-constant prolongation P, Galerkin coarse operator P^T A P, damped Jacobi
-    (weight 2/3, valid because every level is a diagonally dominant graph Laplacian),
-    ``sweeps`` sweeps before and after the coarse correction, which is scaled by
-    OVERCORRECTION (< 2, so the cycle stays a positive definite preconditioner), SuperLU
-    at the bottom."""
-
-    def __init__(self, A: sp.csr_matrix, rows: np.ndarray, cols: np.ndarray, sweeps: int = 2):
-        self.sweeps = sweeps
-        self.levels = []
-        r, c = rows.astype(np.int64), cols.astype(np.int64)
-        while A.shape[0] > _COARSEST:
-            n = A.shape[0]
-            while True:  # halve the positions until some nodes share a block (sparse masks)
-                r, c = r // 2, c // 2
-                width = int(c.max()) + 1
-                uniq, agg = np.unique(r * width + c, return_inverse=True)
-                if uniq.size < n:
-                    break
-            m = uniq.size
-            P = sp.csr_matrix((np.ones(n), (np.arange(n), agg)), shape=(n, m))
-            R = P.T.tocsr()
-            self.levels.append((A, (2.0 / 3.0) / A.diagonal(), P, R))
-            A = (R @ A @ P).tocsr()
-            r, c = uniq // width, uniq % width
-        self.coarse = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A")
-
-    def _cycle(self, k: int, b: np.ndarray) -> np.ndarray:
-        if k == len(self.levels):
-            return self.coarse.solve(b)
-        A, dinv, P, R = self.levels[k]
-        x = dinv * b
-        for _ in range(self.sweeps - 1):
-            x += dinv * (b - A @ x)
-        x += OVERCORRECTION * (P @ self._cycle(k + 1, R @ (b - A @ x)))
-        for _ in range(self.sweeps):
-            x += dinv * (b - A @ x)
-        return x
-
-    def operator(self, n: int) -> spla.LinearOperator:
-        return spla.LinearOperator((n, n), matvec=lambda b: self._cycle(0, np.asarray(b).ravel()), dtype=np.float64)
-
-
-def _solve(A: sp.csr_matrix, rhs: np.ndarray, grid: _Grid, x0, rtol: float, maxiter: int) -> tuple[np.ndarray, int]:
-    n = A.shape[0]
-    if not np.any(rhs):
-        return np.zeros(n), 0
-    if n <= _COARSEST:
-        return spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(rhs), 0
-    M = _AggregationMultigrid(A, grid.rows, grid.cols).operator(n)
-    count = [0]
-
-    def tick(_xk):
-        count[0] += 1
-
-    x, info = spla.cg(A, rhs, x0=x0, rtol=rtol, atol=0.0, maxiter=maxiter, M=M, callback=tick)
-    if info != 0:  # not seen in practice (tens of steps); fall back on a direct solve
-        x = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(rhs)
-    return x, count[0]
+def _edge_confidence(graph: MaskGraph, conf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    wh = np.zeros(graph.n, dtype=np.float32)
+    wh[:-1] = np.minimum(conf[:-1], conf[1:])
+    return wh, np.minimum(conf, np.take(conf, graph.below)).astype(np.float32)
 
 
 # ----------------------------------------------------------------------------- public
@@ -388,23 +301,39 @@ def integrate(
 
         intrinsics = check_intrinsics(intrinsics)
         p, q, conf, clamped = log_depth_gradients(normals, mask, intrinsics, nz_min)
-    grid = _grid(mask, p, q, conf)
-    n = p.size
+    n_clamped = int(clamped.sum())
+    del clamped
+    graph = MaskGraph.of_mask(mask)
+    n = graph.n
+    p, q = p.astype(np.float32), q.astype(np.float32)  # kept for the residual; 8 bytes a pixel
+    wh0, wv0 = _edge_confidence(graph, conf)
+    del conf
 
     # one pin per 4-connected component (pixels with no neighbour are components too)
-    adjacency = sp.csr_matrix((np.ones(grid.a.size), (grid.a, grid.b)), shape=(n, n))
-    n_comp, labels = connected_components(adjacency, directed=False)
-    pins = np.unique(labels, return_index=True)[1]
+    grid_labels, n_comp = ndimage.label(mask)  # 4-connectivity: the default cross
+    labels = grid_labels[mask] - 1
+    del grid_labels
+    pins = np.unique(labels, return_index=True)[1]  # a unit penalty on each
 
-    w = grid.w0
+    wh, wv = wh0, wv0
     z, iterations = None, []
     passes = 1 + (int(reweights) if discontinuities else 0)
     for k in range(passes):
+        gh, gv = _targets(graph, p, q)
         if k > 0:
-            s = (z[grid.b] - z[grid.a]) - grid.g
-            w = grid.w0 * np.maximum(1.0 / (1.0 + (s / sigma) ** 2), WEIGHT_FLOOR)
-        A = _laplacian(n, grid.a, grid.b, w, pins)
-        z, its = _solve(A, _rhs(n, grid.a, grid.b, w * grid.g), grid, z, rtol, maxiter)
+            dh, dv = graph.edge_differences(z)
+            wh = (wh0 * np.maximum(1.0 / (1.0 + ((dh - gh) / sigma) ** 2), WEIGHT_FLOOR)).astype(np.float32)
+            wv = (wv0 * np.maximum(1.0 / (1.0 + ((dv - gv) / sigma) ** 2), WEIGHT_FLOOR)).astype(np.float32)
+            del dh, dv
+        weighted = graph.with_weights(wh, wv, pins)
+        if not discontinuities:  # the weighted graph holds its own copies
+            del wh, wv, wh0, wv0
+        rhs = weighted.transpose_differences(weighted.wr * gh, weighted.wd * gv)
+        del gh, gv
+        z, its, converged = solve(weighted, rhs, z, rtol, maxiter)
+        if not converged:  # not seen in practice (tens of steps); fall back on a direct solve
+            z = spla.splu(weighted.to_sparse(), permc_spec="MMD_AT_PLUS_A").solve(rhs)
+        del rhs, weighted
         iterations.append(its)
 
     # mean 0 per component (orthographic), or the median depth ``distance`` (perspective)
@@ -412,17 +341,22 @@ def integrate(
         shift = np.bincount(labels, z, n_comp) / np.bincount(labels, minlength=n_comp)
     else:
         shift = _component_medians(labels, z, n_comp) - np.log(distance)
-    z = z - shift[labels]
-    residual = (z[grid.b] - z[grid.a]) - grid.g
+    z -= shift[labels]
+    del labels
+    gh, gv = _targets(graph, p, q)
+    dh, dv = graph.edge_differences(z)
+    equations = int(graph.right.sum()) + int(graph.down.sum())
+    sq = float(np.sum(np.where(graph.right, dh - gh, 0.0) ** 2) + np.sum(np.where(graph.down, dv - gv, 0.0) ** 2))
+    del gh, gv, dh, dv
     depth = np.full(mask.shape, np.nan, dtype=np.float32)
     depth[mask] = z if intrinsics is None else np.exp(z)
     return Integration(
         depth=depth,
         pixels=int(n),
         components=int(n_comp),
-        equations=int(grid.a.size),
-        residual_rms=float(np.sqrt(np.mean(residual**2))) if residual.size else 0.0,
-        clamped=int(clamped.sum()),
+        equations=equations,
+        residual_rms=float(np.sqrt(sq / equations)) if equations else 0.0,
+        clamped=n_clamped,
         iterations=iterations,
         seconds=time.perf_counter() - t0,
         options={"nz_min": nz_min, "discontinuities": bool(discontinuities),

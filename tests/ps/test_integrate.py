@@ -11,11 +11,13 @@ import scipy.sparse.linalg as spla
 
 from cnnps.infra.errors import InputError
 from cnnps.ps import integrate as integ
+from cnnps.ps.grid_poisson import COARSEST
 from cnnps.ps.integrate import check_inputs, gradients, integrate, integrate_normals
 from tests.support.surfaces import (
     distorted_fraction,
     field_normals,
     holey_mask,
+    neighbour_pairs,
     rel_rms,
     step_field,
 )
@@ -52,7 +54,7 @@ def test_large_mask_goes_through_the_multigrid_solver():
     """Above the direct-solve size the multigrid-preconditioned CG runs, in few steps."""
     h, w = 72, 96
     mask = holey_mask(h, w)
-    assert mask.sum() > integ._COARSEST
+    assert mask.sum() > COARSEST
     z, n = field_normals(lambda x, y: 0.02 * (x - w / 2) ** 2 - 0.01 * (y + h / 2) ** 2 + 0.5 * y, h, w)
     res = integrate(n, mask)
     assert 0 < res.iterations[0] < 60
@@ -69,7 +71,7 @@ def test_sparse_mask_of_dominoes_and_cg_fallback():
     mask[2::4, ::2] = True  # vertical dominoes (4k+1, 4k+2): never in one 2 x 2 block
     z, n = field_normals(lambda x, y: 0.3 * x + 0.7 * y, h, w)
     res = integrate(n, mask)
-    assert res.components == mask.sum() // 2 > integ._COARSEST
+    assert res.components == mask.sum() // 2 > COARSEST
     d = res.depth.astype(np.float64)
     assert np.allclose(d[1::4, ::2] - d[2::4, ::2], 0.7, atol=1e-4)  # one row up = +0.7
     assert np.allclose(d[1::4, ::2] + d[2::4, ::2], 0.0, atol=1e-4)  # each domino has mean 0
@@ -139,17 +141,18 @@ def test_multigrid_cg_matches_a_direct_solve():
     n = n + np.random.default_rng(1).normal(scale=0.05, size=n.shape)
     res = integrate(n, mask, rtol=1e-12)
     assert res.iterations[0] > 0  # the iterative path ran
+    # the same least-squares problem written out here: one equation per pair of 4-neighbours
     p, q, conf, _ = gradients(n, mask)
-    g = integ._grid(mask, p, q, conf)
-    N = p.size
-    A = integ._laplacian(N, g.a, g.b, g.w0, np.array([0]))
-    z = spla.spsolve(A.tocsc(), integ._rhs(N, g.a, g.b, g.w0 * g.g))
+    a, b, g = neighbour_pairs(mask, p, q)
+    E, N = a.size, p.size
+    D = sp.csr_matrix((np.r_[-np.ones(E), np.ones(E)], (np.r_[np.arange(E), np.arange(E)], np.r_[a, b])), shape=(E, N))
+    W = sp.diags(np.minimum(conf[a], conf[b]))
+    pin = sp.csr_matrix(([1.0], ([0], [0])), shape=(N, N))
+    z = spla.spsolve((D.T @ W @ D + pin).tocsc(), D.T @ (W @ g))
     z -= z.mean()
     assert np.allclose(res.depth[mask], z, atol=1e-4 * np.ptp(z))
     # and it is a least-squares minimum: the residual is orthogonal to every difference
-    D = sp.csr_matrix((np.r_[-np.ones(g.a.size), np.ones(g.a.size)],
-                       (np.r_[np.arange(g.a.size), np.arange(g.a.size)], np.r_[g.a, g.b])), shape=(g.a.size, N))
-    r = D @ res.depth[mask].astype(np.float64) - g.g
+    r = D @ res.depth[mask].astype(np.float64) - g
     assert np.abs(D.T @ r).max() < 1e-3
     assert res.residual_rms == pytest.approx(np.sqrt(np.mean(r**2)), rel=1e-3)
 
