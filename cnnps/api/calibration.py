@@ -52,7 +52,8 @@ from cnnps.ps.light_calibration import (
     normalise_intensities,
 )
 
-OUTPUT_FILES = ("light_directions.txt", "light_intensities.txt", "calibration.json", "calibration.png")
+OUTPUT_FILES = ("light_directions.txt", "light_intensities.txt", "calibration.json", "calibration.png",
+                "light_positions.txt", "intrinsics.txt")  # the last two: point lights (cnnps.api.point_calibration)
 
 
 # ----------------------------------------------------------------------------- picture
@@ -197,7 +198,10 @@ def read_ball_photos(folder, names, paths, keep: bool, progress: bool = False, d
                       max_image, mask, dict(sorted(kinds.items())))
 
 
-def _ball_of(photos: BallPhotos, picture: np.ndarray, picture_name: str) -> Ball:
+def locate_ball(photos: BallPhotos, picture: np.ndarray, picture_name: str) -> Ball:
+    """The ball's image circle: fitted to ``mask.png`` when the folder has one, else to
+    the bright region of ``picture`` (called ``picture_name`` in errors); an InputError
+    naming the file or folder when no round ball is found."""
     if photos.mask is not None:
         try:
             return fit_circle(photos.mask, source="circle fit to mask.png")
@@ -268,7 +272,7 @@ def calibrate(chrome_dir, matte_dir=None, *, linearize: Linearize | None = None,
     if matte_dir is not None:
         matte = read_ball_photos(matte_dir, mnames, mpaths, keep=False, progress=progress, desc="matte ball",
                                  linearize=linearize)
-        matte_ball = _ball_of(matte, matte.max_image, "maximum image")
+        matte_ball = locate_ball(matte, matte.max_image, "maximum image")
         E = _matte_intensities(matte_dir, matte_ball, mpaths, L, linearize, progress, report)
     kinds = _image_types(report, chrome, matte)
     notices = [UNCHOSEN_8BIT_NOTE] if linearize is None and kinds.get("uint8") else []
@@ -290,7 +294,7 @@ def _matte_names(matte_dir: Path, chrome_dir: Path, m: int) -> tuple[list[str], 
 def _chrome_lights(chrome: BallPhotos, paths: list[Path]) -> tuple[Ball, np.ndarray, list[Highlight]]:
     """(the chrome ball, (m, 3) directions, the highlights), an image's problem naming it."""
     median = np.median(chrome.grey, axis=0) if chrome.mask is None else None
-    ball = _ball_of(chrome, median, "median image")
+    ball = locate_ball(chrome, median, "median image")
     try:
         L, highs = chrome_directions(chrome.grey, ball, chrome.saturated)
     except CalibrationError as exc:

@@ -785,7 +785,9 @@ def predict_folder(
     write_surface = _surface_writer() if depth else None
 
     capture = scan_capture(capture_dir, drop=drop, grey=grey, linearize=linearize)
-    intrinsics = _read_intrinsics(capture_dir / INTRINSICS_FILE)
+    from cnnps.io.capture import read_intrinsics
+
+    intrinsics = read_intrinsics(capture_dir / INTRINSICS_FILE)
     setup = prepare_method(method, model, opts["rotations"], device, precision, opts["batch_size"],
                            opts["shadow_threshold"])
     warnings = [] if setup.predictor is None else _sparse_warning(setup.model_path, setup.meta, capture.n_images,
@@ -841,19 +843,6 @@ def _positions(positions, intrinsics, m: int) -> np.ndarray:
     if positions.shape[0] != m:
         raise ConfigError(f"light_positions must be ({m}, 3) for {m} images, got shape {positions.shape}")
     return positions
-
-
-def _read_intrinsics(path: Path) -> np.ndarray | None:
-    """K from a capture's intrinsics.txt, None when there is none; InputError naming the
-    file when it is not a valid pinhole matrix."""
-    if not path.is_file():
-        return None
-    from cnnps.ps.camera import check_intrinsics
-
-    try:
-        return check_intrinsics(np.loadtxt(path, dtype=np.float64, ndmin=2))
-    except ValueError as exc:
-        raise InputError(path, str(exc)) from None
 
 
 def with_defaults(options: dict) -> dict:

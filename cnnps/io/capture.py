@@ -215,6 +215,21 @@ POSITIONS_FILE = "light_positions.txt"
 INTRINSICS_FILE = "intrinsics.txt"
 
 
+def read_intrinsics(path: Path) -> np.ndarray | None:
+    """K (3, 3) from an intrinsics.txt (three rows of three numbers), None when the file
+    does not exist; an InputError naming it when it is not a valid pinhole matrix
+    (:func:`cnnps.ps.camera.check_intrinsics`)."""
+    from cnnps.ps.camera import check_intrinsics
+
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        return check_intrinsics(np.loadtxt(path, dtype=np.float64, ndmin=2))
+    except ValueError as exc:
+        raise InputError(path, str(exc)) from None
+
+
 def _read_positions(root: Path, m: int, notes: list[str]) -> np.ndarray | None:
     """Point-light positions from light_positions.txt (None without one); InputError
     naming the file for a wrong count, a light behind the camera, or no intrinsics.txt."""

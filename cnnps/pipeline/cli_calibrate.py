@@ -17,16 +17,23 @@ def _ball_line(what: str, ball) -> str:
 
 @app.command("calibrate")
 def calibrate(
-    chrome_dir: Path = typer.Argument(..., help="Chrome (mirror) ball photos, one per light in the object's light order: filenames.txt, the images (PNG, JPEG, TIFF, EXR), optional mask.png of the ball."),
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder (written atomically): light_directions.txt, light_intensities.txt (with --matte), calibration.json, calibration.png."),
+    chrome_dirs: list[Path] = typer.Argument(..., metavar="CHROME_DIR...", help="Chrome (mirror) ball photos, one per light in the object's light order: filenames.txt, the images (PNG, JPEG, TIFF, EXR), optional mask.png of the ball. Two or more folders with --ball-radius: point lights."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (written atomically): light_directions.txt, light_intensities.txt (with --matte), calibration.json, calibration.png; with --ball-radius light_positions.txt, intrinsics.txt, calibration.json."),
     matte: Optional[Path] = typer.Option(None, "--matte", help="Matte white ball photos under the same lights (same count and order; optional mask.png): per-light RGB intensities."),
+    ball_radius: Optional[float] = typer.Option(None, "--ball-radius", metavar="R", help="Point lights: the chrome balls' radius, in the unit the light positions should have; needs --intrinsics and two or more CHROME_DIRs (two balls, or one ball at two places)."),
+    intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", metavar="K.txt", help="Point lights: the camera's 3x3 K (OpenCV convention), as in a capture's intrinsics.txt."),
     linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none", help="How 8/16-bit images become linear, as in cnnps predict: srgb = decode the sRGB curve (camera JPEG/PNG), none = already linear. Unset: taken as linear, with a note when images are 8-bit."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
-    """Calibrate the lights from photos of a chrome ball (directions) and a matte ball (intensities)."""
+    """Calibrate the lights from photos of a chrome ball (directions) and a matte ball (intensities),
+    or point-light positions from two or more chrome balls of known radius."""
     from cnnps.api.calibration import SCALE_NOTE, check_out_dir, write_calibration
     from cnnps.api.calibration import calibrate as run
 
+    if ball_radius is not None or intrinsics is not None or len(chrome_dirs) > 1:
+        _point_lights(chrome_dirs, out, matte, ball_radius, intrinsics, linearize, progress)
+        return
+    chrome_dir = chrome_dirs[0]
     check_out_dir(out, chrome_dir, matte)
     cal = run(chrome_dir, matte, progress=progress, linearize=linearize)
     write_calibration(cal, out)
@@ -43,3 +50,41 @@ def calibrate(
     extra = f", {saturated} with a clipped core" if saturated else ""
     typer.echo(f"{len(cal.names)} light directions{extra} -> {out} (check the highlights in "
                f"{Path(out) / 'calibration.png'}; {cal.report['seconds']:.1f} s)")
+
+
+def _point_lights(chrome_dirs, out, matte, ball_radius, intrinsics, linearize, progress) -> None:
+    from cnnps.api.calibration import check_out_dir
+    from cnnps.api.point_calibration import (
+        calibrate_point_lights,
+        write_point_calibration,
+    )
+    from cnnps.infra.errors import ConfigError
+
+    if ball_radius is None or intrinsics is None:
+        raise ConfigError("point lights (two or more CHROME_DIRs) need --ball-radius and --intrinsics")
+    if matte is not None:
+        raise ConfigError("--matte applies to distant lights; with point lights give light_intensities.txt yourself")
+    check_out_dir(out, *chrome_dirs)
+    K = _read_k(intrinsics)
+    cal = calibrate_point_lights(chrome_dirs, ball_radius=ball_radius, intrinsics=K, linearize=linearize,
+                                 progress=progress)
+    write_point_calibration(cal, out)
+    for notice in cal.notices:
+        typer.echo(f"cnnps: note: {notice}", err=True)
+    for ball in cal.report["balls"]:
+        typer.echo(f"ball {ball['folder']}: radius {ball['radius_px']:.2f} px, centre "
+                   f"({', '.join(f'{v:.4g}' for v in ball['centre'])})")
+    worst = max(cal.report["lights"], key=lambda r: r["residual_relative"])
+    typer.echo(f"{len(cal.names)} light positions -> {out} (largest residual {worst['residual']:.3g}, "
+               f"{100 * worst['residual_relative']:.2f} % of its distance, {worst['image']}; "
+               f"{cal.report['seconds']:.1f} s)")
+
+
+def _read_k(path: Path):
+    from cnnps.infra.errors import InputError
+    from cnnps.io.capture import read_intrinsics
+
+    K = read_intrinsics(path)
+    if K is None:
+        raise InputError(path, "intrinsics file not found")
+    return K
