@@ -20,7 +20,7 @@ def calibrate(
     chrome_dir: Path = typer.Argument(..., help="Chrome (mirror) ball photos, one per light in the object's light order: filenames.txt, the images (PNG, JPEG, TIFF, EXR), optional mask.png of the ball."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (written atomically): light_directions.txt, light_intensities.txt (with --matte), calibration.json, calibration.png."),
     matte: Optional[Path] = typer.Option(None, "--matte", help="Matte white ball photos under the same lights (same count and order; optional mask.png): per-light RGB intensities."),
-    linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none", help="How 8/16-bit images become linear, as in cnnps predict: srgb = decode the sRGB curve (camera JPEG/PNG), none = already linear. Unset: taken as linear, with a note when images are 8-bit."),
+    linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none", help="How 8/16-bit images become linear, as in cnnps predict: srgb = decode the sRGB curve (camera JPEG/PNG), none = already linear. Unset: taken as linear, with a note when images are 8-bit. Camera RAW photos are always read linearly."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
     """Calibrate the lights from photos of a chrome ball (directions) and a matte ball (intensities)."""
