@@ -78,7 +78,8 @@ def test_installed_metadata_keeps_blender_out_of_the_core_install():
     # torch: never asks for more than the pinned CPU build the Makefile installs first
     assert Version("2.13.0") in core["torch"].specifier
     # every third-party module the code imports at run time is declared
-    for name in ("threadpoolctl", "pyarrow", "opencv-python-headless", "openexr", "trimesh", "dvc", "filelock"):
+    for name in ("threadpoolctl", "pyarrow", "opencv-python-headless", "openexr", "trimesh", "dvc", "filelock",
+                 "rawpy"):
         assert name in core, f"{name} is not a core requirement"
     assert "ray" in _extra(reqs, "ray") and "pytest" in _extra(reqs, "dev")
 

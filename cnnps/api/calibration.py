@@ -10,9 +10,10 @@ Folders (:func:`calibrate`, :func:`write_calibration`): a ball folder holds
 made linear exactly as ``cnnps predict`` does (:func:`cnnps.io.capture.linear_values`):
 ``linearize="srgb"`` decodes 8/16-bit images with the sRGB curve (camera JPEG/PNG),
 ``"none"`` or None takes them as linear (None with 8-bit images adds
-:data:`cnnps.io.srgb.UNCHOSEN_8BIT_NOTE` to ``Calibration.notices``); EXR is always
-linear. This matters for the matte ball's intensities; the chrome highlight's centroid
-only shifts by its weights. Every input is
+:data:`cnnps.io.srgb.UNCHOSEN_8BIT_NOTE` to ``Calibration.notices``); EXR and camera RAW
+photos are always linear (RAW with ``"srgb"`` is an InputError; ``calibration.json``
+records the RAW settings under ``"raw"``). This matters for the matte ball's
+intensities; the chrome highlight's centroid only shifts by its weights. Every input is
 validated and every image analysed before anything is written; the outputs then appear
 at once (a temporary folder renamed into place, :func:`cnnps.infra.atomic.atomic_dir`).
 Problems are :class:`cnnps.infra.errors.InputError` naming the file.
@@ -141,9 +142,9 @@ def read_names(folder: Path, what: str) -> tuple[list[str], list[Path]]:
 def read_linear(path: Path, shape=None, linearize: str | None = None) -> tuple[np.ndarray, np.ndarray | None, str]:
     """One ball photo as ``cnnps predict`` reads it: (float32 (H, W, C) linear values,
     (H, W, C) bool clipped channels (stored code >= :data:`SATURATION_LEVEL` of the
-    integer type's maximum; None for float images), the stored pixel type).
-    ``shape``: (H, W, name) the image must match, or None."""
-    from cnnps.io.images import read_image_raw
+    integer type's maximum; None for float images), the stored pixel type
+    (:func:`cnnps.io.images.pixel_kind`)). ``shape``: (H, W, name) the image must match, or None."""
+    from cnnps.io.images import pixel_kind, read_image_raw
 
     raw = read_image_raw(path)
     if shape is not None and raw.shape[:2] != shape[:2]:
@@ -152,7 +153,7 @@ def read_linear(path: Path, shape=None, linearize: str | None = None) -> tuple[n
     if not np.all(np.isfinite(img)):
         raise InputError(path, "image contains NaN or infinite pixels")
     level = saturation_code(raw.dtype)
-    return img, (None if level is None else raw >= level), str(raw.dtype)
+    return img, (None if level is None else raw >= level), pixel_kind(path, raw)
 
 
 def _read_mask(folder: Path, shape) -> np.ndarray | None:
@@ -173,8 +174,12 @@ def read_ball_photos(folder, names, paths, keep: bool, progress: bool = False, d
                      linearize: str | None = None) -> BallPhotos:
     """Read every image of a ball folder once (:func:`read_linear`): grey (mean of
     channels) stack when ``keep``, its maximum image, the clipped pixels of integer
-    images, the stored pixel types, and ``mask.png``."""
+    images, the stored pixel types, and ``mask.png``. RAW photos with ``linearize="srgb"``
+    are an InputError naming the first (:func:`cnnps.io.raw.check_linearize`)."""
     from cnnps.infra.progress import progress_bar
+    from cnnps.io.raw import check_linearize
+
+    check_linearize(paths, linearize)
 
     first = read_linear(paths[0], None, linearize)
     H, W = first[0].shape[:2]
@@ -234,7 +239,7 @@ def calibrate(chrome_dir, matte_dir=None, *, linearize: Linearize | None = None,
 
     Arguments:
         chrome_dir: a folder with ``filenames.txt`` (light order), the images (8/16-bit
-            PNG, JPEG, TIFF or float EXR) and optionally ``mask.png`` of the ball.
+            PNG, JPEG, TIFF, float EXR or camera RAW) and optionally ``mask.png`` of the ball.
         matte_dir: the same for the matte ball, or None (directions only).
         linearize: how 8/16-bit images become linear, exactly as :func:`cnnps.predict`
             (None: taken as linear, with a note in ``notices`` when any image is 8-bit).
@@ -370,13 +375,18 @@ def _matte_intensities(matte_dir: Path, matte_ball: Ball, mpaths: list[Path], L:
 
 
 def _image_types(report: dict, chrome: BallPhotos, matte: BallPhotos | None) -> dict[str, int]:
-    """Record the stored pixel types of each folder; return their totals."""
+    """Record the stored pixel types of each folder (and the RAW settings when any image
+    is a RAW photo); return their totals."""
+    from cnnps.io.raw import RAW_KIND, raw_settings
+
     kinds = dict(chrome.kinds)
     report["image_types"] = {"chrome": chrome.kinds}
     if matte is not None:
         report["image_types"]["matte"] = matte.kinds
         for k, n in matte.kinds.items():
             kinds[k] = kinds.get(k, 0) + n
+    if RAW_KIND in kinds:
+        report["raw"] = raw_settings()
     return kinds
 
 

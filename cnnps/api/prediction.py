@@ -31,8 +31,10 @@ rounding: least squares is per pixel and the network sees each pixel's map alone
 
 Images: integer images (uint8, uint16) are made linear by ``linearize`` ("srgb" decodes
 the sRGB curve, "none" or None takes them as linear; None with 8-bit images adds a
-one-line note to ``notices``); float images are linear. Each channel is divided by the
-light's intensity and the channels combined into grey (``grey``). Saturated observations
+one-line note to ``notices``); float images are linear; camera RAW photos in a capture
+folder are demosaiced linearly (:mod:`cnnps.io.raw`: image type ``raw-uint16``, their
+settings recorded under ``"raw"``). Each channel is divided by the light's intensity and
+the channels combined into grey (``grey``). Saturated observations
 (any channel >= 0.99 of an integer format's maximum) are missing with
 ``saturated="exclude"``: left out of the observation map (as if that light were not
 there) and out of the least squares; their number is recorded.
@@ -493,8 +495,10 @@ def _gather(stack, index: np.ndarray) -> np.ndarray:
 def make_record(setup: MethodSetup, counts: TileCounts, stack, *, n_images: int, image_size, options: dict,
                 sparse_fill: str, dropped: list[int] | None = None, intrinsics: np.ndarray | None = None,
                 lights: dict | None = None) -> dict:
-    """What ``prediction.json`` records about a run (without its timing and notes)."""
+    """What ``prediction.json`` records about a run (without its timing and notes); with
+    RAW photos among the images, ``"raw"`` holds :func:`cnnps.io.raw.raw_settings`."""
     from cnnps.io.capture import SATURATION_LEVEL
+    from cnnps.io.raw import RAW_KIND, raw_settings
     from cnnps.ps.sparse_fill import should_fill
 
     linearize, saturated = options["linearize"], options["saturated"]
@@ -520,6 +524,7 @@ def make_record(setup: MethodSetup, counts: TileCounts, stack, *, n_images: int,
         "pixels": stack.P,
         "image_size": list(image_size),
         "image_types": dict(sorted(stack.kinds.items())),
+        **({"raw": raw_settings()} if RAW_KIND in stack.kinds else {}),
         "linearize": linearize or "none",
         "linearize_chosen": linearize is not None,
         "saturated": saturated,

@@ -16,16 +16,19 @@ A capture folder holds:
 - optional ground truth ``Normal_gt.mat`` (variable ``Normal_gt``) or ``normal_gt.npy``,
   both H x W x 3.
 
-Images may be 8/16-bit PNG, 8-bit JPEG, 8/16-bit TIFF or float32 EXR
+Images may be 8/16-bit PNG, 8-bit JPEG, 8/16-bit TIFF, float32 EXR or camera RAW photos
 (:func:`cnnps.io.images.read_image_raw`). Integer images are scaled to [0, 1] by their
 type's maximum and, with ``linearize="srgb"``, decoded with the sRGB EOTF
 (:mod:`cnnps.io.srgb`); ``linearize=None`` or ``"none"`` takes them as linear (right
 for DiLiGenT's 16-bit PNGs and raw-converted linear files, wrong for ordinary camera
-JPEGs). Float images are always linear. Each image is turned into one grey float32 image:
-the mean of its intensity-normalised channels (``grey="mean"``), or their luminance
-0.2989 R + 0.5870 G + 0.1140 B (``grey="luminance"``, MATLAB's rgb2gray weights, used by
-published least-squares numbers). A one-channel image is divided by the same combination
-of the three light intensities.
+JPEGs). Float images are always linear. RAW photos are demosaiced linearly
+(:mod:`cnnps.io.raw`, uint16, pixel type ``"raw-uint16"``) and always taken as linear;
+``linearize="srgb"`` with a RAW photo in the folder is an InputError naming it. Each
+image is turned into one grey float32 image: the mean of its intensity-normalised
+channels (``grey="mean"``), or their luminance 0.2989 R + 0.5870 G + 0.1140 B
+(``grey="luminance"``, MATLAB's rgb2gray weights, used by published least-squares
+numbers). A one-channel image is divided by the same combination of the three light
+intensities.
 
 Two ways to read the images:
 
@@ -54,7 +57,8 @@ import numpy as np
 
 from cnnps.infra.errors import ConfigError, InputError
 from cnnps.infra.options import check_arguments
-from cnnps.io.images import max_code, read_image_raw, read_mask
+from cnnps.io.images import max_code, pixel_kind, read_image_raw, read_mask
+from cnnps.io.raw import RAW_KIND, check_linearize
 from cnnps.io.srgb import Linearize, linear_table
 
 Grey = Literal["mean", "luminance"]  # how RGB becomes grey (``--grey``)
@@ -83,7 +87,7 @@ class ImagePixels(NamedTuple):
 
     values: np.ndarray  # (P,) float32 grey, intensity-normalised, as stored (saturated ones too)
     saturated: np.ndarray | None  # (P,) bool, True = saturated (a missing observation); None: none
-    kind: str  # the stored pixel type: "uint8", "uint16" or "float32"
+    kind: str  # the stored pixel type: "uint8", "uint16", "float32" or "raw-uint16" (a RAW photo)
 
     @property
     def n_saturated(self) -> int:
@@ -107,7 +111,7 @@ class Capture:
     grey: str = "mean"
     paths: list[Path] = field(default_factory=list)  # the image files, in light order
     linearize: str | None = None  # "srgb" | "none" | None (not chosen: integer images taken as linear)
-    first_kind: str | None = None  # stored pixel type of the first image ("uint8", "uint16", "float32")
+    first_kind: str | None = None  # stored pixel type of the first image (ImagePixels.kind)
     light_positions: np.ndarray | None = None  # (m, 3) float64 point-light positions (light_positions.txt), or None
 
     @property
@@ -143,7 +147,9 @@ class Capture:
         and are never flagged; ``saturation`` None flags nothing. Works in bands of rows,
         so the temporaries stay small next to the decoded image.
         """
-        return masked_pixels(self.read_raw(k), self.mask, self.intensities[k], self.grey, self.linearize, saturation)
+        raw = self.read_raw(k)
+        pix = masked_pixels(raw, self.mask, self.intensities[k], self.grey, self.linearize, saturation)
+        return pix._replace(kind=pixel_kind(self.paths[k], raw))
 
     def read_raw(self, k: int) -> np.ndarray:
         """Image ``k`` as stored ((H, W, C) uint8, uint16 or float32), its size and finite
@@ -407,9 +413,11 @@ def read_workers(capture: Capture, workers: int | None = None) -> int:
     if workers is None:
         workers = min(MAX_READ_WORKERS, os.cpu_count() or 1)
     H, W = capture.shape
-    item = 2 if capture.first_kind == "uint16" else (1 if capture.first_kind == "uint8" else 4)
-    # the decoded frame plus the float32 grey/band temporaries of one image
-    per_image = H * W * (3 * item + 8)
+    kind = capture.first_kind
+    item = 2 if kind in ("uint16", RAW_KIND) else (1 if kind == "uint8" else 4)
+    # the decoded frame plus the float32 grey/band temporaries of one image; a RAW photo
+    # adds LibRaw's buffers while it decodes (the sensor values and a 4-channel uint16 frame)
+    per_image = H * W * (3 * item + 8 + (10 if kind == RAW_KIND else 0))
     return max(1, min(int(workers), DECODE_BUDGET_BYTES // max(1, per_image)))
 
 
@@ -476,7 +484,8 @@ def scan_capture(
         the benchmark default for known objects (``bearPNG``: the first 20), recorded in
         ``Capture.notes``; an empty list drops nothing.
     grey: "mean" or "luminance" (see the module docstring).
-    linearize: "srgb" | "none" | None for integer images (see the module docstring).
+    linearize: "srgb" | "none" | None for integer images (see the module docstring;
+        "srgb" with a RAW photo is an InputError naming it).
     """
     root = Path(path)
     check_arguments(scan_capture, {"grey": grey, "linearize": linearize})
@@ -513,6 +522,7 @@ def scan_capture(
         if not p.is_file():
             raise InputError(p, "image listed in filenames.txt not found")
         paths.append(p)
+    check_linearize(paths, linearize)
 
     mask_path = root / "mask.png"
     if not mask_path.is_file():
@@ -520,7 +530,7 @@ def scan_capture(
 
     first = _check_image(paths[0], read_image_raw(paths[0]), None)
     H, W = first.shape[:2]
-    kind = str(first.dtype)
+    kind = pixel_kind(paths[0], first)
     del first
     mask = read_mask(mask_path)
     if mask.shape != (H, W):

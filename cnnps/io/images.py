@@ -1,11 +1,14 @@
 """Reading and writing images of a capture: 8/16-bit PNG, 8-bit JPEG, 8/16-bit TIFF,
-float32 OpenEXR.
+float32 OpenEXR, and reading camera RAW photos (DNG, CR2, CR3, NEF, ARW, ...).
 
 :func:`read_image` returns float32 H x W x C in RGB channel order (C = 1 or 3), with
 integer images scaled to [0, 1] by their type's maximum and EXR left linear as stored.
 :func:`read_image_raw` returns the same pixels in the file's own type (uint8, uint16 or
 float32), which is what saturation tests and look-up-table decoding (sRGB, see
 :mod:`cnnps.io.srgb`) need; :func:`max_code` is the largest value of an integer type.
+RAW photos (:data:`cnnps.io.raw.RAW_SUFFIXES`) are demosaiced linearly by LibRaw into
+uint16 RGB, black level at 0 and white level at 65535 (:func:`cnnps.io.raw.read_raw`);
+:func:`pixel_kind` tells them from 16-bit PNG/TIFF files.
 JPEG files are read as stored: the EXIF orientation tag is NOT applied, so the pixel
 grid is the sensor's (a mask drawn on a rotated view will not match in size).
 An alpha channel is dropped. Errors are :class:`cnnps.infra.errors.InputError` naming
@@ -20,8 +23,9 @@ import numpy as np
 
 from cnnps.infra.atomic import atomic_path
 from cnnps.infra.errors import InputError
+from cnnps.io.raw import RAW_KIND, RAW_SUFFIXES, is_raw, read_raw
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr") + RAW_SUFFIXES
 
 
 def max_code(dtype) -> int | None:
@@ -104,9 +108,16 @@ def _read_opencv(path: Path) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
+def pixel_kind(path: str | Path, img: np.ndarray) -> str:
+    """The pixel type recorded for an image read by :func:`read_image_raw`: ``"uint8"``,
+    ``"uint16"`` or ``"float32"``, and ``"raw-uint16"`` for a RAW photo."""
+    return RAW_KIND if is_raw(path) else str(img.dtype)
+
+
 def read_image_raw(path: str | Path) -> np.ndarray:
     """Read one image as H x W x C (C in {1, 3}, RGB order) in the file's own pixel type:
-    uint8 or uint16 for PNG, JPEG and TIFF, float32 for EXR (float TIFFs as float32)."""
+    uint8 or uint16 for PNG, JPEG and TIFF, float32 for EXR (float TIFFs as float32),
+    uint16 linear RGB for RAW photos (:func:`cnnps.io.raw.read_raw`)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "file not found")
@@ -117,8 +128,10 @@ def read_image_raw(path: str | Path) -> np.ndarray:
         img = _read_tiff(path)
     elif suffix in (".png", ".jpg", ".jpeg"):
         img = _read_opencv(path)
+    elif suffix in RAW_SUFFIXES:
+        img = read_raw(path)
     else:
-        raise InputError(path, f"unsupported image format {suffix!r} (use PNG, JPEG, TIFF or EXR)")
+        raise InputError(path, f"unsupported image format {suffix!r} (use PNG, JPEG, TIFF, EXR or a camera RAW file)")
     if img.ndim == 2:
         img = img[:, :, None]
     if img.ndim != 3 or img.shape[2] not in (1, 3, 4):

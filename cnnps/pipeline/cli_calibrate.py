@@ -22,7 +22,7 @@ def calibrate(
     matte: Optional[Path] = typer.Option(None, "--matte", help="Matte white ball photos under the same lights (same count and order; optional mask.png): per-light RGB intensities."),
     ball_radius: Optional[float] = typer.Option(None, "--ball-radius", metavar="R", help="Point lights: the chrome balls' radius, in the unit the light positions should have; needs --intrinsics and two or more CHROME_DIRs (two balls, or one ball at two places)."),
     intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", metavar="K.txt", help="Point lights: the camera's 3x3 K (OpenCV convention), as in a capture's intrinsics.txt."),
-    linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none", help="How 8/16-bit images become linear, as in cnnps predict: srgb = decode the sRGB curve (camera JPEG/PNG), none = already linear. Unset: taken as linear, with a note when images are 8-bit."),
+    linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none", help="How 8/16-bit images become linear, as in cnnps predict: srgb = decode the sRGB curve (camera JPEG/PNG), none = already linear. Unset: taken as linear, with a note when images are 8-bit. Camera RAW photos are always read linearly."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
     """Calibrate the lights from photos of a chrome ball (directions) and a matte ball (intensities),

@@ -70,7 +70,7 @@ def write_ball_folder(folder: Path, images, fmt: str = "exr", mask: np.ndarray |
                       scale: float = 1.0, srgb: bool = False) -> list[str]:
     """Write (m, H, W) or (m, H, W, 3) linear images as a ball folder (filenames.txt, images,
     optional mask.png). Integer formats store ``scale * image`` clipped to [0, 1], sRGB-encoded
-    (as a camera's JPEG/PNG) when ``srgb``."""
+    (as a camera's JPEG/PNG) when ``srgb``; ``dng``: its RGGB mosaic as a camera RAW file."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     names = []
@@ -81,6 +81,11 @@ def write_ball_folder(folder: Path, images, fmt: str = "exr", mask: np.ndarray |
         if fmt == "exr":
             name = f"{j:03d}.exr"
             write_exr(folder / name, img.astype(np.float32))
+        elif fmt == "dng":
+            from tests.support.dng import mosaic, write_dng
+
+            name = f"{j:03d}.dng"
+            write_dng(folder / name, mosaic(np.clip(img * scale, 0, 1)))
         else:
             top = {"png8": 255, "png16": 65535}[fmt]
             name = f"{j:03d}.png"

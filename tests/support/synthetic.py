@@ -51,12 +51,14 @@ def write_capture(
     gt: str | None = "npy",
     intensities: np.ndarray | None = None,
 ) -> dict:
-    """Write a sphere capture in ``fmt`` (exr | png8 | png16 | tiff16); return the truth.
+    """Write a sphere capture in ``fmt`` (exr | png8 | png16 | tiff16 | dng); return the truth.
 
     Pixel value of channel c under light j: ALBEDO_RGB[c] * E[j, c] * max(0, n . l_j),
     with per-light, per-channel intensities E (seeded) written to light_intensities.txt.
     For integer formats the images are multiplied by one factor ``scale`` so the
     brightest value is below 1; the loaded grey images are then ``scale`` times the truth.
+    ``dng``: the RGGB mosaic of each image as a 16-bit DNG camera RAW file
+    (:func:`tests.support.dng.write_dng`; demosaicing blurs the sphere's edge a little).
     """
     from cnnps.io.images import write_exr, write_png
 
@@ -70,7 +72,7 @@ def write_capture(
     rgb = shade[..., None] * (ALBEDO_RGB * E[:, None, None, :])  # (m, H, W, 3)
     scale = 1.0 if fmt == "exr" else 0.95 / rgb.max()
     rgb = rgb * scale
-    ext = {"exr": "exr", "png8": "png", "png16": "png", "tiff16": "tif"}[fmt]
+    ext = {"exr": "exr", "png8": "png", "png16": "png", "tiff16": "tif", "dng": "dng"}[fmt]
     names = [f"{j:03d}.{ext}" for j in range(m)]
     for name, img in zip(names, rgb):
         path = root / name
@@ -84,6 +86,10 @@ def write_capture(
             import tifffile
 
             tifffile.imwrite(path, np.round(img * 65535).astype(np.uint16), photometric="rgb")
+        elif fmt == "dng":
+            from tests.support.dng import mosaic, write_dng
+
+            write_dng(path, mosaic(img))
         else:  # pragma: no cover
             raise ValueError(fmt)
     (root / "filenames.txt").write_text("\n".join(names) + "\n")
