@@ -218,6 +218,23 @@ def locate_ball(photos: BallPhotos, picture: np.ndarray, picture_name: str) -> B
         raise InputError(photos.root, f"{exc} in the {picture_name}; add a mask.png of the ball") from None
 
 
+def ball_outline(photos, ball) -> tuple[np.ndarray, np.ndarray, str]:
+    """(rows, cols, source) of the ball's image outline: the sub-pixel contour of
+    ``mask.png`` (points on the image border dropped) when the folder has one, else points
+    on the fitted circle (right only to second order under a pinhole: a notice says so)."""
+    if photos.mask is None:
+        from cnnps.ps.point_light_calibration import outline_points
+
+        rows, cols = outline_points(ball.cx, ball.cy, ball.radius)
+        return rows, cols, "fitted circle"
+    from skimage.measure import find_contours
+
+    H, W = photos.mask.shape
+    contour = max(find_contours(photos.mask.astype(np.float64), 0.5), key=len)
+    inside = (contour[:, 0] > 0.5) & (contour[:, 0] < H - 1.5) & (contour[:, 1] > 0.5) & (contour[:, 1] < W - 1.5)
+    return contour[inside, 0], contour[inside, 1], "mask.png contour"
+
+
 @dataclass
 class Calibration:
     """What :func:`calibrate` found; :func:`write_calibration` writes it."""
@@ -233,7 +250,8 @@ class Calibration:
     notices: list[str] = field(default_factory=list)  # one-line notes for stderr
 
 
-def calibrate(chrome_dir, matte_dir=None, *, linearize: Linearize | None = None, progress: bool = False) -> Calibration:
+def calibrate(chrome_dir, matte_dir=None, *, linearize: Linearize | None = None, progress: bool = False,
+              intrinsics=None) -> Calibration:
     """Light directions from photos of a chrome ball and, optionally, intensities from
     photos of a matte white ball under the same lights (same count, same order).
 
@@ -243,6 +261,11 @@ def calibrate(chrome_dir, matte_dir=None, *, linearize: Linearize | None = None,
         matte_dir: the same for the matte ball, or None (directions only).
         linearize: how 8/16-bit images become linear, exactly as :func:`cnnps.predict`
             (None: taken as linear, with a note in ``notices`` when any image is 8-bit).
+        intrinsics: the camera's 3 x 3 K (OpenCV convention), or None (orthographic).
+            With K the ball is placed in 3D from its outline (up to scale, which a
+            direction does not need) and each highlight reflects its own pixel's view,
+            l = 2 (n.v) n - v (:mod:`cnnps.ps.point_light_calibration`); the matte
+            ball's shading still uses the orthographic normals.
 
     Returns:
         :class:`Calibration`: ``directions`` (m, 3) unit (x right, y up, z toward the
@@ -272,7 +295,13 @@ def calibrate(chrome_dir, matte_dir=None, *, linearize: Linearize | None = None,
     chrome = read_ball_photos(chrome_dir, names, paths, keep=True, progress=progress, desc="chrome ball",
                               linearize=linearize)
     ball, L, highs = _chrome_lights(chrome, paths)
+    if intrinsics is not None:
+        L = _perspective_directions(chrome, ball, highs, intrinsics)
     report = _report(chrome_dir, ball, names, highs, L, linearize)
+    if intrinsics is not None:
+        report["camera"] = {"model": "perspective", "intrinsics": np.asarray(intrinsics).tolist()}
+        report["method"]["direction"] = ("l = 2 (n.v) n - v with each highlight pixel's own view v; n from the ball "
+                                         "placed by the cone of rays grazing its outline (scale-free)")
     E = matte_ball = matte = None
     if matte_dir is not None:
         matte = read_ball_photos(matte_dir, mnames, mpaths, keep=False, progress=progress, desc="matte ball",
@@ -284,6 +313,22 @@ def calibrate(chrome_dir, matte_dir=None, *, linearize: Linearize | None = None,
     picture = overlay_picture(chrome.max_image, ball, [(h.x, h.y) for h in highs], [str(i) for i in range(len(highs))])
     report["seconds"] = round(time.perf_counter() - t0, 3)
     return Calibration(list(names), L, E, ball, highs, matte_ball, report, picture, notices)
+
+
+def _perspective_directions(chrome: BallPhotos, ball: Ball, highs: list[Highlight], K) -> np.ndarray:
+    """(m, 3) light directions under the pinhole ``K``: each highlight's pixel ray
+    reflected about the ball placed in 3D from its outline (radius 1: directions do not
+    depend on the scale)."""
+    from cnnps.ps.camera import check_intrinsics
+    from cnnps.ps.point_light_calibration import ball_centre, reflected_ray
+
+    K = check_intrinsics(K)
+    rows, cols, _source = ball_outline(chrome, ball)
+    try:
+        centre = ball_centre(K, rows, cols, 1.0)
+    except ValueError as exc:
+        raise InputError(chrome.root, str(exc)) from None
+    return np.array([reflected_ray(K, h.y, h.x, centre, 1.0)[1] for h in highs])
 
 
 def _matte_names(matte_dir: Path, chrome_dir: Path, m: int) -> tuple[list[str], list[Path]]:

@@ -24,12 +24,16 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.api.calibration import locate_ball, read_ball_photos, read_names
+from cnnps.api.calibration import (
+    ball_outline,
+    locate_ball,
+    read_ball_photos,
+    read_names,
+)
 from cnnps.infra.errors import ConfigError, InputError
 from cnnps.ps.light_calibration import CalibrationError, chrome_directions
 from cnnps.ps.point_light_calibration import (
     ball_centre,
-    outline_points,
     reflected_ray,
     triangulate,
 )
@@ -48,21 +52,6 @@ class PointCalibration:
     intrinsics: np.ndarray
     report: dict
     notices: list[str] = field(default_factory=list)
-
-
-def ball_outline(photos, ball) -> tuple[np.ndarray, np.ndarray, str]:
-    """(rows, cols, source) of the ball's image outline: the sub-pixel contour of
-    ``mask.png`` (points on the image border dropped) when the folder has one, else points
-    on the fitted circle (right only to second order under a pinhole: a notice says so)."""
-    if photos.mask is None:
-        rows, cols = outline_points(ball.cx, ball.cy, ball.radius)
-        return rows, cols, "fitted circle"
-    from skimage.measure import find_contours
-
-    H, W = photos.mask.shape
-    contour = max(find_contours(photos.mask.astype(np.float64), 0.5), key=len)
-    inside = (contour[:, 0] > 0.5) & (contour[:, 0] < H - 1.5) & (contour[:, 1] > 0.5) & (contour[:, 1] < W - 1.5)
-    return contour[inside, 0], contour[inside, 1], "mask.png contour"
 
 
 def calibrate_point_lights(chrome_dirs, *, ball_radius: float, intrinsics, linearize=None,

@@ -21,7 +21,7 @@ def calibrate(
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (written atomically): light_directions.txt, light_intensities.txt (with --matte), calibration.json, calibration.png; with --ball-radius light_positions.txt, intrinsics.txt, calibration.json."),
     matte: Optional[Path] = typer.Option(None, "--matte", help="Matte white ball photos under the same lights (same count and order; optional mask.png): per-light RGB intensities."),
     ball_radius: Optional[float] = typer.Option(None, "--ball-radius", metavar="R", help="Point lights: the chrome balls' radius, in the unit the light positions should have; needs --intrinsics and two or more CHROME_DIRs (two balls, or one ball at two places)."),
-    intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", metavar="K.txt", help="Point lights: the camera's 3x3 K (OpenCV convention), as in a capture's intrinsics.txt."),
+    intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", metavar="K.txt", help="The camera's 3x3 K (OpenCV convention), as in a capture's intrinsics.txt: each highlight then reflects its own pixel's view (one ball: distant lights); needed for point lights."),
     linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none", help="How 8/16-bit images become linear, as in cnnps predict: srgb = decode the sRGB curve (camera JPEG/PNG), none = already linear. Unset: taken as linear, with a note when images are 8-bit. Camera RAW photos are always read linearly."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
 ) -> None:
@@ -30,12 +30,13 @@ def calibrate(
     from cnnps.api.calibration import SCALE_NOTE, check_out_dir, write_calibration
     from cnnps.api.calibration import calibrate as run
 
-    if ball_radius is not None or intrinsics is not None or len(chrome_dirs) > 1:
+    if ball_radius is not None or len(chrome_dirs) > 1:
         _point_lights(chrome_dirs, out, matte, ball_radius, intrinsics, linearize, progress)
         return
     chrome_dir = chrome_dirs[0]
     check_out_dir(out, chrome_dir, matte)
-    cal = run(chrome_dir, matte, progress=progress, linearize=linearize)
+    cal = run(chrome_dir, matte, progress=progress, linearize=linearize,
+              intrinsics=None if intrinsics is None else _read_k(intrinsics))
     write_calibration(cal, out)
     for notice in cal.notices:
         typer.echo(f"cnnps: note: {notice}", err=True)
