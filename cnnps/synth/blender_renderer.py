@@ -8,6 +8,12 @@ The rest of the code sees :class:`BlenderRenderer` only (kubric-style)::
     img = r.render((0.3, 0.2, 0.93), 1.0)       # (S,S,3) float32 linear RGB
     r.close()
 
+    # a pinhole camera and point lights (world = capture frame + CAMERA_ORIGIN)
+    r = BlenderRenderer(size=64, samples=4, camera={"fov_deg": 40.0})
+    K = r.intrinsics()                          # OpenCV 3x3
+    depth = r.render_depth()                    # (S,S) float32, 5 - z; NaN off the object
+    img = r.render_point((1.5, 1.0, 3.0), 1.0)  # one point light, radiant intensity 1
+
 Scene set-up (measured facts in ``shared/notes/blender5-facts.md``):
 
 - factory settings, empty scene; Cycles; black world (Background strength 0), or with
@@ -16,8 +22,23 @@ Scene set-up (measured facts in ``shared/notes/blender5-facts.md``):
   exactly at 1 spp, since a constant world and cosine sampling give every sample a·E);
 - orthographic camera at (0, 0, 5) looking down -Z, ``ortho_scale`` 2: the image covers
   x, y in [-1, 1]; world x, y, z = image right, up, toward the camera; row 0 on top;
+- or, with ``camera={"fov_deg": F}``, a pinhole camera at the same place and orientation
+  (type PERSP, ``lens_unit`` FOV, ``sensor_fit`` HORIZONTAL, ``angle`` F, no shift): the
+  field of view F spans the (square) image's width, and the OpenCV intrinsics are
+  fx = fy = (S/2) / tan(F/2), cx = cy = (S - 1)/2 with (0, 0) the centre of the top-left
+  pixel (:meth:`BlenderRenderer.intrinsics`; measured: depths of a tilted plane match rays
+  K^-1 (u, v, 1) to 7e-8 relative, while K with cx, cy half a pixel off is 7e-3 out).
+  Its capture frame (cnnps.ps.camera) is the world frame moved by :data:`CAMERA_ORIGIN`:
+  world (x, y, z) is capture (x, y, z - 5);
 - one sun lamp of zero angular size, strength ``pi * intensity`` (a white Lambertian patch
   facing it reads ``intensity``), turned with ``Vector(l).to_track_quat('Z', 'Y')``;
+- point lights (:meth:`BlenderRenderer.render_point`, made on first use): one POINT lamp
+  of radius (``shadow_soft_size``) 0, no soft falloff, power ``4 pi^2 * intensity`` W
+  (:data:`POINT_POWER`): Cycles gives a point lamp of P W the radiant intensity P/(4 pi),
+  and a white Lambertian patch facing it at distance r reads intensity / r^2 (measured on
+  a tilted Lambertian plane: per-pixel ratio to max(0, n.l) / r^2 is 1.0000 in median
+  and mean). The sun is hidden during point renders and the point lamp during sun
+  renders, so a renderer that never calls render_point renders exactly as before;
 - Gaussian pixel filter of 0.01 px: every camera sample goes through the pixel centre, so
   pixel (r, c) sees the surface at x = -1 + (c + .5) 2/S, y = 1 - (r + .5) 2/S;
 - no denoiser, no adaptive sampling, no sample clamping, no glossy filter, caustics on:
@@ -27,8 +48,13 @@ Scene set-up (measured facts in ``shared/notes/blender5-facts.md``):
   (one layer, alpha = object coverage) and read back with :func:`cnnps.io.images.read_exr`;
 - mask and ground-truth normals: one more 1-sample render of the same camera rays with
   an emission override showing the smooth shading normal (:meth:`BlenderRenderer.render_geometry`),
-  and its alpha;
-- persistent data: the scene is synced once, each light only moves the sun;
+  and its alpha; depth the same way (:meth:`BlenderRenderer.render_depth`), emitting
+  CAMERA_ORIGIN - P for the hit point P, whose blue is the depth along the optical axis
+  5 - z for either camera (not the distance along the ray); Cycles' own Z pass is not used
+  (a single-layer EXR holds RGBA only);
+- persistent data: the scene is synced once, each light only moves a lamp (measured with
+  a 1.3M-triangle sphere at 32 px, 1 sample: first render 0.88 s, then 0.47 s per
+  re-render after moving the point lamp, as after turning the sun);
 - the seed is folded into Cycles' range 0 .. 2^31 - 1 (:func:`cycles_seed`);
 - Blender writes each picture into a private temp folder, locked (flock) while the
   renderer lives, so a later renderer removes the folders of SIGKILLed ones.
@@ -67,6 +93,26 @@ _GPU_BACKENDS = ("OPTIX", "CUDA", "HIP", "ONEAPI", "METAL")
 
 CYCLES_SEED_RANGE = 2**31  # Cycles' seed property takes 0 .. 2^31 - 1
 _TMP_PREFIX = "cnnps-blender-"
+
+# The camera's optical centre in the world frame (both cameras): world point (x, y, z) is
+# capture-frame point (x, y, z) - CAMERA_ORIGIN, and its depth along the optical axis is 5 - z.
+CAMERA_ORIGIN = (0.0, 0.0, 5.0)
+# Blender point-light power (W) per unit of radiant intensity: a point light of power
+# POINT_POWER * I makes a white Lambertian patch facing it at distance r read I / r^2
+# (Cycles: radiant intensity P / (4 pi) per steradian, and the Lambertian 1 / pi).
+POINT_POWER = 4.0 * math.pi**2
+
+
+def _check_camera(camera: Mapping[str, Any] | None) -> dict[str, float] | None:
+    """None (the orthographic camera) or ``{"fov_deg": F}`` with 0 < F < 180, checked."""
+    if camera is None:
+        return None
+    if not isinstance(camera, Mapping) or set(camera) != {"fov_deg"}:
+        raise ConfigError(f"render camera must be None or {{'fov_deg': F}}, got {camera!r}")
+    fov = camera["fov_deg"]
+    if isinstance(fov, bool) or not isinstance(fov, (int, float)) or not (0.0 < fov < 180.0):
+        raise ConfigError(f"render camera fov_deg must be a number in (0, 180), got {fov!r}")
+    return {"fov_deg": float(fov)}
 
 
 def cycles_seed(seed: int) -> int:
@@ -187,6 +233,7 @@ class BlenderRenderer:
         max_bounces: int = 8,
         persistent: bool = True,
         environment: float = 0.0,
+        camera: Mapping[str, Any] | None = None,
     ):
         if size < 1:
             raise ConfigError(f"render size must be >= 1, got {size}")
@@ -196,6 +243,7 @@ class BlenderRenderer:
             raise ConfigError(f"render device must be 'cpu' or 'gpu', got {device!r}")
         if not (math.isfinite(environment) and environment >= 0):
             raise ConfigError(f"render environment must be a finite number >= 0, got {environment!r}")
+        self.camera = _check_camera(camera)
         self._bpy = _import_bpy()
         self.size = int(size)
         self.samples = int(samples)
@@ -209,6 +257,7 @@ class BlenderRenderer:
         self._tmpdir, self._lock_fd = _make_tmpdir()
         self._images: list[Any] = []
         self.obj = None
+        self.point = None  # the point light, made by the first render_point
         try:
             self._setup()
         except BaseException:  # e.g. no GPU: leave no temp folder behind
@@ -279,12 +328,19 @@ class BlenderRenderer:
         scene.world = world
 
         cam_data = bpy.data.cameras.new("camera")
-        cam_data.type = "ORTHO"
-        cam_data.ortho_scale = 2.0
+        if self.camera is None:
+            cam_data.type = "ORTHO"
+            cam_data.ortho_scale = 2.0
+        else:  # pinhole: the field of view across the (square) image, principal point centred
+            cam_data.type = "PERSP"
+            cam_data.lens_unit = "FOV"
+            cam_data.sensor_fit = "HORIZONTAL"
+            cam_data.angle = math.radians(self.camera["fov_deg"])
+            cam_data.shift_x = cam_data.shift_y = 0.0
         cam_data.clip_start = 0.1
         cam_data.clip_end = 20.0
         cam = bpy.data.objects.new("camera", cam_data)
-        cam.location = (0.0, 0.0, 5.0)
+        cam.location = CAMERA_ORIGIN
         cam.rotation_euler = (0.0, 0.0, 0.0)
         scene.collection.objects.link(cam)
         scene.camera = cam
@@ -499,27 +555,112 @@ class BlenderRenderer:
         n = np.linalg.norm(l)
         if l.shape != (3,) or not n > 0:
             raise ValueError(f"light direction must be a non-zero 3-vector, got {light_direction!r}")
+        if self.point is not None:  # only after a render_point: the sun alone
+            self.point.hide_render = True
+            self.sun.hide_render = False
         self.sun.rotation_quaternion = Vector((l / n).tolist()).to_track_quat("Z", "Y")
         self.sun.data.energy = math.pi * float(intensity)
         rgba = self._render_file()
         self.renders += 1
         return np.ascontiguousarray(rgba[:, :, :3])
 
-    def _normal_material(self):
-        """Emission of (N + 1) / 2 with N Blender's smooth shading normal (world = camera frame)."""
-        mat, nt = self._empty_material("normals")
+    def render_point(self, position, intensity: float = 1.0) -> np.ndarray:
+        """(S, S, 3) float32 linear RGB under one point light (radius 0) at ``position``
+        (world frame: capture frame + :data:`CAMERA_ORIGIN`) of radiant intensity
+        ``intensity``: a white Lambertian patch facing it at distance r reads intensity / r^2.
+        The sun is hidden meanwhile (and this light during :meth:`render`)."""
+        if self.obj is None:
+            raise RuntimeError("load_scene first")
+        p = np.asarray(position, dtype=np.float64)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise ValueError(f"light position must be a finite 3-vector, got {position!r}")
+        if not (math.isfinite(intensity) and intensity >= 0):
+            raise ValueError(f"light intensity must be a finite number >= 0, got {intensity!r}")
+        if self.point is None:
+            data = self._bpy.data.lights.new("point", type="POINT")
+            data.shadow_soft_size = 0.0  # a true point: hard shadows, exact 1 / r^2
+            data.use_soft_falloff = False
+            self.point = self._bpy.data.objects.new("point", data)
+            self.scene.collection.objects.link(self.point)
+        self.sun.hide_render = True
+        self.point.hide_render = False
+        self.point.location = p.tolist()
+        self.point.data.energy = POINT_POWER * float(intensity)
+        rgba = self._render_file()
+        self.renders += 1
+        return np.ascontiguousarray(rgba[:, :, :3])
+
+    def intrinsics(self) -> np.ndarray:
+        """The OpenCV 3x3 K of the pinhole camera's images: fx = fy = (S/2) / tan(F/2),
+        cx = cy = (S - 1)/2 (pixel (0, 0)'s centre is the origin, as in cnnps.ps.camera).
+        ValueError for the orthographic camera (it has no K)."""
+        if self.camera is None:
+            raise ValueError("the orthographic camera has no intrinsic matrix")
+        S = self.size
+        f = (S / 2.0) / math.tan(math.radians(self.camera["fov_deg"]) / 2.0)
+        c = (S - 1) / 2.0
+        return np.array([[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]])
+
+    @property
+    def camera_origin(self) -> np.ndarray:
+        """The optical centre in the world frame, (0, 0, 5): capture = world - camera_origin."""
+        return np.array(CAMERA_ORIGIN)
+
+    def _emission_material(self, name: str, link) -> Any:
+        """A material emitting (strength 1) the colour ``link(nt, geometry_node)`` returns."""
+        mat, nt = self._empty_material(name)
         geo = nt.nodes.new("ShaderNodeNewGeometry")
-        scale = nt.nodes.new("ShaderNodeVectorMath")
-        scale.operation = "MULTIPLY_ADD"
-        scale.inputs[1].default_value = (0.5, 0.5, 0.5)
-        scale.inputs[2].default_value = (0.5, 0.5, 0.5)
         emit = nt.nodes.new("ShaderNodeEmission")
         emit.inputs["Strength"].default_value = 1.0
         out = nt.nodes.new("ShaderNodeOutputMaterial")
-        nt.links.new(geo.outputs["Normal"], scale.inputs[0])
-        nt.links.new(scale.outputs["Vector"], emit.inputs["Color"])
+        nt.links.new(link(nt, geo), emit.inputs["Color"])
         nt.links.new(emit.outputs[0], out.inputs["Surface"])
         return mat
+
+    def _normal_material(self):
+        """Emission of (N + 1) / 2 with N Blender's smooth shading normal (world = camera frame)."""
+
+        def link(nt, geo):
+            scale = nt.nodes.new("ShaderNodeVectorMath")
+            scale.operation = "MULTIPLY_ADD"
+            scale.inputs[1].default_value = (0.5, 0.5, 0.5)
+            scale.inputs[2].default_value = (0.5, 0.5, 0.5)
+            nt.links.new(geo.outputs["Normal"], scale.inputs[0])
+            return scale.outputs["Vector"]
+
+        return self._emission_material("normals", link)
+
+    def _depth_material(self):
+        """Emission of CAMERA_ORIGIN - P (P the hit point): its blue is the depth 5 - z."""
+
+        def link(nt, geo):
+            sub = nt.nodes.new("ShaderNodeVectorMath")
+            sub.operation = "SUBTRACT"
+            sub.inputs[0].default_value = CAMERA_ORIGIN
+            nt.links.new(geo.outputs["Position"], sub.inputs[1])
+            return sub.outputs["Vector"]
+
+        return self._emission_material("depth", link)
+
+    def _render_override(self, material) -> np.ndarray:
+        """One 1-sample RGBA render with every surface shaded by ``material``, lights hidden."""
+        if self.obj is None:
+            raise RuntimeError("load_scene first")
+        c = self.scene.cycles
+        lights = [x for x in (self.sun, self.point) if x is not None]
+        saved = c.samples, [x.hide_render for x in lights]
+        c.samples = 1
+        for x in lights:
+            x.hide_render = True
+        self.view_layer.material_override = material
+        try:
+            return self._render_file()
+        finally:
+            c.samples = saved[0]
+            for x, hidden in zip(lights, saved[1]):
+                x.hide_render = hidden
+            self.view_layer.material_override = None
+            self._bpy.data.materials.remove(material)
 
     def render_geometry(self) -> tuple[np.ndarray, np.ndarray]:
         """Mask (S, S) bool and unit normals (S, S, 3) float32 (camera frame, 0 outside)
@@ -527,24 +668,24 @@ class BlenderRenderer:
         override showing the smooth shading normal (the normal the BSDFs are lit with)."""
         if self.obj is None:
             raise RuntimeError("load_scene first")
-        c = self.scene.cycles
-        saved = c.samples, self.sun.hide_render
-        c.samples = 1
-        self.sun.hide_render = True
-        self.view_layer.material_override = self._normal_material()
-        try:
-            rgba = self._render_file()
-        finally:
-            c.samples, self.sun.hide_render = saved
-            mat = self.view_layer.material_override
-            self.view_layer.material_override = None
-            self._bpy.data.materials.remove(mat)
+        rgba = self._render_override(self._normal_material())
         mask = rgba[:, :, 3] > 0.5
         normal = rgba[:, :, :3] * 2.0 - 1.0
         norm = np.linalg.norm(normal, axis=-1, keepdims=True)
         normal = np.divide(normal, norm, out=np.zeros_like(normal), where=norm > 1e-6)
         normal[~mask] = 0.0
         return mask, normal.astype(np.float32)
+
+    def render_depth(self) -> np.ndarray:
+        """(S, S) float32 depth along the optical axis (5 - z of the point each pixel's
+        centre ray hits; the same for both cameras), NaN outside the mask: an emission
+        override showing CAMERA_ORIGIN - P, 1 sample through the pixel centres."""
+        if self.obj is None:
+            raise RuntimeError("load_scene first")
+        rgba = self._render_override(self._depth_material())
+        depth = rgba[:, :, 2].astype(np.float32)
+        depth[~(rgba[:, :, 3] > 0.5)] = np.nan
+        return depth
 
     def close(self) -> None:
         shutil.rmtree(self._tmpdir, ignore_errors=True)
