@@ -37,6 +37,8 @@ def render(
     jitter: float = typer.Option(_default("jitter"), "--jitter", metavar="DEG", help="Random offset of each light direction from the spiral, degrees."),
     max_bounces: int = typer.Option(_default("max_bounces"), "--max-bounces", metavar="N", help="Cycles bounces (global illumination)."),
     threads: int = typer.Option(_default("threads"), "--threads", metavar="N", help="Cycles CPU threads (0 = all cores)."),
+    fov: float = typer.Option(None, "--fov", metavar="DEG", help="A pinhole camera of this field of view at distance 5 (writes intrinsics.txt and depth_gt.npy; not resumed)."),
+    light_distance: float = typer.Option(None, "--light-distance", metavar="D", help="With --fov: point lights D from the object's centre, 1 < D < 5 (the object fills the unit sphere); writes light_positions.txt."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
 ) -> None:
     """Render MESH under N lights into a capture folder that `cnnps predict` reads."""
@@ -44,5 +46,5 @@ def render(
 
     path = render_folder(mesh, out, lights=lights, size=size, samples=samples, material=material,
                          superpixels=superpixels, seed=seed, device=device, jitter=jitter, max_bounces=max_bounces,
-                         threads=threads, progress=progress)
+                         threads=threads, fov=fov, light_distance=light_distance, progress=progress)
     typer.echo(f"wrote {path}")
