@@ -42,7 +42,9 @@ Brooks, discretised on the mask as in Quéau, Durou & Aujol's survey:
   unknown zeta. Those are integrated exactly as the orthographic gradients (p = zeta_u,
   q = -zeta_v), and d = exp(zeta + c). Nothing in the normals fixes c (a surface and its
   copy scaled about the camera have the same normals), so each component is scaled to a
-  median depth of ``distance`` (default 1: shape up to scale). The grazing test uses
+  median depth of ``distance`` (default 1: shape up to scale). With ``discontinuities``,
+  ``sigma`` is then in log-depth units (a relative depth change per pixel), not pixels of
+  height: 0.1 cuts only jumps of about 10 % of the depth. The grazing test uses
   the cosine between the normal and the pixel's view, -n . r / |r|, in place of n_z.
 * Grazing normals. n_z is clamped to ``nz_min`` (slopes of at most 1 / nz_min pixels
   per pixel), and equations touching a pixel with n_z < nz_min are down-weighted in
