@@ -25,18 +25,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cnnps.ps.camera import point_light_directions
 from cnnps.ps.integrate import integrate
 from cnnps.ps.least_squares import least_squares_per_pixel
-from cnnps.ps.near_lights import (
-    default_distance,
-    depth_change,
-    pixel_lights,
-    surface_points,
-)
+from cnnps.ps.near_lights import default_distance, depth_change, surface_points
 
 SCALE_PIXELS = 20000  # at most this many mask pixels (a regular subgrid) in the scale search
 SCALE_RANGE = (1 / 3, 3.0)  # candidate median depths, relative to the lights' median distance
-SCALE_GRID = 17  # log-spaced candidates, then a golden-section refinement around the best
+SCALE_GRID = 17  # log-spaced candidates, then a bounded Brent refinement (scipy) around the best
 SCALE_REFINE = 10
 KEEP_QUANTILE = 0.75  # the residual uses each pixel's lit observations up to this quantile (highlights out)
 
@@ -113,10 +109,10 @@ def estimate_distance(values: Callable, mask: np.ndarray, K: np.ndarray, positio
     ``values(index)``: (n, m) float32 values (divided by the lights' intensities) of the
     mask pixels ``index`` (row-major mask order). Candidates: SCALE_GRID log-spaced
     median depths over SCALE_RANGE times the lights' median distance from the camera, then
-    SCALE_REFINE golden-section steps around the best; each runs up to ``rounds``
-    least-squares rounds on a regular subgrid of at most SCALE_PIXELS mask pixels.
+    at most SCALE_REFINE steps of scipy's bounded Brent search around the best; each
+    candidate runs up to ``rounds`` least-squares rounds (:func:`run_rounds`) on a
+    regular subgrid of at most SCALE_PIXELS mask pixels.
     """
-    H, W = mask.shape
     stride = max(1, int(np.ceil(np.sqrt(mask.sum() / SCALE_PIXELS))))
     sub = np.zeros_like(mask)
     sub[::stride, ::stride] = mask[::stride, ::stride]
@@ -126,46 +122,34 @@ def estimate_distance(values: Callable, mask: np.ndarray, K: np.ndarray, positio
     Ks = np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ K  # pixel (r, c) of the subgrid is (stride r, stride c)
     rows, cols = np.nonzero(small)
 
-    def residual(d: float) -> float:
-        depth = np.full(small.shape, d)
-        for _ in range(rounds):
-            L, scale = pixel_lights(surface_points(Ks, rows, cols, depth[small]), positions)
-            J = I / scale
-            N, albedo = least_squares_per_pixel(J, L, shadow_threshold=0.0)
-            normal = np.zeros(small.shape + (3,))
-            normal[small] = np.where(albedo[:, None] > 0, N, [0.0, 0.0, 1.0])
-            new = integrate(normal, small, intrinsics=Ks, distance=d).depth.astype(np.float64)
-            change = depth_change(new[small], depth[small])
-            depth = new
-            if change < tolerance:
-                break
-        L, scale = pixel_lights(surface_points(Ks, rows, cols, depth[small]), positions)
+    def normals_at(depth: np.ndarray, _final: bool):
+        L, scale = point_light_directions(surface_points(Ks, rows, cols, depth[small]), positions)
+        N, albedo = least_squares_per_pixel(I / scale, L, shadow_threshold=0.0)
+        normal = np.zeros(small.shape + (3,))
+        normal[small] = np.where(albedo[:, None] > 0, N, [0.0, 0.0, 1.0])
+        return normal, None
+
+    tried: dict[float, float] = {}
+
+    def residual(t: float) -> float:
+        """The relit residual of the least-squares surface at median depth base * e^t."""
+        depth = run_rounds(normals_at, small, Ks, positions, distance=base * np.exp(t), rounds=rounds,
+                           tolerance=tolerance, final_pass=False).depth
+        L, scale = point_light_directions(surface_points(Ks, rows, cols, depth[small]), positions)
         J = I / scale
         use = (J > 0) & (J <= np.quantile(np.where(J > 0, J, np.nan), KEEP_QUANTILE, axis=1)[:, None])
         N, albedo = least_squares_per_pixel(J, L, missing=~use)
         relit = albedo[:, None] * np.clip(np.einsum("pk,pmk->pm", N, L), 0.0, None)
-        return float(np.sqrt(np.sum(((relit - J) * use) ** 2) / max(np.sum((J * use) ** 2), 1e-300)))
+        tried[float(t)] = float(np.sqrt(np.sum(((relit - J) * use) ** 2) / max(np.sum((J * use) ** 2), 1e-300)))
+        return tried[float(t)]
+
+    from scipy.optimize import minimize_scalar
 
     base = default_distance(positions)
     logs = np.linspace(np.log(SCALE_RANGE[0]), np.log(SCALE_RANGE[1]), SCALE_GRID)
-    tried = {float(t): residual(base * np.exp(t)) for t in logs}
-    k = int(np.argmin([tried[float(t)] for t in logs]))
-    lo, hi = logs[max(k - 1, 0)], logs[min(k + 1, len(logs) - 1)]
-    g = (np.sqrt(5.0) - 1.0) / 2.0
-    a, b = hi - g * (hi - lo), lo + g * (hi - lo)
-    fa, fb = residual(base * np.exp(a)), residual(base * np.exp(b))
-    tried.update({float(a): fa, float(b): fb})
-    for _ in range(SCALE_REFINE):
-        if fa <= fb:
-            hi, b, fb = b, a, fa
-            a = hi - g * (hi - lo)
-            fa = residual(base * np.exp(a))
-            tried[float(a)] = fa
-        else:
-            lo, a, fa = a, b, fb
-            b = lo + g * (hi - lo)
-            fb = residual(base * np.exp(b))
-            tried[float(b)] = fb
+    k = int(np.argmin([residual(t) for t in logs]))
+    minimize_scalar(residual, bounds=(logs[max(k - 1, 0)], logs[min(k + 1, len(logs) - 1)]), method="bounded",
+                    options={"maxiter": SCALE_REFINE, "xatol": 1e-4})
     best = min(tried, key=tried.get)
     curve = [[round(float(base * np.exp(t)), 6), round(r, 6)] for t, r in sorted(tried.items())]
     return float(base * np.exp(best)), {"pixels": int(small.sum()), "stride": stride,

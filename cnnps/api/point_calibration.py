@@ -138,6 +138,6 @@ def write_point_calibration(cal: PointCalibration, out_dir) -> None:
     from cnnps.infra.atomic import atomic_dir
 
     with atomic_dir(out_dir) as tmp:
-        (tmp / "light_positions.txt").write_text("".join(f"{x:.9f} {y:.9f} {z:.9f}\n" for x, y, z in cal.positions))
-        (tmp / "intrinsics.txt").write_text("".join(" ".join(f"{v:.9g}" for v in row) + "\n" for row in cal.intrinsics))
+        np.savetxt(tmp / "light_positions.txt", cal.positions, fmt="%.9f")
+        np.savetxt(tmp / "intrinsics.txt", cal.intrinsics, fmt="%.12g")
         (tmp / "calibration.json").write_text(json.dumps(cal.report, indent=2) + "\n")

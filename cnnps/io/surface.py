@@ -91,10 +91,9 @@ def surface_mesh(depth: np.ndarray, normals: np.ndarray, mask: np.ndarray, intri
     if intrinsics is None:
         vertices = np.stack([c - (W - 1) / 2.0, (H - 1) / 2.0 - r, depth[r, c].astype(np.float64)], axis=1)
     else:
-        from cnnps.ps.camera import OPENCV_TO_CAPTURE
+        from cnnps.ps.camera import pixel_rays
 
-        rays = np.stack([c, r, np.ones(r.size)], axis=1) @ (OPENCV_TO_CAPTURE @ np.linalg.inv(intrinsics)).T
-        vertices = rays * depth[r, c].astype(np.float64)[:, None]
+        vertices = pixel_rays(intrinsics, r, c) * depth[r, c].astype(np.float64)[:, None]
     n = np.asarray(normals, dtype=np.float64)[r, c]
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     return trimesh.Trimesh(vertices=vertices, faces=faces, vertex_normals=n, process=False, validate=False)

@@ -53,14 +53,19 @@ def check_intrinsics(K) -> np.ndarray:
     return K
 
 
+def pixel_rays(K, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """(P, 3) capture-frame rays diag(1, -1, -1) K^-1 (u, v, 1) of pixels (row v, column
+    u), the centre of the top-left pixel being (0, 0); z = -1, so depth d along the optical
+    axis puts the pixel's surface point at d x ray."""
+    uv1 = np.stack([np.asarray(cols, np.float64), np.asarray(rows, np.float64), np.ones(np.size(rows))], axis=1)
+    return uv1 @ (OPENCV_TO_CAPTURE @ np.linalg.inv(K)).T
+
+
 def view_directions(K, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """(P, 3) unit vectors from the surface seen at pixel (row, col) toward the camera,
     in the capture frame (+z at the principal point). ``rows``/``cols``: (P,) pixel
     coordinates (v, u), the centre of the top-left pixel being (0, 0)."""
-    K = check_intrinsics(K)
-    uv1 = np.stack([np.asarray(cols, np.float64), np.asarray(rows, np.float64), np.ones(np.size(rows))], axis=1)
-    ray_cv = uv1 @ np.linalg.inv(K).T  # OpenCV frame, toward the scene
-    view = -(ray_cv @ OPENCV_TO_CAPTURE.T)  # capture frame, toward the camera
+    view = -pixel_rays(check_intrinsics(K), rows, cols)
     return view / np.linalg.norm(view, axis=1, keepdims=True)
 
 

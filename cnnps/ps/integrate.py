@@ -223,13 +223,13 @@ def log_depth_gradients(normals: np.ndarray, mask: np.ndarray, K: np.ndarray, nz
     :func:`gradients` and the module docstring)."""
     if not (0.0 < nz_min <= 1.0):
         raise ValueError(f"nz_min must be in (0, 1], got {nz_min}")
-    from cnnps.ps.camera import OPENCV_TO_CAPTURE
+    from cnnps.ps.camera import OPENCV_TO_CAPTURE, pixel_rays
 
     n = np.asarray(normals, dtype=np.float64)[mask]
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
     rows, cols = np.nonzero(mask)
-    Kinv = OPENCV_TO_CAPTURE @ np.linalg.inv(K)  # capture-frame ray of (u, v, 1): columns r_u, r_v, r_0
-    ray = cols[:, None] * Kinv[:, 0] + rows[:, None] * Kinv[:, 1] + Kinv[:, 2]
+    Kinv = OPENCV_TO_CAPTURE @ np.linalg.inv(K)  # the ray's derivatives: r_u, r_v = columns 0, 1
+    ray = pixel_rays(K, rows, cols)
     ray_len = np.linalg.norm(ray, axis=1)
     cos = -np.einsum("pk,pk->p", n, ray) / ray_len  # cosine between the normal and the view
     clamped = cos < nz_min
@@ -321,7 +321,7 @@ def integrate(
     z, iterations = None, []
     passes = 1 + (int(reweights) if discontinuities else 0)
     for k in range(passes):
-        gh, gv = _targets(graph, p, q)
+        gh, gv = _targets(graph, p, q)  # recomputed per pass rather than held through the solve (memory)
         if k > 0:
             dh, dv = graph.edge_differences(z)
             wh = (wh0 * np.maximum(1.0 / (1.0 + ((dh - gh) / sigma) ** 2), WEIGHT_FLOOR)).astype(np.float32)

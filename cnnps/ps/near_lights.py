@@ -6,8 +6,9 @@ l = (P - X) / |P - X| with irradiance I / |P - X|^2 (:func:`cnnps.ps.camera.poin
 Both depend on X, which is what photometric stereo is after. Under a pinhole camera
 (intrinsics K) pixel (u, v) sees X = d r(u, v), r = diag(1, -1, -1) K^-1 (u, v, 1) its ray
 in the capture frame and d its depth along the optical axis, so a depth map gives every
-pixel's lights (:func:`pixel_lights`). The rounds (run by ``cnnps predict`` when a
-capture has ``light_positions.txt``, :func:`cnnps.api.prediction.predict_folder`):
+pixel's lights (:func:`cnnps.ps.camera.point_light_directions` at its
+:func:`surface_points`). The rounds (run by ``cnnps predict`` when a capture has
+``light_positions.txt``, :func:`cnnps.api.prediction.predict_folder`):
 
 1. start from the plane at depth ``distance`` (``--distance``, or :func:`default_distance`);
 2. compute each pixel's lights from the current depth, divide its values by I / r^2,
@@ -32,7 +33,8 @@ z > 0 is behind it (refused by :func:`check_positions`).
 >>> X = surface_points(K, np.array([31.5]), np.array([31.5]), np.array([2.0]))
 >>> X + 0.0
 array([[ 0.,  0., -2.]])
->>> dirs, scale = pixel_lights(X, np.array([[0.0, 0.0, 0.0], [0.0, 1.0, -2.0]]))
+>>> from cnnps.ps.camera import point_light_directions
+>>> dirs, scale = point_light_directions(X, np.array([[0.0, 0.0, 0.0], [0.0, 1.0, -2.0]]))
 >>> np.round(dirs[0], 6) + 0.0, np.round(scale[0], 6)
 (array([[0., 0., 1.],
        [0., 1., 0.]]), array([0.25, 1.  ]))
@@ -42,7 +44,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cnnps.ps.camera import OPENCV_TO_CAPTURE, point_light_directions
+from cnnps.ps.camera import pixel_rays
 
 DEFAULT_ROUNDS = 8  # most rounds of normals -> depth -> lights
 DEFAULT_TOLERANCE = 1e-3  # stop when the median relative depth change falls below this
@@ -81,24 +83,9 @@ def directions_from_positions(positions: np.ndarray) -> np.ndarray:
     return d / np.where(n > 0, n, 1.0)
 
 
-def pixel_rays(K: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """(P, 3) capture-frame rays diag(1, -1, -1) K^-1 (u, v, 1) of pixels (row v, column
-    u); z = -1, so depth d along the optical axis puts the pixel's point at d x ray."""
-    uv1 = np.stack([np.asarray(cols, np.float64), np.asarray(rows, np.float64), np.ones(np.size(rows))], axis=1)
-    return uv1 @ (OPENCV_TO_CAPTURE @ np.linalg.inv(K)).T
-
-
 def surface_points(K: np.ndarray, rows: np.ndarray, cols: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """(P, 3) surface points of pixels (rows, cols) at ``depth`` (P,) along the optical axis."""
     return pixel_rays(K, rows, cols) * np.asarray(depth, np.float64)[:, None]
-
-
-def pixel_lights(points: np.ndarray, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(directions (P, m, 3) unit, scale (P, m) = 1 / r^2) of unit-intensity point lights
-    at ``positions`` (m, 3) seen from ``points`` (P, 3): a value divided by ``scale`` is
-    what a distant light of unit irradiance from that direction would give (the lights'
-    own intensities are divided out as for distant lights, by light_intensities.txt)."""
-    return point_light_directions(points, positions)
 
 
 def depth_change(new: np.ndarray, old: np.ndarray) -> float:

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cnnps.ps.near_lights import pixel_rays
+from cnnps.ps.camera import pixel_rays
 
 
 def outline_points(cx: float, cy: float, radius: float, count: int = 72) -> tuple[np.ndarray, np.ndarray]:

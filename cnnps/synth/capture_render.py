@@ -641,6 +641,35 @@ def load_mesh_arg(mesh) -> tuple[Any, dict]:
     return load_mesh(path), {"mesh": str(path), "mesh_sha256": file_sha256(path) if path.is_file() else None}
 
 
+def capture_material(material: str, superpixels: int, seed: int):
+    """The renderer material of a capture: the white Lambertian dict for ``lambertian``,
+    else a callable ``mask -> material dict`` drawing the category on ``superpixels``
+    superpixels of the mask with ``seed``; a ConfigError for an unknown category."""
+    if material not in MATERIAL_KINDS:
+        raise ConfigError(f"material must be one of {', '.join(MATERIAL_KINDS)}, got {material!r}")
+    if superpixels < 1:
+        raise ConfigError(f"superpixels must be >= 1, got {superpixels}")
+    if material == "lambertian":
+        return lambertian_material()
+
+    def mat(mask: np.ndarray) -> dict:
+        from cnnps.synth.material_maps import sample_material_maps
+
+        maps = sample_material_maps(mask, material, superpixels, derive_seed(int(seed), "material"))
+        return principled_material(extend_maps(dict(maps.params), mask))
+
+    return mat
+
+
+def capture_lights(p: RenderSettings) -> np.ndarray:
+    """(lights, 3) unit directions of a capture's lights: the hemisphere spiral with
+    ``p.jitter_deg`` of jitter, seeded by ``p.seed``."""
+    from cnnps.synth.lights import hemisphere_lights
+
+    return hemisphere_lights(p.lights, p.jitter_deg, seed=derive_seed(int(p.seed), "lights"),
+                             min_elevation_deg=p.min_elevation_deg)
+
+
 def render_capture(
     mesh,
     out_dir: str | Path,
@@ -667,31 +696,18 @@ def render_capture(
     ``environment``: a dim uniform white world, strength relative to the sun's irradiance
     (:func:`render_into`; 0 = black world, and then the key is the same as before it existed).
     """
-    if material not in MATERIAL_KINDS:
-        raise ConfigError(f"material must be one of {', '.join(MATERIAL_KINDS)}, got {material!r}")
-    if superpixels < 1:
-        raise ConfigError(f"superpixels must be >= 1, got {superpixels}")
+    mat = capture_material(material, superpixels, seed)
     if not (np.isfinite(environment) and environment >= 0):
         raise ConfigError(f"environment must be a finite number >= 0, got {environment!r}")
     p = RenderSettings(
         size=size, samples=samples, lights=lights, jitter_deg=jitter_deg, light_intensity=light_intensity,
         max_bounces=max_bounces, device=device, seed=seed, threads=threads,
     )  # validation
-    from cnnps.synth.lights import hemisphere_lights
-
     tm, info = load_mesh_arg(mesh)
     vertices = np.asarray(tm.vertices, dtype=np.float64)
     faces = np.asarray(tm.faces, dtype=np.int64)
     mesh_hash = bytes_sha256(vertices.astype(np.float32).tobytes(), faces.astype(np.int64).tobytes())
-    L = hemisphere_lights(p.lights, p.jitter_deg, seed=derive_seed(int(seed), "lights"), min_elevation_deg=p.min_elevation_deg)
-    if material == "lambertian":
-        mat: Any = lambertian_material()
-    else:
-        def mat(mask: np.ndarray) -> dict:
-            from cnnps.synth.material_maps import sample_material_maps
-
-            maps = sample_material_maps(mask, material, superpixels, derive_seed(int(seed), "material"))
-            return principled_material(extend_maps(dict(maps.params), mask))
+    L = capture_lights(p)
 
     key = capture_key({"mesh": mesh_hash, "material": [material, superpixels], "params": p.picture_params(), "v": VERSION},
                       environment)

@@ -70,27 +70,23 @@ def render_rig_capture(
     plus ``fov_deg`` (the camera's field of view, in (0, 120)) and ``light_distance``
     (None: suns; else point lights that far from the object's centre, in (1, 5))."""
     from cnnps.infra.atomic import atomic_dir
-    from cnnps.infra.hashing import derive_seed
     from cnnps.infra.progress import progress_bar
     from cnnps.io.images import write_exr, write_png
     from cnnps.synth.capture_render import (
-        MATERIAL_KINDS,
         RenderSettings,
-        extend_maps,
+        capture_lights,
+        capture_material,
         image_names,
         lambertian_material,
         load_mesh_arg,
-        principled_material,
     )
-    from cnnps.synth.lights import hemisphere_lights
 
     if not (np.isfinite(fov_deg) and 0 < fov_deg < 120):
         raise ConfigError(f"fov must be in (0, 120) degrees, got {fov_deg!r}")
     if light_distance is not None and not (np.isfinite(light_distance) and 1.0 < light_distance < 5.0):
         raise ConfigError(f"light distance must be in (1, 5): outside the unit sphere of the object and in front "
                           f"of the camera at distance 5, got {light_distance!r}")
-    if material not in MATERIAL_KINDS:
-        raise ConfigError(f"material must be one of {', '.join(MATERIAL_KINDS)}, got {material!r}")
+    mat = capture_material(material, superpixels, seed)
     p = RenderSettings(size=size, samples=samples, lights=lights, jitter_deg=jitter_deg,
                        light_intensity=light_intensity, max_bounces=max_bounces, device=device, seed=seed,
                        threads=threads)  # validation
@@ -105,8 +101,7 @@ def render_rig_capture(
 
     require_blender()
     tm, info = load_mesh_arg(mesh)
-    L = hemisphere_lights(p.lights, p.jitter_deg, seed=derive_seed(int(seed), "lights"),
-                          min_elevation_deg=p.min_elevation_deg)
+    L = capture_lights(p)
     positions = None if light_distance is None else light_positions(L, light_distance)
     names = image_names(len(L))
     t0 = time.perf_counter()
@@ -118,11 +113,8 @@ def render_rig_capture(
         if not mask.any():
             raise InputError(out, "the mesh covers no pixel of the image (empty mask)")
         depth = r.render_depth()
-        if material != "lambertian":
-            from cnnps.synth.material_maps import sample_material_maps
-
-            maps = sample_material_maps(mask, material, superpixels, derive_seed(int(seed), "material"))
-            r.set_material(principled_material(extend_maps(dict(maps.params), mask)))
+        if callable(mat):
+            r.set_material(mat(mask))
         for i in progress_bar(range(len(L)), desc=out.name, unit="light", leave=False, disable=not progress):
             img = (r.render(L[i], p.light_intensity) if positions is None
                    else r.render_point(positions[i] + np.asarray(CAMERA_ORIGIN), p.light_intensity))
@@ -131,13 +123,12 @@ def render_rig_capture(
         np.save(tmp / "depth_gt.npy", depth)
         write_png(tmp / "mask.png", mask.astype(np.uint8) * 255)
         (tmp / "filenames.txt").write_text("".join(n + "\n" for n in names))
-        (tmp / "light_intensities.txt").write_text("".join(f"{p.light_intensity:.9g}" + f" {p.light_intensity:.9g}" * 2
-                                                           + "\n" for _ in names))
+        np.savetxt(tmp / "light_intensities.txt", np.full((len(L), 3), p.light_intensity), fmt="%.9g")
         if positions is None:
-            (tmp / "light_directions.txt").write_text("".join(f"{x:.9f} {y:.9f} {z:.9f}\n" for x, y, z in L))
+            np.savetxt(tmp / "light_directions.txt", L, fmt="%.9f")
         else:
-            (tmp / "light_positions.txt").write_text("".join(f"{x:.9f} {y:.9f} {z:.9f}\n" for x, y, z in positions))
-        (tmp / "intrinsics.txt").write_text("".join(" ".join(f"{v:.12g}" for v in row) + "\n" for row in r.intrinsics()))
+            np.savetxt(tmp / "light_positions.txt", positions, fmt="%.9f")
+        np.savetxt(tmp / "intrinsics.txt", r.intrinsics(), fmt="%.12g")
         scene: dict[str, Any] = {
             **info, "camera": {"model": "perspective", "fov_deg": float(fov_deg), "position": list(CAMERA_ORIGIN)},
             "lights": ({"model": "sun"} if positions is None

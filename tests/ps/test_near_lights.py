@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from cnnps.ps import camera
+from cnnps.ps.camera import pixel_rays
 from cnnps.ps.integrate import integrate
 from cnnps.ps.least_squares import least_squares_masked, least_squares_per_pixel
-from cnnps.ps.near_lights import check_positions, directions_from_positions, pixel_rays
+from cnnps.ps.near_lights import check_positions, directions_from_positions
 
 
 def _sphere(K, size, centre, radius):

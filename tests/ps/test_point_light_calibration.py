@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from cnnps.ps.near_lights import pixel_rays
+from cnnps.ps.camera import pixel_rays
 from cnnps.ps.point_light_calibration import ball_centre, reflected_ray, triangulate
 
 W, H = 640, 480
@@ -24,9 +24,10 @@ def _lights(m=10, seed=0):
     return np.array([0, 0, -7.5]) + 6.0 * np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], 1)
 
 
-def _chrome(centre, light, sigma_deg=1.0):
-    """(image, mask) of a mirror ball lit by a small light: brightness falls with the angle
-    between each pixel's reflected ray and the direction to the light."""
+def _mirror_ball(centre, toward_light, sigma_deg=1.0):
+    """(image, mask) of a mirror ball seen through K: brightness falls with the angle
+    between each pixel's reflected ray and ``toward_light(X)``, the unit direction from
+    the hit points X (P, 3) to the light."""
     rows, cols = (a.ravel().astype(float) for a in np.mgrid[0:H, 0:W])
     d = pixel_rays(K, rows, cols)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -37,12 +38,19 @@ def _chrome(centre, light, sigma_deg=1.0):
     n = (X - centre) / RADIUS
     v = -d[hit]
     l = 2 * np.sum(n * v, 1, keepdims=True) * n - v
-    to = light - X
-    to /= np.linalg.norm(to, axis=1, keepdims=True)
-    ang = np.arccos(np.clip(np.sum(l * to, 1), -1, 1))
+    ang = np.arccos(np.clip(np.sum(l * toward_light(X), 1), -1, 1))
     img = np.zeros(H * W, np.float32)
     img[hit] = 0.15 + np.exp(-((ang / np.radians(sigma_deg)) ** 2))
     return img.reshape(H, W), hit.reshape(H, W)
+
+
+def _chrome(centre, light):
+    """A mirror ball lit by a small point light at ``light``."""
+    def toward(X):
+        to = light - X
+        return to / np.linalg.norm(to, axis=1, keepdims=True)
+
+    return _mirror_ball(centre, toward)
 
 
 def test_a_balls_centre_comes_from_its_outline_under_a_wide_lens():
@@ -118,22 +126,9 @@ def test_calibrate_finds_point_lights_within_one_percent(tmp_path, capsys):
     assert code == 2 and "--intrinsics" in err and not (tmp_path / "bad").exists()
 
 
-def _chrome_distant(centre, direction, sigma_deg=1.0):
-    """A mirror ball under a distant light from ``direction`` (unit), seen through K."""
-    rows, cols = (a.ravel().astype(float) for a in np.mgrid[0:H, 0:W])
-    d = pixel_rays(K, rows, cols)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    b = d @ centre
-    disc = b * b - (centre @ centre - RADIUS**2)
-    hit = disc > 0
-    X = d[hit] * (b[hit] - np.sqrt(disc[hit]))[:, None]
-    n = (X - centre) / RADIUS
-    v = -d[hit]
-    l = 2 * np.sum(n * v, 1, keepdims=True) * n - v
-    ang = np.arccos(np.clip(l @ direction, -1, 1))
-    img = np.zeros(H * W, np.float32)
-    img[hit] = 0.15 + np.exp(-((ang / np.radians(sigma_deg)) ** 2))
-    return img.reshape(H, W), hit.reshape(H, W)
+def _chrome_distant(centre, direction):
+    """A mirror ball under a distant light from ``direction`` (unit)."""
+    return _mirror_ball(centre, lambda X: np.broadcast_to(direction, X.shape))
 
 
 def test_one_ball_under_distant_lights_with_intrinsics_uses_each_pixels_view(tmp_path):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cnnps.infra.errors import ConfigError
-from cnnps.ps.near_lights import pixel_rays
+from cnnps.ps.camera import pixel_rays
 from tests.support.tiny_scenes import THREADS
 from tests.support.tiny_scenes import sphere as _sphere
 
