@@ -3,7 +3,8 @@
     .venv/bin/python benchmarks/image_subsets.py CAPTURE_DIR [--n 20 10 6] [--seed 0]
 
 The rule (the same for every capture, so held-back objects get subsets drawn the same
-way): the images are those of ``filenames.txt`` after the capture's benchmark drops
+way; :func:`cnnps.io.capture.subset_drop`, which the eval stage's ``real_subsets`` uses):
+the images are those of ``filenames.txt`` after the capture's benchmark drops
 (``bearPNG``: the first 20); n of those m are drawn uniformly without replacement by
 ``numpy.random.default_rng([seed, m, n]).choice(m, n, replace=False)`` and kept in
 filenames.txt order. Writes ``benchmarks/image_lists/<capture>-<n>.txt``, one image name
@@ -15,8 +16,6 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-
-import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 LISTS = REPO / "benchmarks" / "image_lists"
@@ -32,16 +31,12 @@ def usable_images(capture: Path) -> list[str]:
     return [n for i, n in enumerate(names) if i not in drop]
 
 
-def draw(m: int, n: int, seed: int = 0) -> list[int]:
-    """n of range(m), sorted: the seeded rule."""
-    if not 1 <= n <= m:
-        raise ValueError(f"need 1 <= n <= m, got n={n}, m={m}")
-    return sorted(int(i) for i in np.random.default_rng([seed, m, n]).choice(m, n, replace=False))
-
-
 def subset_names(capture: Path, n: int, seed: int = 0) -> list[str]:
-    names = usable_images(capture)
-    return [names[i] for i in draw(len(names), n, seed)]
+    """The n image names kept by the seeded rule (:func:`cnnps.io.capture.subset_drop`)."""
+    from cnnps.io.capture import read_filenames, subset_drop
+
+    drop = set(subset_drop(capture, n, seed))
+    return [name for i, name in enumerate(read_filenames(capture)) if i not in drop]
 
 
 def list_path(capture_name: str, n: int) -> Path:

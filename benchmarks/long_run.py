@@ -5,6 +5,8 @@ CPU-time ledger, and a fallback to committed weights.
     .venv/bin/python benchmarks/long_run.py resume v4 [--root /work/runs] [--stages render extract train]
     .venv/bin/python benchmarks/long_run.py save v4 [--root /work/runs]      # then commit benchmarks/runs/v4/
     .venv/bin/python benchmarks/long_run.py status v4
+    .venv/bin/python benchmarks/long_run.py study v4                  # a clone for `dvc exp run`
+    .venv/bin/python benchmarks/long_run.py exp v4 -- -n NAME -S train.lr=1e-4   # one variant, timed
 
 The work tree is laid anew every session and only git is certain, but a folder outside
 it often survives. So a run lives in ``ROOT/NAME/``:
@@ -16,6 +18,11 @@ it often survives. So a run lives in ``ROOT/NAME/``:
 - ``data/``: the stage outputs; every stage skips the work it finds done (scenes, shards)
   and the train stage resumes from its newest checkpoint, so ``resume`` after a kill
   continues exactly where the folder left off;
+- ``study/``: a second clone at the same commit for the variant study (``study``): its
+  ``params.yaml`` is the run's, its data phase is linked to the run's folders, and
+  ``dvc exp run -S train.lr=...`` there trains and scores one variant into its own
+  ``data/train`` and ``data/eval``; ``dvc exp show`` is the table. ``exp`` runs one such
+  experiment and books its time in the ledger as stage ``study``;
 - ``ledger.json``: wall and CPU seconds of every stage call (the stage's whole process
   tree, sampled every ``--poll`` seconds, so a killed call loses at most that much), with
   the CPU model of the machine it ran on.
@@ -182,6 +189,9 @@ class Run:
         if meshes.get("mesh_dir") and not Path(meshes["mesh_dir"]).is_absolute():
             # relative to the repository the preset was written for (e.g. ../shared/data/meshes)
             meshes["mesh_dir"] = str((REPO / meshes["mesh_dir"]).resolve())
+        ev = params.get("eval") or {}
+        if ev.get("real_captures"):  # the same: relative to this repository
+            ev["real_captures"] = [c if Path(c).is_absolute() else str((REPO / c).resolve()) for c in ev["real_captures"]]
         _write_json(self.dir / "run.json", {"name": self.name, "commit": sha, "preset": preset})
         self.params.write_text(yaml.safe_dump(params, sort_keys=False))
         return {"commit": sha, "preset": preset, "params": params}
@@ -211,12 +221,21 @@ class Run:
         return load_checkpoint(weights)[2]
 
     def run_stage(self, stage: str, poll: float) -> int:
+        cmd = [sys.executable, "-c", "import cnnps, sys; assert cnnps.__file__.startswith(sys.argv[1]), cnnps.__file__; "
+               "from cnnps.pipeline.cli import main; sys.argv = ['cnnps'] + sys.argv[2:]; main()",
+               str(self.code), "run-stage", stage, "--params", str(self.params)]
+        return self._timed(stage, cmd, self.code, poll)
+
+    def _timed(self, stage: str, cmd: list[str], cwd: Path, poll: float, **extra) -> int:
+        """Run ``cmd`` in ``cwd`` with ``cnnps`` imported from there; its time into the ledger."""
         from benchmarks.machine import cpu_info
 
-        env = dict(os.environ, PYTHONPATH=str(self.code))
+        bindir = str(Path(sys.executable).parent)  # `cnnps` and `dvc` of this interpreter
+        env = dict(os.environ, PYTHONPATH=str(cwd), PATH=bindir + os.pathsep + os.environ.get("PATH", ""))
         ledger = json.loads(self.ledger.read_text()) if self.ledger.is_file() else {"calls": []}
-        entry = {"stage": stage, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "cpu": cpu_info()["model"],
-                 "logical_cpus": os.cpu_count(), "wall_s": 0.0, "cpu_s": 0.0, "finished": False}
+        entry = {"stage": stage, **extra, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "cpu": cpu_info()["model"],
+                 "logical_cpus": os.cpu_count(), "commit": self.record()["commit"][:12], "wall_s": 0.0, "cpu_s": 0.0,
+                 "finished": False}
         ledger["calls"].append(entry)
 
         def on_sample(wall, cpu):
@@ -224,13 +243,60 @@ class Run:
             _write_json(self.ledger, ledger)
 
         run_timed.base = _children_cpu()
-        cmd = [sys.executable, "-c", "import cnnps, sys; assert cnnps.__file__.startswith(sys.argv[1]), cnnps.__file__; "
-               "from cnnps.pipeline.cli import main; sys.argv = ['cnnps'] + sys.argv[2:]; main()",
-               str(self.code), "run-stage", stage, "--params", str(self.params)]
-        rc = run_timed(cmd, env, self.code, poll, on_sample)
+        rc = run_timed(cmd, env, cwd, poll, on_sample)
         entry.update(finished=rc == 0, exit=rc)
         _write_json(self.ledger, ledger)
         return rc
+
+    # ------------------------------------------------------------------------- the variant study
+
+    @property
+    def study(self) -> Path:
+        return self.dir / "study"
+
+    def make_study(self) -> list[str]:
+        """A second clone at the run's commit where ``dvc exp run`` tries variants.
+
+        Its ``params.yaml`` is the run's with ``data_dir: data``, committed there as the
+        experiments' baseline; ``data/meshes``, ``materials``, ``render`` and ``extract`` are
+        links to the run's folders (every variant reads the same renders and shards), while
+        ``data/train`` and ``data/eval`` are the study's own, so no variant touches the run's
+        checkpoints. A clone of another commit is replaced (its experiments go with it)."""
+        rec, notes = self.record(), []
+        head = None
+        if (self.study / ".git").is_dir():
+            head = subprocess.run(["git", "-C", str(self.study), "rev-parse", "HEAD~1"], capture_output=True,
+                                  text=True).stdout.strip()
+        if head != rec["commit"]:
+            if self.study.exists():
+                shutil.rmtree(self.study)
+                notes.append(f"replaced the study clone of {str(head)[:12]}")
+            subprocess.run(["git", "clone", "-q", "--no-checkout", str(REPO), str(self.study)], check=True)
+            subprocess.run(["git", "-C", str(self.study), "checkout", "-q", "--detach", rec["commit"]], check=True)
+            params = yaml.safe_load(self.params.read_text())
+            params["data_dir"] = "data"
+            (self.study / "params.yaml").write_text(
+                f"# the parameters of long run {self.name!r} (benchmarks/long_run.py), data in {self.data}\n"
+                + yaml.safe_dump(params, sort_keys=False))
+            git = ["git", "-C", str(self.study), "-c", "user.name=cnnps long run", "-c", "user.email=long-run@cnnps"]
+            subprocess.run([*git, "commit", "-qam", f"the study's baseline: the parameters of run {self.name}"],
+                           check=True)
+            notes.append(f"cloned {rec['commit'][:12]} into {self.study}")
+        data = self.study / "data"
+        data.mkdir(exist_ok=True)
+        for stage in ("meshes", "materials", "render", "extract"):
+            link = data / stage
+            if not link.is_symlink():
+                if link.exists():
+                    shutil.rmtree(link)
+                link.symlink_to(self.data / stage, target_is_directory=True)
+        return notes
+
+    def run_exp(self, args: list[str], poll: float) -> int:
+        """``dvc exp run ARGS`` in the study clone, its CPU time in the ledger (stage ``study``)."""
+        self.make_study()
+        cmd = [str(Path(sys.executable).parent / "dvc"), "exp", "run", *args]
+        return self._timed("study", cmd, self.study, poll, command=" ".join(["dvc", "exp", "run", *args]))
 
     def totals(self) -> dict:
         ledger = json.loads(self.ledger.read_text()) if self.ledger.is_file() else {"calls": []}
@@ -278,7 +344,7 @@ class Run:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("cmd", choices=["start", "resume", "save", "status"])
+    ap.add_argument("cmd", choices=["start", "resume", "save", "status", "study", "exp"])
     ap.add_argument("name")
     ap.add_argument("--root", type=Path, default=Path("/work/runs"))
     ap.add_argument("--preset")
@@ -286,13 +352,20 @@ def main(argv=None) -> int:
     ap.add_argument("--stages", nargs="+", default=STAGES, choices=STAGES)
     ap.add_argument("--poll", type=float, default=30.0)
     ap.add_argument("--carried", type=Path, default=CARRIED, help="the runs' folder in git")
-    a = ap.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    exp_args = argv[argv.index("--") + 1:] if "--" in argv else []  # exp: the arguments of `dvc exp run`
+    a = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
     run = Run(a.name, a.root, a.carried)
     if a.cmd == "start":
         if not a.preset:
             ap.error("start needs --preset")
+        old = run.record() if (run.carried / "run.json").is_file() else None
         made = run.create(a.commit, a.preset)
-        _write_json(run.carried / "run.json", {"name": a.name, **made})
+        rec = {"name": a.name, **made}
+        if old and old["commit"] != made["commit"]:  # the same run, its next phase at another commit
+            rec["history"] = [*old.get("history", []), {"commit": old["commit"], "preset": old["preset"],
+                                                        "until": time.strftime("%Y-%m-%dT%H:%M:%S%z")}]
+        _write_json(run.carried / "run.json", rec)
         print(f"{run.dir}: code at {made['commit'][:12]}, data in {run.data}; record in {run.carried}/run.json")
         return 0
     if a.cmd == "resume":
@@ -305,6 +378,13 @@ def main(argv=None) -> int:
                 return rc
         print(json.dumps(run.totals(), indent=1))
         return 0
+    if a.cmd == "study":
+        for note in run.make_study():
+            print(note)
+        print(f"{run.study}: `dvc exp run` there (or `long_run.py exp {a.name} -- ARGS`, which records its time)")
+        return 0
+    if a.cmd == "exp":
+        return run.run_exp(exp_args, a.poll)
     if a.cmd == "save":
         out = run.save()
         print(f"saved {run.carried}/ledger.json" + (f" and {out}" if out else " (no checkpoint yet)"))

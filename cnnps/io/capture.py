@@ -467,6 +467,30 @@ def _normalise_drop(drop, m: int, path: Path) -> list[int]:
     return idx
 
 
+def subset_drop(path: str | Path, n: int, seed: int = 0) -> list[int]:
+    """Indices (0-based, filenames.txt order) to drop so that ``n`` images of a capture
+    remain, drawn by one seeded rule: the same for every capture, so held-back objects get
+    their sparse subsets the same way.
+
+    The candidates are the images left after the benchmark default drops
+    (:data:`DEFAULT_DROPS`: ``bearPNG`` loses its first 20); of those m, ``n`` are drawn
+    uniformly without replacement by ``numpy.random.default_rng([seed, m, n]).choice(m, n,
+    replace=False)``. Pass the result as ``drop`` to :func:`scan_capture` /
+    :func:`load_capture`. A ConfigError unless ``MIN_IMAGES <= n <= m``.
+
+    Example: ``load_capture(d, drop=subset_drop(d, 10))``: 10 of ballPNG's 96 images.
+    """
+    root = Path(path)
+    names = read_filenames(root)
+    default = set(DEFAULT_DROPS.get(root.name, ()))
+    usable = [i for i in range(len(names)) if i not in default]
+    m = len(usable)
+    if not MIN_IMAGES <= n <= m:
+        raise ConfigError(f"{root}: cannot keep {n} images of {m} (need {MIN_IMAGES} <= n <= {m})")
+    keep = {usable[int(i)] for i in np.random.default_rng([seed, m, n]).choice(m, n, replace=False)}
+    return [i for i in range(len(names)) if i not in keep]
+
+
 def scan_capture(
     path: str | Path,
     drop=None,

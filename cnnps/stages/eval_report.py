@@ -47,6 +47,23 @@ def summarize(results: dict[str, dict]) -> dict:
     }
 
 
+def summarize_by_lights(results: dict[str, dict]) -> dict:
+    """Per image count (as a string key): :func:`summarize` of the captures with that many
+    images, plus ``<method>_vs_least_squares``, each CNN's mean error over least squares'
+    (the ratio the light-count targets are written in)."""
+    groups: dict[int, dict[str, dict]] = {}
+    for n, r in results.items():
+        if r.get("methods"):
+            groups.setdefault(int(r["n_images"]), {})[n] = r
+    out = {}
+    for m in sorted(groups):
+        s = summarize(groups[m])
+        base = s.get(LAMBERTIAN, {}).get("mean_deg")
+        ratios = {f"{k}_vs_least_squares": v["mean_deg"] / base for k, v in s.items() if k != LAMBERTIAN and base}
+        out[str(m)] = {**s, **ratios}
+    return out
+
+
 SHIPPED = "shipped_k10"  # the shipped model with K=10, scored beside the trained one (cnnps demo)
 
 

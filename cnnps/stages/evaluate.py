@@ -20,7 +20,10 @@ scored on the same pixels (mask pixels with a ground-truth normal,
 Outputs (the report and pictures are replaced together at the end):
 
 - ``data_dir/eval/metrics.json``: per capture and method the error statistics
-  (``mean_deg``, ``median_deg``, ...), plus a ``summary`` (mean over captures);
+  (``mean_deg``, ``median_deg``, ...), plus a ``summary`` (mean over synthetic captures),
+  ``summary_real``, and ``by_lights`` / ``by_lights_nonconvex`` (per light count, all
+  test shapes / all but the sphere: means and each CNN's ratio to least squares, the
+  columns ``dvc exp show`` compares experiments by);
 - ``data_dir/eval/report.md``: a Markdown table and, per capture, input image,
   predicted normals, ground truth and error maps (PNGs in ``data_dir/eval/pictures/``).
 
@@ -51,6 +54,7 @@ from cnnps.stages.eval_report import (  # noqa: F401 (format_table: part of this
     input_picture,
     method_name,
     summarize,
+    summarize_by_lights,
     write_report,
 )
 
@@ -65,8 +69,10 @@ class Params:
     ``test_shapes``: ``sphere`` and/or procedural kinds (:data:`cnnps.synth.procedural.PROCEDURAL_KINDS`);
     ``synthetic: false`` skips the synthetic test set (real captures only).
     ``real_captures``: capture folders (DiLiGenT layout) also scored; without ground
-    truth only their pictures are made. ``model``: checkpoint; default
-    ``<data_dir>/train/model.pt``.
+    truth only their pictures are made. ``real_subsets``: image counts n; each real
+    capture is scored again from n of its images, drawn by the seeded rule of
+    :func:`cnnps.io.capture.subset_drop` (named ``<capture>-<n>``). ``model``: checkpoint;
+    default ``<data_dir>/train/model.pt``.
     """
 
     synthetic: bool = True
@@ -78,6 +84,7 @@ class Params:
     samples: int = 16
     rotations: tuple[int, ...] = (1, 10)
     real_captures: tuple[str, ...] = ()
+    real_subsets: tuple[int, ...] = ()
     model: str | None = None
     device: Device = "auto"
     batch_size: int = 0  # maps per network call (0 = the inference default: 256 on a CPU, 4096 on CUDA)
@@ -86,7 +93,7 @@ class Params:
     seed: int = 0
 
     def __post_init__(self):
-        for name in ("test_shapes", "categories", "light_sets", "rotations", "real_captures"):
+        for name in ("test_shapes", "categories", "light_sets", "rotations", "real_captures", "real_subsets"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
         if self.synthetic:
             if not self.test_shapes:
@@ -107,6 +114,12 @@ class Params:
                     raise ConfigError(f"eval.light_sets: each light count must be >= 3, got {n}")
         if not self.synthetic and not self.real_captures:
             raise ConfigError("eval: nothing to evaluate (eval.synthetic is false and eval.real_captures is empty)")
+        if self.real_subsets and not self.real_captures:
+            raise ConfigError("eval.real_subsets needs eval.real_captures (the captures to draw the images from)")
+        from cnnps.io.capture import MIN_IMAGES
+
+        if any(n < MIN_IMAGES for n in self.real_subsets):
+            raise ConfigError(f"eval.real_subsets: each image count must be >= {MIN_IMAGES}, got {list(self.real_subsets)}")
         if self.superpixels < 1:
             raise ConfigError(f"eval.superpixels must be >= 1, got {self.superpixels}")
         if self.size < 8:
@@ -140,10 +153,11 @@ def _model_path(params: Params, data_dir: Path) -> Path:
     return path
 
 
-def evaluate_capture(capture_dir: Path, predict, params: Params) -> dict:
+def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> dict:
     """Normals by every method for one capture; errors where there is ground truth.
 
-    ``predict(I (P, m), L (m, 3), k) -> (P, 3)``: the CNN with k rotations.
+    ``predict(I (P, m), L (m, 3), k) -> (P, 3)``: the CNN with k rotations. ``drop``: image
+    indices to leave out (:func:`cnnps.io.capture.load_capture`).
 
     Returns ``{"capture", "n_images", "pixels", "scored_pixels", "normals": {method: (H,W,3)},
     "errors": {method: (H,W)}, "scores": {method: GroundTruthScore}, "methods": {method: stats},
@@ -154,7 +168,7 @@ def evaluate_capture(capture_dir: Path, predict, params: Params) -> dict:
     from cnnps.ps.metrics import score_normals
     from cnnps.ps.rotation import normalize
 
-    cap = load_capture(capture_dir)
+    cap = load_capture(capture_dir, drop=drop)
     I = cap.pixel_intensities()
     L = cap.lights
     normals: dict[str, np.ndarray] = {}
@@ -250,13 +264,15 @@ def build_testset(params: Params, data_dir: Path) -> list[Path]:
 
 
 def evaluate_all(captures, predict, params: Params, out_dir: Path, model_label: str, t0: float | None = None) -> dict:
-    """Score ``captures`` ([(name, folder, "synthetic" | "real")]); write the report; return the metrics."""
+    """Score ``captures`` ([(name, folder, "synthetic" | "real"[, drop])]); write the report;
+    return the metrics. ``drop``: image indices left out of that capture (default: none
+    beyond the capture's benchmark rule)."""
     from cnnps.infra.progress import progress_bar
 
     t0 = time.perf_counter() if t0 is None else t0
     results: dict[str, dict] = {}
-    for name, path, kind in progress_bar(captures, desc="eval", unit="capture", leave=True):
-        r = evaluate_capture(path, predict, params)
+    for name, path, kind, *drop in progress_bar(captures, desc="eval", unit="capture", leave=True):
+        r = evaluate_capture(path, predict, params, drop=drop[0] if drop else None)
         r["kind"] = kind
         results[name] = r
 
@@ -266,6 +282,10 @@ def evaluate_all(captures, predict, params: Params, out_dir: Path, model_label: 
         "methods": methods,
         "summary": summarize({n: r for n, r in results.items() if r["kind"] == "synthetic"}),
         "summary_real": summarize({n: r for n, r in results.items() if r["kind"] == "real"}),
+        "by_lights": summarize_by_lights({n: r for n, r in results.items() if r["kind"] == "synthetic"}),
+        # test captures are named <shape>-<category>-<lights> (testset_plan): all but the sphere
+        "by_lights_nonconvex": summarize_by_lights({n: r for n, r in results.items() if r["kind"] == "synthetic"
+                                                    and not n.startswith(f"{SPHERE}-")}),
         "captures": {
             n: {
                 "capture": r["capture"],
@@ -350,10 +370,13 @@ def run(params: Params, data_dir: Path) -> None:
     captures: list[tuple[str, Path, str]] = []
     if params.synthetic:
         captures += [(p.name, p, "synthetic") for p in build_testset(params, data_dir)]
+    from cnnps.io.capture import subset_drop
+
     for c in params.real_captures:
         p = Path(c)
         captures.append((p.name, p, "real"))
-    names = [n for n, _, _ in captures]
+        captures += [(f"{p.name}-{n}", p, "real", subset_drop(p, n, params.seed)) for n in params.real_subsets]
+    names = [c[0] for c in captures]
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
         raise ConfigError(f"eval: two captures are named {dup!r}; rename one folder")

@@ -83,6 +83,8 @@ def test_evaluate_all_numbers_report_and_pictures(tmp_path):
     assert metrics["summary"]["cnn_k1"]["mean_deg"] == pytest.approx(10.0, abs=1e-3)
     assert metrics["summary"]["cnn_k1"]["captures"] == 1
     assert metrics["summary_real"] == {}
+    assert metrics["by_lights"]["12"]["cnn_k1"]["mean_deg"] == pytest.approx(10.0, abs=1e-3)
+    assert metrics["by_lights_nonconvex"] == metrics["by_lights"]  # "ball" is not the test sphere
 
     on_disk = json.loads((out / "metrics.json").read_text())
     assert on_disk["captures"]["ball"]["methods"]["cnn_k1"]["mean_deg"] == pytest.approx(10.0, abs=1e-3)
@@ -108,6 +110,75 @@ def test_evaluate_all_numbers_report_and_pictures(tmp_path):
     assert inp[S // 2, S // 2] > inp[mask].mean()
 
 
+def test_image_subsets_are_scored_from_the_kept_images_only(tmp_path):
+    from cnnps.io.capture import read_filenames, subset_drop
+
+    cap = make_capture(tmp_path / "c" / "ball")
+    drop = subset_drop(cap, 6, seed=0)
+    kept = [i for i in range(12) if i not in drop]
+    assert len(kept) == 6 and len(drop) == 6
+    # the seeded rule, written out: 6 of the 12 drawn by numpy's generator seeded [seed, m, n]
+    assert kept == sorted(np.random.default_rng([0, 12, 6]).choice(12, 6, replace=False).tolist())
+    assert subset_drop(cap, 6, seed=1) != drop  # another seed, another draw
+    params = ev.Params()
+    seen = []
+
+    def predict(I, L, k):
+        seen.append(L.shape[0])
+        return fake_predict(I, L, k)
+
+    metrics = ev.evaluate_all([("ball-6", cap, "real", drop)], predict, params, tmp_path / "e", "m")
+    assert seen == [6, 6]  # K=1 and K=10, each from the 6 kept images
+    assert metrics["captures"]["ball-6"]["n_images"] == 6
+    assert metrics["summary_real"]["cnn_k1"]["mean_deg"] == pytest.approx(10.0, abs=1e-3)
+    names = read_filenames(cap)
+    assert [names[i] for i in kept] == [f"{i:03d}.exr" for i in kept]
+
+
+def test_subset_drop_keeps_the_benchmark_drops_out(tmp_path):
+    from cnnps.io.capture import subset_drop
+
+    cap = make_capture(tmp_path / "bearPNG", m=30)  # bearPNG's first 20 images are never drawn
+    drop = subset_drop(cap, 6)
+    kept = sorted(set(range(30)) - set(drop))
+    assert len(kept) == 6 and min(kept) >= 20
+    with pytest.raises(ConfigError, match="cannot keep 11 images of 10"):
+        subset_drop(cap, 11)
+
+
+def test_subset_drop_reproduces_the_committed_image_lists():
+    from cnnps.io.capture import read_filenames, subset_drop
+
+    ball = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "diligent" / "ballPNG"
+    if not ball.is_dir():
+        pytest.skip("../shared/data/diligent/ballPNG not present")
+    lists = Path(__file__).resolve().parents[2] / "benchmarks" / "image_lists"
+    names = read_filenames(ball)
+    for n in (20, 10, 6):
+        want = [x.strip() for x in (lists / f"ballPNG-{n}.txt").read_text().splitlines()
+                if x.strip() and not x.startswith("#")]
+        drop = set(subset_drop(ball, n))
+        assert [x for i, x in enumerate(names) if i not in drop] == want
+
+
+def test_summary_by_light_count_and_ratio_to_least_squares():
+    from cnnps.stages.eval_report import summarize_by_lights
+
+    def r(n, cnn, ls):
+        return {"n_images": n, "methods": {"cnn_k10": {"mean_deg": cnn, "median_deg": cnn / 2},
+                                           "lambertian": {"mean_deg": ls, "median_deg": ls / 2}}}
+
+    by = summarize_by_lights({"a-17": r(17, 4.0, 10.0), "b-17": r(17, 6.0, 30.0), "a-305": r(305, 3.0, 12.0),
+                              "nogt": {"n_images": 17, "methods": {}}})
+    assert sorted(by) == ["17", "305"]
+    assert by["17"]["cnn_k10"]["mean_deg"] == pytest.approx(5.0)
+    assert by["17"]["lambertian"]["mean_deg"] == pytest.approx(20.0)
+    assert by["17"]["cnn_k10"]["captures"] == 2
+    assert by["17"]["cnn_k10_vs_least_squares"] == pytest.approx(0.25)  # ratio of the means, not mean of ratios
+    assert by["305"]["cnn_k10_vs_least_squares"] == pytest.approx(0.25)
+    assert "lambertian_vs_least_squares" not in by["17"]
+
+
 def test_rerun_replaces_pictures(tmp_path):
     cap = make_capture(tmp_path / "c" / "a")
     params = ev.Params()
@@ -127,6 +198,8 @@ def test_rerun_replaces_pictures(tmp_path):
         ({"synthetic": False}, "nothing to evaluate"),
         ({"device": "tpu"}, "device"),
         ({"lambertian_shadow_threshold": 1.5}, "shadow_threshold"),
+        ({"real_subsets": (10,)}, "real_subsets needs eval.real_captures"),
+        ({"real_subsets": (2,), "real_captures": ("x",)}, "image count must be >= 3"),
     ],
 )
 def test_params_validation(kwargs, message):
