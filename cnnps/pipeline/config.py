@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import inspect
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -49,6 +50,8 @@ SHARED_KEYS = ("seed", "data_dir", "executor")
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "presets"  # package data: works from a wheel too
 DEFAULT_PARAMS = "params.yaml"
 DEFAULT_DATA_DIR = "data"
+# a float written without a dot (1e-4): YAML 1.2 reads a number, PyYAML (YAML 1.1) a string
+_YAML11_EXPONENT = re.compile(r"[-+]?[0-9]+(\.[0-9]*)?[eE][-+]?[0-9]+")
 
 
 def check_stage_name(name: str) -> str:
@@ -236,6 +239,8 @@ def convert(value: Any, tp: Any, where: str) -> Any:
             _fail(where, "an integer", value)
         return value
     if tp is float:
+        if isinstance(value, str) and _YAML11_EXPONENT.fullmatch(value.strip()):
+            return float(value)  # 1e-4: a number in YAML 1.2, a string to PyYAML's YAML 1.1 (`dvc exp run -S`)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             _fail(where, "a number", value)
         return float(value)

@@ -105,6 +105,17 @@ def test_types_are_converted(fake_stages, tmp_path):
     assert cfg.params_to_dict(p)["bounds"] == [0.5, 0.75]
 
 
+def test_a_float_written_without_a_dot_is_a_number(fake_stages):
+    # PyYAML reads `scale: 1e-4` (what `dvc exp run -S meshes.scale=1e-4` writes) as a string
+    raw = yaml.safe_load("meshes: {scale: 1e-4, bounds: [-3.5e-2, 2E+1]}")
+    assert raw["meshes"]["scale"] == "1e-4"
+    p = cfg.build_params(conf(raw), "meshes")
+    assert p.scale == 1e-4 and p.bounds == (-0.035, 20.0)
+    for bad in ("1e", "e5", "1e-4x", "one"):
+        with pytest.raises(ConfigError, match="meshes.scale"):
+            cfg.build_params(conf({"meshes": {"scale": bad}}), "meshes")
+
+
 def test_section_seed_overrides_shared_seed(fake_stages):
     assert cfg.build_params(conf({"seed": 7, "meshes": {"seed": 3}}), "meshes").seed == 3
 
