@@ -286,6 +286,7 @@ class Run:
         data.mkdir(exist_ok=True)
         for stage in ("meshes", "materials", "render", "extract"):
             link = data / stage
+            (self.data / stage).mkdir(parents=True, exist_ok=True)  # a stage writes through the link
             if not link.is_symlink():
                 if link.exists():
                     shutil.rmtree(link)

@@ -86,3 +86,37 @@ def test_a_run_outside_the_work_tree(tmp_path):
     train = yaml.safe_load((root / "r" / "params.yaml").read_text())["train"]
     assert train["init"] == str(carried / "r" / "intermediate.pt") and train["max_steps"] == 40
     assert train["lr_milestones"] == [20] and train["lr"] == pytest.approx(1e-4)
+
+
+@pytest.mark.skipif(shutil.which("git") is None or not (REPO / ".git").exists(), reason="needs git and a clone")
+def test_a_variant_study_runs_dvc_experiments_on_the_runs_data(tmp_path):
+    root, carried = tmp_path / "runs", tmp_path / "carried"
+    args = ["--root", str(root), "--carried", str(carried)]
+    assert long_run.main(["start", "r", "--preset", "demo", "--commit", "HEAD", *args]) == 0
+    # dvc.yaml tracks the mesh folder: the run names one (an empty one: procedural shapes only)
+    params = yaml.safe_load((root / "r" / "params.yaml").read_text())
+    params["meshes"]["mesh_dir"] = str(tmp_path / "meshes")
+    (tmp_path / "meshes").mkdir()
+    (root / "r" / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    assert long_run.main(["study", "r", *args]) == 0
+    study, data = root / "r" / "study", root / "r" / "data"
+    # the data phase is the run's; train and eval outputs would be the study's own
+    for stage in ("meshes", "materials", "render", "extract"):
+        assert (study / "data" / stage).is_symlink() and (study / "data" / stage).resolve() == (data / stage).resolve()
+    assert yaml.safe_load((study / "params.yaml").read_text())["data_dir"] == "data"
+    log = subprocess.run(["git", "-C", str(study), "log", "--format=%s", "-2"], capture_output=True, text=True).stdout
+    assert log.splitlines()[0] == "the study's baseline: the parameters of run r"
+    # a second `study` keeps the clone (and its experiments)
+    assert long_run.main(["study", "r", *args]) == 0
+    assert (study / "data" / "meshes").is_symlink()
+
+    # one variant of the first stage: an experiment in the study's git, its time in the ledger
+    assert long_run.main(["exp", "r", "--poll", "0.5", *args, "--", "-n", "two-shapes", "-S", "meshes.procedural=2",
+                          "meshes"]) == 0
+    call = json.loads((root / "r" / "ledger.json").read_text())["calls"][-1]
+    assert call["stage"] == "study" and call["finished"] and call["cpu_s"] > 0
+    assert call["command"] == "dvc exp run -n two-shapes -S meshes.procedural=2 meshes"
+    refs = subprocess.run(["git", "-C", str(study), "for-each-ref", "--format=%(refname)", "refs/exps"],
+                          capture_output=True, text=True).stdout
+    assert refs.rstrip().endswith("/two-shapes")
+    assert len([p for p in (data / "meshes").iterdir() if p.is_dir()]) == 2 * 2  # 2 shapes x 2 views, in the run's folder
