@@ -457,7 +457,7 @@ def capture_normals(stack, lights: np.ndarray, mask: np.ndarray, setup: MethodSe
                     intrinsics: np.ndarray | None, positions: np.ndarray | None, progress: bool):
     """(normal, counts, lights record, depth or None): :func:`tile_normals` once under
     distant lights; under point lights (``positions``) the rounds of
-    :func:`cnnps.api.near_field.run_rounds`, whose depth comes back."""
+    :func:`cnnps.ps.near_field.run_rounds`, whose depth comes back."""
     tiles = {"sparse_fill": options["sparse_fill"], "tile_pixels": options["tile_pixels"], "progress": progress,
              "intrinsics": intrinsics}
     if positions is None:
@@ -465,7 +465,7 @@ def capture_normals(stack, lights: np.ndarray, mask: np.ndarray, setup: MethodSe
         return normal, counts, {"model": "directional"}, None
     from dataclasses import replace
 
-    from cnnps.api.near_field import run_rounds
+    from cnnps.ps.near_field import run_rounds
 
     quick = replace(setup, rotations=1) if setup.method == "cnn" else setup
 

@@ -117,7 +117,8 @@ def predict_normals(
     (:func:`rotated_normals` with a :class:`MapPredictor` of ``model``).
 
     intensities: (P, m), already divided by each light's intensity.
-    lights: (m, 3) unit light directions (camera frame: x right, y up, z to the camera).
+    lights: (m, 3) unit light directions (camera frame: x right, y up, z to the camera),
+    or (P, m, 3) each pixel's own (point lights near the object; never sparse-filled).
     rotations: K test-time rotations (K = 1: none; the paper uses 10).
     device: 'auto' | 'cpu' | 'cuda[:N]'. precision: 'fp32' | 'bf16' (autocast).
     batch_size: maps per network call (default ``DEFAULT_BATCH_CPU`` = 256 on CPU,
@@ -132,11 +133,11 @@ def predict_normals(
     if intensities.ndim != 2:
         raise ValueError(f"intensities must be (P, m), got {intensities.shape}")
     P, m = intensities.shape
-    if lights.shape != (m, 3):
-        raise ValueError(f"lights must be ({m}, 3) to match intensities, got {lights.shape}")
+    if lights.shape not in ((m, 3), (P, m, 3)):
+        raise ValueError(f"lights must be ({m}, 3) or ({P}, {m}, 3) to match intensities, got {lights.shape}")
     from cnnps.ps.sparse_fill import lambertian_fill, should_fill
 
-    fill = should_fill(sparse_fill, m)
+    fill = should_fill(sparse_fill, m) and lights.ndim == 2  # per-pixel lights (point lights): no fill
     predictor = MapPredictor(model, device=device, precision=precision, batch_size=batch_size)
     light_mask = None
     if fill:

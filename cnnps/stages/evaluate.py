@@ -156,27 +156,27 @@ def _model_path(params: Params, data_dir: Path) -> Path:
 def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> dict:
     """Normals by every method for one capture; errors where there is ground truth.
 
-    ``predict(I (P, m), L (m, 3), k) -> (P, 3)``: the CNN with k rotations. ``drop``: image
-    indices to leave out (:func:`cnnps.io.capture.load_capture`).
+    ``predict(I (P, m), L, k, views=None) -> (P, 3)``: the CNN with k rotations; ``L`` is
+    (m, 3), or (P, m, 3) per pixel under point lights; ``views`` (P, 3) the pixels' view
+    directions under a pinhole camera. ``drop``: image indices to leave out
+    (:func:`cnnps.io.capture.load_capture`).
+
+    Rig captures are scored as ``cnnps predict`` treats them: with ``intrinsics.txt`` the
+    network sees each pixel's lights in its own view frame; with ``light_positions.txt``
+    every method runs the rounds of normals and depth of :func:`cnnps.ps.near_field.run_rounds`
+    (the scale estimated, as without ``--distance``), and with ``depth_gt.npy`` the last
+    depth is scored too (``depth_median_rel_error`` beside each method's angular errors).
 
     Returns ``{"capture", "n_images", "pixels", "scored_pixels", "normals": {method: (H,W,3)},
     "errors": {method: (H,W)}, "scores": {method: GroundTruthScore}, "methods": {method: stats},
     "mask", "gt", "scored", "input"}`` (scores, errors, stats and scored only with ground truth).
     """
-    from cnnps.io.capture import load_capture
-    from cnnps.ps.least_squares import least_squares
+    from cnnps.io.capture import load_capture, read_intrinsics
     from cnnps.ps.metrics import score_normals
-    from cnnps.ps.rotation import normalize
 
     cap = load_capture(capture_dir, drop=drop)
-    I = cap.pixel_intensities()
-    L = cap.lights
-    normals: dict[str, np.ndarray] = {}
-    for k in params.rotations:
-        N = predict(I, L, int(k))
-        normals[method_name(k)] = cap.to_image(normalize(np.asarray(N, dtype=np.float64)).astype(np.float32))
-    N, _albedo = least_squares(I, L, shadow_threshold=params.lambertian_shadow_threshold)
-    normals[LAMBERTIAN] = cap.to_image(normalize(N).astype(np.float32))
+    K = read_intrinsics(Path(capture_dir) / "intrinsics.txt")
+    normals, depths = _capture_normals(cap, K, predict, params)
 
     out = {
         "capture": str(capture_dir),
@@ -198,7 +198,63 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> d
             out["methods"][m] = score.stats
         out["scored"] = score.scored
         out["scored_pixels"] = int(score.scored.sum())
+    depth_gt = Path(capture_dir) / "depth_gt.npy"
+    if depths and depth_gt.is_file() and out["methods"]:
+        gt = np.load(depth_gt)
+        for m, d in depths.items():
+            rel = np.abs(d[cap.mask] - gt[cap.mask]) / gt[cap.mask]
+            out["methods"][m]["depth_median_rel_error"] = float(np.median(rel))
     return out
+
+
+def _capture_normals(cap, K, predict, params: Params) -> tuple[dict, dict]:
+    """({method: (H, W, 3) float32 normals}, {method: (H, W) depth} under point lights)."""
+    from cnnps.ps.camera import point_light_directions, view_directions
+    from cnnps.ps.least_squares import least_squares, least_squares_per_pixel
+    from cnnps.ps.near_field import run_rounds
+    from cnnps.ps.near_lights import DEFAULT_ROUNDS, DEFAULT_TOLERANCE, surface_points
+    from cnnps.ps.rotation import normalize
+
+    I, L = cap.pixel_intensities(), cap.lights
+    rows, cols = np.nonzero(cap.mask)
+    views = None if K is None else view_directions(K, rows, cols)
+    shadow = params.lambertian_shadow_threshold
+
+    def image(N) -> np.ndarray:
+        return cap.to_image(normalize(np.asarray(N, dtype=np.float64)).astype(np.float32))
+
+    normals: dict[str, np.ndarray] = {}
+    depths: dict[str, np.ndarray] = {}
+    if cap.light_positions is None:
+        for k in params.rotations:
+            normals[method_name(k)] = image(predict(I, L, int(k), views))
+        normals[LAMBERTIAN] = image(least_squares(I, L, shadow_threshold=shadow)[0])
+        return normals, depths
+
+    positions = cap.light_positions
+
+    def near(depth):  # each pixel's lights from its surface point; values divided by 1 / r^2
+        dirs, scale = point_light_directions(surface_points(K, rows, cols, depth[cap.mask]), positions)
+        return I / scale, dirs
+
+    def rounds(normals_at, final_pass):
+        field = run_rounds(normals_at, cap.mask, K, positions, distance=None, rounds=DEFAULT_ROUNDS,
+                           tolerance=DEFAULT_TOLERANCE, final_pass=final_pass, values=lambda index: I[index])
+        return field.normal, field.depth
+
+    for k in params.rotations:
+        def cnn(depth, final, k=int(k)):
+            Ip, dirs = near(depth)
+            return image(predict(Ip, dirs, k if final else 1, views)), None  # rounds at K=1, as predict
+
+        normals[method_name(k)], depths[method_name(k)] = rounds(cnn, final_pass=int(k) > 1)
+
+    def lambertian(depth, _final):
+        Ip, dirs = near(depth)
+        return image(least_squares_per_pixel(Ip, dirs, shadow_threshold=shadow)[0]), None
+
+    normals[LAMBERTIAN], depths[LAMBERTIAN] = rounds(lambertian, final_pass=False)
+    return normals, depths
 
 
 # --------------------------------------------------------------------------- the test set
@@ -327,9 +383,9 @@ def score_shipped(metrics: dict, params: Params, rotations: int = 10) -> dict | 
     net.eval()
     one = replace(params, rotations=(int(rotations),))
 
-    def predict(I, L, k):
+    def predict(I, L, k, views=None):
         return predict_normals(net, I, L, rotations=k, device=device, batch_size=params.batch_size or None,
-                               progress=False, sparse_fill=params.sparse_fill)
+                               progress=False, sparse_fill=params.sparse_fill, views=views)
 
     scores = {name: evaluate_capture(path, predict, one)["methods"][method_name(int(rotations))]
               for name, path in captures.items()}
@@ -383,9 +439,9 @@ def run(params: Params, data_dir: Path) -> None:
 
     from cnnps.models.inference import predict_normals
 
-    def predict(I, L, k):
+    def predict(I, L, k, views=None):
         return predict_normals(net, I, L, rotations=k, device=device, batch_size=params.batch_size or None, progress=False,
-                               sparse_fill=params.sparse_fill)
+                               sparse_fill=params.sparse_fill, views=views)
 
     metrics = evaluate_all(captures, predict, params, out_dir, str(model_path), t0)
     print(format_table(metrics))

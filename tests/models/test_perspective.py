@@ -111,3 +111,18 @@ def test_a_capture_folders_intrinsics_are_used_recorded_and_checked(tmp_path, ca
     code, _out, err = run_cli(["predict", str(cap), "--out", str(tmp_path / "bad"), "--no-progress"], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1 and "intrinsics.txt" in err and "3x3" in err, err
     assert not (tmp_path / "bad").exists()
+
+
+def test_predict_normals_takes_each_pixels_own_lights(net):
+    """(P, m, 3) lights (point lights near the object) give what the shared (m, 3) lights
+    give when every pixel has the same ones; they are never sparse-filled."""
+    rng = np.random.default_rng(4)
+    P, m = 30, 12
+    L = hemisphere_lights(m, 3.0, seed=5)
+    I = rng.random((P, m)).astype(np.float32)
+    shared = predict_normals(net, I, L, rotations=3, device="cpu", progress=False, sparse_fill="off")
+    own = predict_normals(net, I, np.broadcast_to(L, (P, m, 3)), rotations=3, device="cpu", progress=False,
+                          sparse_fill="on")  # 12 images would be filled with shared lights; not per pixel
+    np.testing.assert_allclose(own, shared, atol=1e-5)
+    with pytest.raises(ValueError, match=r"lights must be \(12, 3\) or \(30, 12, 3\)"):
+        predict_normals(net, I, L[None], rotations=1, device="cpu", progress=False)

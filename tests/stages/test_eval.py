@@ -49,7 +49,7 @@ def make_capture(root: Path, gt: bool = True, m: int = 12) -> Path:
     return root
 
 
-def fake_predict(I, L, k):
+def fake_predict(I, L, k, views=None):
     """Exact normals (least squares) for k=10, exactly 10 degrees off for k=1."""
     n = I @ np.linalg.pinv(L).T
     n /= np.linalg.norm(n, axis=1, keepdims=True)
@@ -123,7 +123,7 @@ def test_image_subsets_are_scored_from_the_kept_images_only(tmp_path):
     params = ev.Params()
     seen = []
 
-    def predict(I, L, k):
+    def predict(I, L, k, views=None):
         seen.append(L.shape[0])
         return fake_predict(I, L, k)
 
@@ -299,3 +299,49 @@ def test_the_table_puts_another_model_beside_the_trained_one():
     assert lines[-3] == "CNN-PS K=10: the model this run trained, K test-time rotations averaged;"
     assert lines[-2] == "shipped K=10: the model cnnps ships (v9 m.pt);"
     assert "shipped" not in format_table(metrics)  # without another model: the table as before
+
+
+def test_a_rig_capture_is_scored_with_its_lens_point_lights_and_depth(tmp_path):
+    """intrinsics.txt and light_positions.txt: every method runs the rounds of normals and
+    depth (scale estimated), the network sees each pixel's lights and view, and
+    depth_gt.npy is scored. On a Lambertian sphere least squares with per-pixel lights is
+    exact, so both methods (the fake CNN is least squares) land near zero."""
+    from cnnps.ps.least_squares import least_squares_per_pixel
+    from tests.ps.test_near_lights import _rig, _write_point_light_capture
+
+    K, _centre, pos, mask, n, X = _rig(size=40, m=24)
+    cap = tmp_path / "rig"
+    _write_point_light_capture(cap, K, pos, mask, n, X, np.ones((len(pos), 3)))
+    gt = np.zeros(mask.shape + (3,), np.float32)
+    gt[mask] = n
+    np.save(cap / "normal_gt.npy", gt)
+    depth = np.full(mask.shape, np.nan)
+    depth[mask] = -X[:, 2]
+    np.save(cap / "depth_gt.npy", depth)
+    calls = []
+
+    def predict(I, L, k, views=None):
+        calls.append((L.shape, None if views is None else views.shape, k))
+        L = L if L.ndim == 3 else np.broadcast_to(L, I.shape + (3,))
+        return least_squares_per_pixel(I, L, shadow_threshold=0.0)[0]
+
+    params = ev.Params(rotations=(1, 3), lambertian_shadow_threshold=0.0)
+    metrics = ev.evaluate_all([("rig", cap, "real")], predict, params, tmp_path / "e", "m")
+    P = int(mask.sum())
+    assert all(c[0] == (P, 24, 3) and c[1] == (P, 3) for c in calls)  # per-pixel lights, per-pixel views
+    assert {c[2] for c in calls} == {1, 3} and calls[-1][2] == 3  # rounds at K=1, the final pass at K=3
+    for m in ("cnn_k1", "cnn_k3", "lambertian"):
+        stats = metrics["captures"]["rig"]["methods"][m]
+        assert stats["mean_deg"] < 0.3, (m, stats)
+        assert stats["depth_median_rel_error"] < 0.01, (m, stats)
+
+    # the same capture read as if the lights were distant: far worse, as the method needs them near
+    (cap / "light_positions.txt").rename(tmp_path / "positions.txt")
+    from cnnps.ps.near_lights import directions_from_positions
+
+    np.savetxt(cap / "light_directions.txt", directions_from_positions(pos))
+    calls.clear()
+    far = ev.evaluate_all([("rig", cap, "real")], predict, params, tmp_path / "e2", "m")
+    assert [c[:2] for c in calls] == [((24, 3), (P, 3))] * 2  # distant lights, still each pixel's view
+    assert far["captures"]["rig"]["methods"]["lambertian"]["mean_deg"] > 5
+    assert "depth_median_rel_error" not in far["captures"]["rig"]["methods"]["lambertian"]
