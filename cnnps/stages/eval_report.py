@@ -64,6 +64,20 @@ def summarize_by_lights(results: dict[str, dict]) -> dict:
     return out
 
 
+def rig_minus_ortho(results: dict[str, dict]) -> dict:
+    """Per method: the mean over rig twins (kind ``rig``, named ``<capture>-<rig>``) of the
+    twin's mean error minus its orthographic, distant-light capture's (what the rig costs,
+    in degrees); ``captures`` counts the pairs. Empty without twins."""
+    pairs = [(r, results[n.rsplit("-fov", 1)[0]]) for n, r in results.items()
+             if r.get("kind") == "rig" and r.get("methods") and n.rsplit("-fov", 1)[0] in results]
+    out: dict[str, dict] = {}
+    for rig, ortho in pairs:
+        for m, stats in rig["methods"].items():
+            if m in ortho.get("methods", {}):
+                out.setdefault(m, []).append(stats["mean_deg"] - ortho["methods"][m]["mean_deg"])
+    return {m: {"mean_deg": float(np.mean(d)), "captures": len(d)} for m, d in out.items()}
+
+
 SHIPPED = "shipped_k10"  # the shipped model with K=10, scored beside the trained one (cnnps demo)
 
 

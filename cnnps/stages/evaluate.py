@@ -40,9 +40,11 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
+from cnnps.infra.atomic import write_text
 from cnnps.infra.errors import ConfigError, InputError
 from cnnps.infra.machine import Device
 from cnnps.infra.options import UnitFraction, check_fields
@@ -53,6 +55,7 @@ from cnnps.stages.eval_report import (  # noqa: F401 (format_table: part of this
     format_table,
     input_picture,
     method_name,
+    rig_minus_ortho,
     summarize,
     summarize_by_lights,
     write_report,
@@ -60,6 +63,26 @@ from cnnps.stages.eval_report import (  # noqa: F401 (format_table: part of this
 
 TEST_SEED_OFFSET = 1_000_003  # test shapes' seeds never coincide with the training shapes'
 SPHERE = "sphere"
+
+
+@dataclass(frozen=True)
+class Rig:
+    """The rig of the test set's twins (``eval.rig``): a pinhole camera with ``fov_deg``
+    across the image and, with ``light_distance`` d, point lights d object radii from the
+    object's centre (None: the distant lights of the orthographic captures)."""
+
+    fov_deg: float = 40.0
+    light_distance: float | None = 1.5
+
+    def __post_init__(self):
+        if not 0 < self.fov_deg < 120:
+            raise ConfigError(f"eval.rig.fov_deg must be in (0, 120), got {self.fov_deg}")
+        if self.light_distance is not None and not 1 < self.light_distance < 5:
+            raise ConfigError(f"eval.rig.light_distance must be in (1, 5) object radii, got {self.light_distance}")
+
+    @property
+    def suffix(self) -> str:
+        return f"fov{self.fov_deg:g}" + ("" if self.light_distance is None else f"-point{self.light_distance:g}")
 
 
 @dataclass(frozen=True)
@@ -72,7 +95,10 @@ class Params:
     truth only their pictures are made. ``real_subsets``: image counts n; each real
     capture is scored again from n of its images, drawn by the seeded rule of
     :func:`cnnps.io.capture.subset_drop` (named ``<capture>-<n>``). ``model``: checkpoint;
-    default ``<data_dir>/train/model.pt``.
+    default ``<data_dir>/train/model.pt``. ``rig``: also render every test capture again
+    through that rig (:class:`Rig`; named ``<capture>-<rig>``, e.g. ``bowl-specular-17-fov40-point1.5``)
+    and score the twins as ``cnnps predict`` treats rig captures; ``summary_rig`` and
+    ``rig_minus_ortho`` in metrics.json say what the rig costs.
     """
 
     synthetic: bool = True
@@ -85,6 +111,10 @@ class Params:
     rotations: tuple[int, ...] = (1, 10)
     real_captures: tuple[str, ...] = ()
     real_subsets: tuple[int, ...] = ()
+    rig: Rig | None = None
+    # point-light captures: "known" = the median depth a render records in scene.json, as a
+    # measured --distance; "estimated" = found from the images, as without --distance
+    rig_distance: Literal["known", "estimated"] = "known"
     model: str | None = None
     device: Device = "auto"
     batch_size: int = 0  # maps per network call (0 = the inference default: 256 on a CPU, 4096 on CUDA)
@@ -164,7 +194,9 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> d
     Rig captures are scored as ``cnnps predict`` treats them: with ``intrinsics.txt`` the
     network sees each pixel's lights in its own view frame; with ``light_positions.txt``
     every method runs the rounds of normals and depth of :func:`cnnps.ps.near_field.run_rounds`
-    (the scale estimated, as without ``--distance``), and with ``depth_gt.npy`` the last
+    (from the median depth a render's ``scene.json`` records, as with a measured
+    ``--distance``, unless ``rig_distance`` is "estimated" or there is none: then the scale
+    is estimated, as without ``--distance``), and with ``depth_gt.npy`` the last
     depth is scored too (``depth_median_rel_error`` beside each method's angular errors).
 
     Returns ``{"capture", "n_images", "pixels", "scored_pixels", "normals": {method: (H,W,3)},
@@ -176,7 +208,13 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> d
 
     cap = load_capture(capture_dir, drop=drop)
     K = read_intrinsics(Path(capture_dir) / "intrinsics.txt")
-    normals, depths = _capture_normals(cap, K, predict, params)
+    distance = None
+    scene = Path(capture_dir) / "scene.json"
+    if cap.light_positions is not None and params.rig_distance == "known" and scene.is_file():
+        import json
+
+        distance = json.loads(scene.read_text()).get("median_depth")
+    normals, depths = _capture_normals(cap, K, predict, params, distance)
 
     out = {
         "capture": str(capture_dir),
@@ -207,8 +245,9 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> d
     return out
 
 
-def _capture_normals(cap, K, predict, params: Params) -> tuple[dict, dict]:
-    """({method: (H, W, 3) float32 normals}, {method: (H, W) depth} under point lights)."""
+def _capture_normals(cap, K, predict, params: Params, distance: float | None = None) -> tuple[dict, dict]:
+    """({method: (H, W, 3) float32 normals}, {method: (H, W) depth} under point lights,
+    whose rounds start at ``distance``, or at the estimated scale when it is None)."""
     from cnnps.ps.camera import point_light_directions, view_directions
     from cnnps.ps.least_squares import least_squares, least_squares_per_pixel
     from cnnps.ps.near_field import run_rounds
@@ -238,7 +277,7 @@ def _capture_normals(cap, K, predict, params: Params) -> tuple[dict, dict]:
         return I / scale, dirs
 
     def rounds(normals_at, final_pass):
-        field = run_rounds(normals_at, cap.mask, K, positions, distance=None, rounds=DEFAULT_ROUNDS,
+        field = run_rounds(normals_at, cap.mask, K, positions, distance=distance, rounds=DEFAULT_ROUNDS,
                            tolerance=DEFAULT_TOLERANCE, final_pass=final_pass, values=lambda index: I[index])
         return field.normal, field.depth
 
@@ -295,6 +334,49 @@ def test_mesh(shape: str, shape_seed: int):
     return pose_mesh(mesh, random_rotation(np.random.default_rng([shape_seed, 17])))
 
 
+def rig_name(name: str, rig: Rig) -> str:
+    return f"{name}-{rig.suffix}"
+
+
+RIG_KEY = "rig_key.json"  # beside a rig twin's files: the settings it was rendered with
+
+
+def build_rig_twins(params: Params, data_dir: Path) -> list[Path]:
+    """The test captures rendered again through ``params.rig`` (same shape, pose, material
+    category, seed and light directions; :func:`cnnps.synth.rig_render.render_rig_capture`)
+    under ``data_dir/eval/testset/<capture>-<rig>/``, reused while their settings hold.
+    Call after :func:`build_testset` (which prunes the folders of older plans)."""
+    import json
+    import shutil
+
+    from cnnps.synth.rig_render import render_rig_capture
+
+    root = Path(data_dir) / "eval" / "testset"
+    rig = params.rig
+    out = []
+    meshes: dict[str, object] = {}
+    for c in testset_plan(params):
+        folder = root / rig_name(c["name"], rig)
+        key = {"fov_deg": rig.fov_deg, "light_distance": rig.light_distance, "lights": c["lights"],
+               "size": params.size, "samples": params.samples, "material": c["category"],
+               "superpixels": params.superpixels, "seed": c["seed"], "shape": c["shape"], "shape_seed": c["shape_seed"]}
+        done = folder / RIG_KEY
+        if done.is_file() and json.loads(done.read_text()) == key:
+            out.append(folder)
+            continue
+        if folder.exists():
+            shutil.rmtree(folder)  # another rig, or killed before its key was written
+        if c["shape"] not in meshes:
+            meshes.clear()
+            meshes[c["shape"]] = test_mesh(c["shape"], c["shape_seed"])
+        render_rig_capture(meshes[c["shape"]], folder, fov_deg=rig.fov_deg, light_distance=rig.light_distance,
+                           lights=c["lights"], size=params.size, samples=params.samples, material=c["category"],
+                           superpixels=params.superpixels, seed=c["seed"], progress=False)
+        write_text(done, json.dumps(key, indent=1) + "\n")
+        out.append(folder)
+    return out
+
+
 def build_testset(params: Params, data_dir: Path) -> list[Path]:
     """Render (or reuse: each capture carries a content key) the synthetic test captures
     under ``data_dir/eval/testset/<shape>-<category>-<lights>/``; return their folders."""
@@ -303,7 +385,8 @@ def build_testset(params: Params, data_dir: Path) -> list[Path]:
 
     root = Path(data_dir) / "eval" / "testset"
     plan = testset_plan(params)
-    prune_stale(root, {c["name"] for c in plan}, ["scene.json", ".pending.json"])  # captures of an older plan
+    wanted = {c["name"] for c in plan} | {rig_name(c["name"], params.rig) for c in plan if params.rig}
+    prune_stale(root, wanted, ["scene.json", ".pending.json"])  # captures of an older plan
     meshes: dict[str, object] = {}
     out = []
     for c in plan:
@@ -338,6 +421,8 @@ def evaluate_all(captures, predict, params: Params, out_dir: Path, model_label: 
         "methods": methods,
         "summary": summarize({n: r for n, r in results.items() if r["kind"] == "synthetic"}),
         "summary_real": summarize({n: r for n, r in results.items() if r["kind"] == "real"}),
+        "summary_rig": summarize({n: r for n, r in results.items() if r["kind"] == "rig"}),
+        "rig_minus_ortho": rig_minus_ortho(results),
         "by_lights": summarize_by_lights({n: r for n, r in results.items() if r["kind"] == "synthetic"}),
         # test captures are named <shape>-<category>-<lights> (testset_plan): all but the sphere
         "by_lights_nonconvex": summarize_by_lights({n: r for n, r in results.items() if r["kind"] == "synthetic"
@@ -426,6 +511,8 @@ def run(params: Params, data_dir: Path) -> None:
     captures: list[tuple[str, Path, str]] = []
     if params.synthetic:
         captures += [(p.name, p, "synthetic") for p in build_testset(params, data_dir)]
+        if params.rig is not None:
+            captures += [(p.name, p, "rig") for p in build_rig_twins(params, data_dir)]
     from cnnps.io.capture import subset_drop
 
     for c in params.real_captures:

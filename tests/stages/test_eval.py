@@ -335,6 +335,16 @@ def test_a_rig_capture_is_scored_with_its_lens_point_lights_and_depth(tmp_path):
         assert stats["mean_deg"] < 0.3, (m, stats)
         assert stats["depth_median_rel_error"] < 0.01, (m, stats)
 
+    # a render's scene.json records the median depth: the rounds start there ("known"), and a
+    # wrong one is a wrong scale; "estimated" ignores it
+    (cap / "scene.json").write_text(json.dumps({"median_depth": 2 * float(np.nanmedian(depth))}))
+    wrong = ev.evaluate_all([("rig", cap, "real")], predict, params, tmp_path / "e1", "m")
+    assert wrong["captures"]["rig"]["methods"]["lambertian"]["depth_median_rel_error"] > 0.5
+    est = ev.Params(rotations=(1,), lambertian_shadow_threshold=0.0, rig_distance="estimated")
+    again = ev.evaluate_all([("rig", cap, "real")], predict, est, tmp_path / "e1", "m")
+    assert again["captures"]["rig"]["methods"]["lambertian"]["depth_median_rel_error"] < 0.01
+    (cap / "scene.json").unlink()
+
     # the same capture read as if the lights were distant: far worse, as the method needs them near
     (cap / "light_positions.txt").rename(tmp_path / "positions.txt")
     from cnnps.ps.near_lights import directions_from_positions
@@ -345,3 +355,59 @@ def test_a_rig_capture_is_scored_with_its_lens_point_lights_and_depth(tmp_path):
     assert [c[:2] for c in calls] == [((24, 3), (P, 3))] * 2  # distant lights, still each pixel's view
     assert far["captures"]["rig"]["methods"]["lambertian"]["mean_deg"] > 5
     assert "depth_median_rel_error" not in far["captures"]["rig"]["methods"]["lambertian"]
+
+
+def test_rig_params_and_what_the_rig_costs():
+    from cnnps.stages.eval_report import rig_minus_ortho
+
+    with pytest.raises(ConfigError, match="fov_deg must be in"):
+        ev.Rig(fov_deg=130)
+    with pytest.raises(ConfigError, match="light_distance must be in"):
+        ev.Rig(light_distance=0.5)
+    assert ev.rig_name("bowl-metallic-17", ev.Rig()) == "bowl-metallic-17-fov40-point1.5"
+    assert ev.rig_name("bowl-metallic-17", ev.Rig(fov_deg=70, light_distance=None)) == "bowl-metallic-17-fov70"
+
+    def r(kind, **means):
+        return {"kind": kind, "methods": {m: {"mean_deg": v} for m, v in means.items()}}
+
+    results = {"bowl-s-17": r("synthetic", cnn_k10=4.0, lambertian=10.0),
+               "bowl-s-17-fov40-point1.5": r("rig", cnn_k10=5.5, lambertian=9.0),
+               "holed-s-17": r("synthetic", cnn_k10=3.0, lambertian=12.0),
+               "holed-s-17-fov40-point1.5": r("rig", cnn_k10=3.5, lambertian=13.0),
+               "ball": r("real", cnn_k10=2.0)}
+    got = rig_minus_ortho(results)
+    assert got["cnn_k10"] == {"mean_deg": pytest.approx(1.0), "captures": 2}  # (1.5 + 0.5) / 2
+    assert got["lambertian"]["mean_deg"] == pytest.approx(0.0)
+    assert rig_minus_ortho({"ball": r("real", cnn_k10=2.0)}) == {}
+
+
+def test_rig_twins_are_rendered_once_reused_and_redone_when_the_rig_changes(tmp_path, monkeypatch):
+    import json
+
+    from cnnps.synth import rig_render
+
+    made = []
+
+    def fake_render(mesh, out_dir, **kw):
+        out = Path(out_dir)
+        out.mkdir(parents=True)
+        (out / "scene.json").write_text(json.dumps(kw))
+        made.append((out.name, kw["fov_deg"], kw["light_distance"], kw["lights"]))
+        return out
+
+    monkeypatch.setattr(rig_render, "render_rig_capture", fake_render)
+    monkeypatch.setattr(ev, "test_mesh", lambda shape, seed: shape)
+    params = ev.Params(test_shapes=("bowl",), categories=("specular",), light_sets=(10, 17), rig=ev.Rig())
+    twins = ev.build_rig_twins(params, tmp_path)
+    assert [p.name for p in twins] == ["bowl-specular-10-fov40-point1.5", "bowl-specular-17-fov40-point1.5"]
+    assert made == [("bowl-specular-10-fov40-point1.5", 40.0, 1.5, 10), ("bowl-specular-17-fov40-point1.5", 40.0, 1.5, 17)]
+    made.clear()
+    assert ev.build_rig_twins(params, tmp_path) == twins and made == []  # reused
+    (twins[0] / ev.RIG_KEY).unlink()  # killed before its key was written: redone
+    ev.build_rig_twins(params, tmp_path)
+    assert [m[0] for m in made] == ["bowl-specular-10-fov40-point1.5"]
+    made.clear()
+    wide = ev.Params(test_shapes=("bowl",), categories=("specular",), light_sets=(10, 17),
+                     rig=ev.Rig(fov_deg=70.0, light_distance=None))
+    assert [p.name for p in ev.build_rig_twins(wide, tmp_path)] == ["bowl-specular-10-fov70", "bowl-specular-17-fov70"]
+    assert len(made) == 2
