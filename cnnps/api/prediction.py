@@ -722,6 +722,7 @@ def predict(
                                                               positions=positions, progress=progress)
         record = make_record(setup, counts, stack, n_images=images.shape[0], image_size=mask.shape,
                              options=opts, sparse_fill=sparse_fill, intrinsics=intrinsics, lights=light_record)
+    warnings += _scale_warning(light_record)
     notes = list(counts.notes)
     errors = stats = None
     if normal_gt is not None:
@@ -729,6 +730,18 @@ def predict(
         errors, stats = score.errors, score.stats
     record = _finish_record(record, t0, t_load, notes, _notices(linearize, record["image_types"]), warnings)
     return Prediction(normal, mask, record, errors, stats, depth)
+
+
+def _scale_warning(lights: dict) -> list[str]:
+    """A warning when the point-light scale search found no minimum inside its range."""
+    from cnnps.ps.near_field import SCALE_RANGE
+
+    search = lights.get("scale_search") or {}
+    if not search.get("at_bound"):
+        return []
+    return [f"point lights: the scale search ended at the edge of its range ({lights['start_distance']:.4g}; it tries "
+            f"{SCALE_RANGE[0]:.2g}-{SCALE_RANGE[1]:g} x the lights' median distance from the camera): depth and normals "
+            "may be far off; measure the object's distance along the optical axis and pass --distance"]
 
 
 def _fills(sparse_fill: str, n_images: int) -> bool:
@@ -810,6 +823,7 @@ def predict_folder(
                   **make_record(setup, counts, stack, n_images=capture.n_images, image_size=capture.shape,
                                 options=opts, sparse_fill=sparse_fill, dropped=capture.dropped,
                                 intrinsics=intrinsics, lights=light_record)}
+    warnings += _scale_warning(light_record)
     notes = capture.notes + counts.notes
     score = None if capture.normal_gt is None else _score(normal, capture.normal_gt, capture.mask, capture_dir, notes)
     if write_surface is not None and intrinsics is not None:  # depth along the optical axis

@@ -152,5 +152,6 @@ def estimate_distance(values: Callable, mask: np.ndarray, K: np.ndarray, positio
                     options={"maxiter": SCALE_REFINE, "xatol": 1e-4})
     best = min(tried, key=tried.get)
     curve = [[round(float(base * np.exp(t)), 6), round(r, 6)] for t, r in sorted(tried.items())]
+    at_bound = k in (0, len(logs) - 1)  # the smallest residual is at an end of the range: no minimum inside it
     return float(base * np.exp(best)), {"pixels": int(small.sum()), "stride": stride,
-                                        "residual": round(tried[best], 6), "candidates": curve}
+                                        "residual": round(tried[best], 6), "at_bound": at_bound, "candidates": curve}

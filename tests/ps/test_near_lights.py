@@ -130,6 +130,27 @@ def test_point_light_rounds_recover_a_lambertian_sphere_its_depth_and_its_scale(
     assert distant.stats["mean_deg"] > 10, distant.stats
 
 
+def test_a_scale_search_that_ends_at_its_range_says_so():
+    """Lights within 0.3 of the camera and an object about 3.1 away: the true scale lies
+    beyond the search's range (up to 3 x the lights' distance), so the smallest residual
+    sits at its edge and the result warns to pass --distance; a rig inside the range does not."""
+    import cnnps
+
+    K, centre, pos, mask, n, X = _rig(size=32, m=24)
+    near_cam = np.array([0.0, 0.0, -0.3]) + 0.1 * (pos - centre) / 3.0
+    dirs, scale = camera.point_light_directions(X, near_cam)
+    imgs = np.zeros((len(pos),) + mask.shape, np.float32)
+    imgs[:, mask] = (np.clip(np.einsum("pk,pmk->pm", n, dirs), 0, None) * scale).T
+    res = cnnps.predict(imgs, None, mask, light_positions=near_cam, intrinsics=K, method="lambertian")
+    assert res.record["lights"]["scale_search"]["at_bound"]
+    assert any("edge of its range" in w and "--distance" in w for w in res.warnings), res.warnings
+
+    dirs, scale = camera.point_light_directions(X, pos)
+    imgs[:, mask] = (np.clip(np.einsum("pk,pmk->pm", n, dirs), 0, None) * scale).T
+    ok = cnnps.predict(imgs, None, mask, light_positions=pos, intrinsics=K, method="lambertian")
+    assert not ok.record["lights"]["scale_search"]["at_bound"] and not ok.warnings
+
+
 def test_point_lights_need_intrinsics_and_a_matching_count():
     import cnnps
     from cnnps.infra.errors import ConfigError
