@@ -7,6 +7,7 @@ CPU-time ledger, and a fallback to committed weights.
     .venv/bin/python benchmarks/long_run.py status v4
     .venv/bin/python benchmarks/long_run.py study v4                  # a clone for `dvc exp run`
     .venv/bin/python benchmarks/long_run.py exp v4 -- -n NAME -S train.lr=1e-4   # one variant, timed
+    .venv/bin/python benchmarks/long_run.py table v4                  # the study's table (and study.json)
 
 The work tree is laid anew every session and only git is certain, but a folder outside
 it often survives. So a run lives in ``ROOT/NAME/``:
@@ -299,6 +300,54 @@ class Run:
         cmd = [str(Path(sys.executable).parent / "dvc"), "exp", "run", *args]
         return self._timed("study", cmd, self.study, poll, command=" ".join(["dvc", "exp", "run", *args]))
 
+    def study_rows(self) -> list[dict]:
+        """One row per experiment of the study (``dvc exp show --json``): its train params,
+        the measures it was scored on, and its CPU-hours from the ledger."""
+        out = subprocess.run([str(Path(sys.executable).parent / "dvc"), "exp", "show", "--json"], cwd=self.study,
+                             capture_output=True, text=True, check=True, env=dict(os.environ, PYTHONPATH=str(self.study)))
+        ledger = json.loads(self.ledger.read_text()) if self.ledger.is_file() else {"calls": []}
+        cpu: dict[str, float] = {}
+        for c in ledger["calls"]:
+            words = c.get("command", "").split()
+            if c["stage"] == "study" and "-n" in words[:-1]:
+                name = words[words.index("-n") + 1]
+                cpu[name] = cpu.get(name, 0.0) + c["cpu_s"] / 3600
+        rows = []
+        for entry in json.loads(out.stdout):
+            for exp in entry.get("experiments") or []:
+                if (exp.get("executor") or {}).get("state") in ("running", "queued"):
+                    continue  # its rows show the workspace's files, not its own yet
+                for rev in exp.get("revs") or []:
+                    data = rev.get("data") or {}
+                    params = ((data.get("params") or {}).get("params.yaml") or {}).get("data") or {}
+                    metrics = data.get("metrics") or {}
+                    tm = (metrics.get("data/train/metrics.json") or {}).get("data") or {}
+                    em = (metrics.get("data/eval/metrics.json") or {}).get("data") or {}
+                    if not em:
+                        continue  # not scored (still running, or failed)
+                    train = params.get("train") or {}
+                    row = {"name": rev.get("name") or rev.get("rev"), "init": Path(train.get("init") or "scratch").stem,
+                           "lr": train.get("lr"), "steps": train.get("max_steps"), "pixelwise": train.get("pixelwise", 0.0),
+                           "cpu_hours": round(cpu.get(rev.get("name"), 0.0), 3),
+                           "val_mean_deg": tm.get("val_mean_deg")}
+                    # DVC keeps only a metrics file's numbers: the method and the real captures'
+                    # names come from the keys and the params
+                    groups = em.get("by_lights_nonconvex") or {}
+                    k = max((key[: -len("_vs_least_squares")] for g in groups.values() for key in g
+                             if key.endswith("_vs_least_squares")), default=None, key=lambda m: int(m[5:]))
+                    for n, g in groups.items():
+                        row[f"nonconvex_{n}_vs_ls"] = g.get(f"{k}_vs_least_squares")
+                        row[f"nonconvex_{n}_deg"] = (g.get(k) or {}).get("mean_deg")
+                    ev = params.get("eval") or {}
+                    for c in ev.get("real_captures") or []:
+                        for name in [Path(c).name] + [f"{Path(c).name}-{n}" for n in ev.get("real_subsets") or []]:
+                            methods = ((em.get("captures") or {}).get(name) or {}).get("methods") or {}
+                            if k in methods:
+                                row[f"{name}_deg"] = methods[k]["mean_deg"]
+                                row[f"{name}_ls_deg"] = (methods.get("lambertian") or {}).get("mean_deg")
+                    rows.append(row)
+        return rows
+
     def totals(self) -> dict:
         ledger = json.loads(self.ledger.read_text()) if self.ledger.is_file() else {"calls": []}
         out: dict[str, dict] = {}
@@ -343,9 +392,25 @@ class Run:
         return int(base.get("max_steps") or 0) - int(params["train"].get("max_steps") or 0)
 
 
+def format_study(rows: list[dict]) -> str:
+    """The study as a Markdown table: K=10 mean errors in degrees, ratios to least squares."""
+    def f(v, fmt="{:.2f}"):
+        return "" if v is None else fmt.format(v)
+
+    head = ("| variant | init | lr | steps | per-pixel | CPU-h | val maps | non-convex 10 / 17 / 305 lights (x LS) "
+            "| BALL 96 / 20 / 10 / 6 images |")
+    lines = [head, "|" + " --- |" * 9]
+    for r in rows:
+        ratios = " / ".join(f(r.get(f"nonconvex_{n}_vs_ls"), "{:.3f}") for n in ("10", "17", "305"))
+        ball = " / ".join(f(r.get(f"ballPNG{s}_deg")) for s in ("", "-20", "-10", "-6"))
+        lines.append(f"| {r['name']} | {r['init']} | {r['lr']:g} | {r['steps']} | {r['pixelwise']:g} | "
+                     f"{r['cpu_hours']:.2f} | {f(r.get('val_mean_deg'))} | {ratios} | {ball} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("cmd", choices=["start", "resume", "save", "status", "study", "exp"])
+    ap.add_argument("cmd", choices=["start", "resume", "save", "status", "study", "exp", "table"])
     ap.add_argument("name")
     ap.add_argument("--root", type=Path, default=Path("/work/runs"))
     ap.add_argument("--preset")
@@ -386,6 +451,12 @@ def main(argv=None) -> int:
         return 0
     if a.cmd == "exp":
         return run.run_exp(exp_args, a.poll)
+    if a.cmd == "table":
+        rows = run.study_rows()
+        _write_json(run.carried / "study.json", {"run": a.name, "commit": run.record()["commit"], "rows": rows})
+        print(format_study(rows))
+        print(f"(saved {run.carried / 'study.json'})")
+        return 0
     if a.cmd == "save":
         out = run.save()
         print(f"saved {run.carried}/ledger.json" + (f" and {out}" if out else " (no checkpoint yet)"))
