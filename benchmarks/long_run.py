@@ -264,10 +264,7 @@ class Run:
         ``data/train`` and ``data/eval`` are the study's own, so no variant touches the run's
         checkpoints. A clone of another commit is replaced (its experiments go with it)."""
         rec, notes = self.record(), []
-        head = None
-        if (self.study / ".git").is_dir():
-            head = subprocess.run(["git", "-C", str(self.study), "rev-parse", "HEAD~1"], capture_output=True,
-                                  text=True).stdout.strip()
+        head = self.study_commit()
         if head != rec["commit"]:
             if self.study.exists():
                 shutil.rmtree(self.study)
@@ -294,8 +291,22 @@ class Run:
                 link.symlink_to(self.data / stage, target_is_directory=True)
         return notes
 
+    def study_commit(self) -> str | None:
+        """The commit the study clone was made from (None: no study)."""
+        if not (self.study / ".git").is_dir():
+            return None
+        return subprocess.run(["git", "-C", str(self.study), "rev-parse", "HEAD~1"], capture_output=True,
+                              text=True).stdout.strip() or None
+
     def run_exp(self, args: list[str], poll: float) -> int:
-        """``dvc exp run ARGS`` in the study clone, its CPU time in the ledger (stage ``study``)."""
+        """``dvc exp run ARGS`` in the study clone, its CPU time in the ledger (stage ``study``).
+        A study of an earlier commit of the run is kept (with its experiments): ``study``
+        replaces it."""
+        have = self.study_commit()
+        if have is not None and have != self.record()["commit"]:
+            raise SystemExit(f"{self.study} is a study of {have[:12]}, the run is now at {self.record()['commit'][:12]}: "
+                             f"`long_run.py table {self.name}` keeps its rows, `long_run.py study {self.name}` starts "
+                             "a new one (its experiments go)")
         self.make_study()
         cmd = [str(Path(sys.executable).parent / "dvc"), "exp", "run", *args]
         return self._timed("study", cmd, self.study, poll, command=" ".join(["dvc", "exp", "run", *args]))
