@@ -229,3 +229,47 @@ def test_diligent_ball_ground_truth_integrates_to_a_sphere(ball_dir):
     sphere[mask] = np.sqrt(np.maximum(radius**2 - (cols - cols.mean()) ** 2 - (rows - rows.mean()) ** 2, 0.0))
     assert np.ptp(depth[mask]) == pytest.approx(radius, rel=0.1)
     assert rel_rms(depth, sphere, mask) < 0.02
+
+
+@pytest.mark.parametrize("fov", [40.0, 70.0])
+def test_discontinuity_weighting_cuts_under_a_pinhole_camera_with_the_same_sigma(fov):
+    """The step field seen through a lens: the surface X = d r with d = D - (D / f) h, h the
+    step heights in pixel footprints. With the default sigma (pixels of height, turned
+    into log-depth by 1 / f) the robust pass localises the error as orthographically."""
+    h, w = 80, 100
+    mask = holey_mask(h, w)
+    height = step_field(h, w)
+    f = w / 2 / np.tan(np.radians(fov / 2))
+    K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+    D = 10.0
+
+    def surface(u, v):
+        ray = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T * np.array([1.0, -1.0, -1.0])
+        d = D - D / f * height(u, -v)
+        return d[..., None] * ray, d
+
+    v, u = np.mgrid[:h, :w].astype(np.float64)
+    e = 1e-4
+    Xu = (surface(u + e, v)[0] - surface(u - e, v)[0]) / (2 * e)
+    Xv = (surface(u, v + e)[0] - surface(u, v - e)[0]) / (2 * e)
+    n = np.cross(Xu, Xv)
+    n *= np.sign(n[..., 2:3]) / np.linalg.norm(n, axis=2, keepdims=True)
+    true = surface(u, v)[1]
+    steps = height(u, -v)
+
+    def distorted(depth) -> float:
+        """Neighbour pairs off the cut whose log-depth difference is off by > 0.05 pixel of height."""
+        bad = total = 0
+        for a, b in [((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+                     ((slice(None, -1), slice(None)), (slice(1, None), slice(None)))]:
+            off_cut = mask[a] & mask[b] & (np.abs(steps[b] - steps[a]) < 0.2)  # smooth slopes are 0.1 a pixel
+            err = np.abs(np.log(depth[b] / depth[a]) - np.log(true[b] / true[a]))[off_cut]
+            bad, total = bad + int((err > 0.05 / f).sum()), total + int(off_cut.sum())
+        return bad / total
+
+    med = float(np.median(true[mask]))
+    plain = integrate(n, mask, intrinsics=K, distance=med)
+    robust = integrate(n, mask, intrinsics=K, distance=med, discontinuities=True)
+    assert distorted(plain.depth) > 0.1  # least squares bends it all
+    assert distorted(robust.depth) < 0.02  # cut, as orthographically
+    assert robust.options["sigma"] == integ.DEFAULT_SIGMA
