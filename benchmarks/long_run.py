@@ -308,6 +308,9 @@ class Run:
                              f"`long_run.py table {self.name}` keeps its rows, `long_run.py study {self.name}` starts "
                              "a new one (its experiments go)")
         self.make_study()
+        # every variant is the baseline plus its own -S: DVC leaves the last experiment's
+        # params in the workspace, which the next one would otherwise inherit
+        subprocess.run(["git", "-C", str(self.study), "checkout", "-q", "HEAD", "--", "params.yaml"], check=True)
         cmd = [str(Path(sys.executable).parent / "dvc"), "exp", "run", *args]
         return self._timed("study", cmd, self.study, poll, command=" ".join(["dvc", "exp", "run", *args]))
 

@@ -120,6 +120,11 @@ def test_a_variant_study_runs_dvc_experiments_on_the_runs_data(tmp_path):
                           capture_output=True, text=True).stdout
     assert [r for r in refs.split() if r.endswith("/two-shapes")]
     assert len([p for p in (data / "meshes").iterdir() if p.is_dir()]) == 2 * 2  # 2 shapes x 2 views, in the run's folder
+    # the next variant starts from the baseline, not from the last experiment's params
+    assert long_run.main(["exp", "r", "--poll", "0.5", *args, "--", "-n", "three-views", "-S", "meshes.views_per_mesh=3",
+                          "meshes"]) == 0
+    params = yaml.safe_load((study / "params.yaml").read_text())
+    assert params["meshes"]["views_per_mesh"] == 3 and params["meshes"]["procedural"] != 2
 
 
 def test_the_study_table_shows_each_variants_measures():
