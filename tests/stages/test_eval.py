@@ -238,10 +238,11 @@ def test_real_captures_only_need_no_blender(tmp_path, tiny_model, monkeypatch):
 
     monkeypatch.setitem(sys.modules, "bpy", None)
     cap = make_capture(tmp_path / "caps" / "ball")
-    ev.run(ev.Params(synthetic=False, real_captures=(str(cap),), rotations=(1,), model=str(tiny_model), device="cpu"),
-           tmp_path / "data")
+    ev.run(ev.Params(synthetic=False, real_captures=(str(cap),), real_subsets=(6,), rotations=(1,),
+                     model=str(tiny_model), device="cpu"), tmp_path / "data")
     metrics = json.loads((tmp_path / "data" / "eval" / "metrics.json").read_text())
-    assert list(metrics["captures"]) == ["ball"] and metrics["captures"]["ball"]["kind"] == "real"
+    assert list(metrics["captures"]) == ["ball", "ball-6"] and metrics["captures"]["ball"]["kind"] == "real"
+    assert [metrics["captures"][n]["n_images"] for n in ("ball", "ball-6")] == [12, 6]
     # least squares on this shadow-free Lambertian capture is exact, whatever the model
     assert metrics["captures"]["ball"]["methods"]["lambertian"]["mean_deg"] < 0.05
 
