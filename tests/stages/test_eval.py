@@ -397,7 +397,9 @@ def test_rig_twins_are_rendered_once_reused_and_redone_when_the_rig_changes(tmp_
         return out
 
     monkeypatch.setattr(rig_render, "render_rig_capture", fake_render)
-    monkeypatch.setattr(ev, "test_mesh", lambda shape, seed: shape)
+    from cnnps.stages import eval_testset
+
+    monkeypatch.setattr(eval_testset, "test_mesh", lambda shape, seed: shape)
     params = ev.Params(test_shapes=("bowl",), categories=("specular",), light_sets=(10, 17), rig=ev.Rig())
     twins = ev.build_rig_twins(params, tmp_path)
     assert [p.name for p in twins] == ["bowl-specular-10-fov40-point1.5", "bowl-specular-17-fov40-point1.5"]

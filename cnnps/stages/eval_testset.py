@@ -1,0 +1,123 @@
+"""The eval stage's synthetic test set: which captures (:func:`testset_plan`), their
+shapes (:func:`test_mesh`), and their renders, orthographic under distant lights
+(:func:`build_testset`) and, with ``eval.rig``, again through a pinhole camera with point
+lights or suns (:func:`build_rig_twins`). ``params`` is :class:`cnnps.stages.evaluate.Params`.
+Every capture is cached under ``data_dir/eval/testset/<name>/`` and reused while its
+settings hold.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from cnnps.infra.atomic import write_text
+
+TEST_SEED_OFFSET = 1_000_003  # test shapes' seeds never coincide with the training shapes'
+SPHERE = "sphere"
+
+
+
+
+def testset_plan(params) -> list[dict]:
+    """The synthetic test captures: shape x category x light set (names and seeds)."""
+    from cnnps.infra.hashing import entropy_seed
+
+    base = params.seed + TEST_SEED_OFFSET
+    plan = []
+    for i, shape in enumerate(params.test_shapes):
+        for cat in params.categories:
+            for n in params.light_sets:
+                plan.append({
+                    "name": f"{shape}-{cat}-{n}",
+                    "shape": shape,
+                    "shape_seed": base + i,
+                    "category": cat,
+                    "lights": int(n),
+                    # the same material maps under every light set of a shape/category
+                    "seed": entropy_seed(base, i, sum(map(ord, cat))) % (2**31 - 1),
+                })
+    return plan
+
+
+def test_mesh(shape: str, shape_seed: int):
+    """A test shape in the camera frame: a sphere, or a procedural kind in a seeded pose."""
+    import trimesh
+
+    from cnnps.synth.meshes import RADIUS, pose_mesh, random_rotation
+
+    if shape == SPHERE:
+        return trimesh.creation.icosphere(subdivisions=5, radius=RADIUS)
+    from cnnps.synth.procedural import make_shape
+
+    mesh = make_shape(shape, shape_seed)
+    return pose_mesh(mesh, random_rotation(np.random.default_rng([shape_seed, 17])))
+
+
+def rig_name(name: str, rig) -> str:
+    return f"{name}-{rig.suffix}"
+
+
+RIG_KEY = "rig_key.json"  # beside a rig twin's files: the settings it was rendered with
+
+
+def build_rig_twins(params, data_dir: Path) -> list[Path]:
+    """The test captures rendered again through ``params.rig`` (same shape, pose, material
+    category, seed and light directions; :func:`cnnps.synth.rig_render.render_rig_capture`)
+    under ``data_dir/eval/testset/<capture>-<rig>/``, reused while their settings hold.
+    Call after :func:`build_testset` (which prunes the folders of older plans)."""
+    import json
+    import shutil
+
+    from cnnps.synth.rig_render import render_rig_capture
+
+    root = Path(data_dir) / "eval" / "testset"
+    rig = params.rig
+    out = []
+    meshes: dict[str, object] = {}
+    for c in testset_plan(params):
+        folder = root / rig_name(c["name"], rig)
+        key = {"fov_deg": rig.fov_deg, "light_distance": rig.light_distance, "lights": c["lights"],
+               "size": params.size, "samples": params.samples, "material": c["category"],
+               "superpixels": params.superpixels, "seed": c["seed"], "shape": c["shape"], "shape_seed": c["shape_seed"]}
+        done = folder / RIG_KEY
+        if done.is_file() and json.loads(done.read_text()) == key:
+            out.append(folder)
+            continue
+        if folder.exists():
+            shutil.rmtree(folder)  # another rig, or killed before its key was written
+        if c["shape"] not in meshes:
+            meshes.clear()
+            meshes[c["shape"]] = test_mesh(c["shape"], c["shape_seed"])
+        render_rig_capture(meshes[c["shape"]], folder, fov_deg=rig.fov_deg, light_distance=rig.light_distance,
+                           lights=c["lights"], size=params.size, samples=params.samples, material=c["category"],
+                           superpixels=params.superpixels, seed=c["seed"], progress=False)
+        write_text(done, json.dumps(key, indent=1) + "\n")
+        out.append(folder)
+    return out
+
+
+def build_testset(params, data_dir: Path) -> list[Path]:
+    """Render (or reuse: each capture carries a content key) the synthetic test captures
+    under ``data_dir/eval/testset/<shape>-<category>-<lights>/``; return their folders."""
+    from cnnps.infra.stage_folders import prune_stale
+    from cnnps.synth.capture_render import render_capture
+
+    root = Path(data_dir) / "eval" / "testset"
+    plan = testset_plan(params)
+    wanted = {c["name"] for c in plan} | {rig_name(c["name"], params.rig) for c in plan if params.rig}
+    prune_stale(root, wanted, ["scene.json", ".pending.json"])  # captures of an older plan
+    meshes: dict[str, object] = {}
+    out = []
+    for c in plan:
+        if c["shape"] not in meshes:
+            meshes.clear()  # captures of one shape are consecutive
+            meshes[c["shape"]] = test_mesh(c["shape"], c["shape_seed"])
+        out.append(
+            render_capture(
+                meshes[c["shape"]], root / c["name"], lights=c["lights"], size=params.size, samples=params.samples,
+                material=c["category"], superpixels=params.superpixels, seed=c["seed"], jitter_deg=0.0,
+            )
+        )
+    return out
