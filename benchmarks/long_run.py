@@ -321,11 +321,13 @@ class Run:
                              capture_output=True, text=True, check=True, env=dict(os.environ, PYTHONPATH=str(self.study)))
         ledger = json.loads(self.ledger.read_text()) if self.ledger.is_file() else {"calls": []}
         cpu: dict[str, float] = {}
+        changes: dict[str, list[str]] = {}
         for c in ledger["calls"]:
             words = c.get("command", "").split()
             if c["stage"] == "study" and "-n" in words[:-1]:
                 name = words[words.index("-n") + 1]
                 cpu[name] = cpu.get(name, 0.0) + c["cpu_s"] / 3600
+                changes[name] = [words[i + 1] for i, w in enumerate(words[:-1]) if w == "-S"]
         rows = []
         for entry in json.loads(out.stdout):
             for exp in entry.get("experiments") or []:
@@ -342,6 +344,7 @@ class Run:
                     train = params.get("train") or {}
                     row = {"name": rev.get("name") or rev.get("rev"), "init": Path(train.get("init") or "scratch").stem,
                            "lr": train.get("lr"), "steps": train.get("max_steps"), "pixelwise": train.get("pixelwise", 0.0),
+                           "changes": changes.get(rev.get("name"), []),
                            "cpu_hours": round(cpu.get(rev.get("name"), 0.0), 3),
                            "val_mean_deg": tm.get("val_mean_deg")}
                     # DVC keeps only a metrics file's numbers: the method and the real captures'
@@ -411,14 +414,15 @@ def format_study(rows: list[dict]) -> str:
     def f(v, fmt="{:.2f}"):
         return "" if v is None else fmt.format(v)
 
-    head = ("| variant | init | lr | steps | per-pixel | CPU-h | val maps | non-convex 10 / 17 / 305 lights (x LS) "
+    head = ("| variant | changes to the baseline (`-S`) | CPU-h | val maps | non-convex 10 / 17 / 305 lights (x LS) "
             "| BALL 96 / 20 / 10 / 6 images |")
-    lines = [head, "|" + " --- |" * 9]
+    lines = [head, "|" + " --- |" * 6]
     for r in rows:
         ratios = " / ".join(f(r.get(f"nonconvex_{n}_vs_ls"), "{:.3f}") for n in ("10", "17", "305"))
         ball = " / ".join(f(r.get(f"ballPNG{s}_deg")) for s in ("", "-20", "-10", "-6"))
-        lines.append(f"| {r['name']} | {r['init']} | {r['lr']:g} | {r['steps']} | {r['pixelwise']:g} | "
-                     f"{r['cpu_hours']:.2f} | {f(r.get('val_mean_deg'))} | {ratios} | {ball} |")
+        changed = " ".join(f"`{c}`" for c in r.get("changes") or []) or "none"
+        lines.append(f"| {r['name']} | {changed} | {r['cpu_hours']:.2f} | {f(r.get('val_mean_deg'))} | {ratios} "
+                     f"| {ball} |")
     return "\n".join(lines)
 
 

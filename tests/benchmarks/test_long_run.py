@@ -128,10 +128,10 @@ def test_a_variant_study_runs_dvc_experiments_on_the_runs_data(tmp_path):
 
 
 def test_the_study_table_shows_each_variants_measures():
-    row = {"name": "ft", "init": "cnnps_default", "lr": 1e-4, "steps": 1500, "pixelwise": 0.25, "cpu_hours": 0.41,
+    row = {"name": "ft", "changes": ["train.lr=1e-4", "train.pixelwise=0.25"], "cpu_hours": 0.41,
            "val_mean_deg": 5.1234, "nonconvex_10_vs_ls": 0.6632, "nonconvex_17_vs_ls": 0.4916,
            "nonconvex_305_vs_ls": 0.1784, "ballPNG_deg": 2.061, "ballPNG-20_deg": 2.733, "ballPNG-10_deg": 4.598}
     table = long_run.format_study([row]).splitlines()
     assert len(table) == 3 and table[0].startswith("| variant |")
-    assert table[2] == ("| ft | cnnps_default | 0.0001 | 1500 | 0.25 | 0.41 | 5.12 | 0.663 / 0.492 / 0.178 "
+    assert table[2] == ("| ft | `train.lr=1e-4` `train.pixelwise=0.25` | 0.41 | 5.12 | 0.663 / 0.492 / 0.178 "
                         "| 2.06 / 2.73 / 4.60 /  |")
