@@ -8,6 +8,7 @@ CPU-time ledger, and a fallback to committed weights.
     .venv/bin/python benchmarks/long_run.py study v4                  # a clone for `dvc exp run`
     .venv/bin/python benchmarks/long_run.py exp v4 -- -n NAME -S train.lr=1e-4   # one variant, timed
     .venv/bin/python benchmarks/long_run.py table v4                  # the study's table (and study.json)
+    .venv/bin/python benchmarks/long_run.py probe v4                  # score the newest checkpoint now
 
 The work tree is laid anew every session and only git is certain, but a folder outside
 it often survives. So a run lives in ``ROOT/NAME/``:
@@ -347,23 +348,50 @@ class Run:
                            "changes": changes.get(rev.get("name"), []),
                            "cpu_hours": round(cpu.get(rev.get("name"), 0.0), 3),
                            "val_mean_deg": tm.get("val_mean_deg")}
-                    # DVC keeps only a metrics file's numbers: the method and the real captures'
-                    # names come from the keys and the params
-                    groups = em.get("by_lights_nonconvex") or {}
-                    k = max((key[: -len("_vs_least_squares")] for g in groups.values() for key in g
-                             if key.endswith("_vs_least_squares")), default=None, key=lambda m: int(m[5:]))
-                    for n, g in groups.items():
-                        row[f"nonconvex_{n}_vs_ls"] = g.get(f"{k}_vs_least_squares")
-                        row[f"nonconvex_{n}_deg"] = (g.get(k) or {}).get("mean_deg")
-                    ev = params.get("eval") or {}
-                    for c in ev.get("real_captures") or []:
-                        for name in [Path(c).name] + [f"{Path(c).name}-{n}" for n in ev.get("real_subsets") or []]:
-                            methods = ((em.get("captures") or {}).get(name) or {}).get("methods") or {}
-                            if k in methods:
-                                row[f"{name}_deg"] = methods[k]["mean_deg"]
-                                row[f"{name}_ls_deg"] = (methods.get("lambertian") or {}).get("mean_deg")
+                    row.update(metric_columns(em, params.get("eval") or {}))
                     rows.append(row)
         return rows
+
+    def probe(self, poll: float) -> dict:
+        """Score the newest checkpoint now, as the study scores a variant: ``save`` (the
+        weights into ``intermediate.pt``), then the run's eval section with that model into
+        ``probe/`` (its test set linked to the study's renders when there are some). The
+        row (the study table's columns, step and validation error added) is appended to
+        ``probes.json`` in git's folder, the time to the ledger (stage ``probe``)."""
+        weights = self.save()
+        if weights is None:
+            raise SystemExit(f"{self.name}: no checkpoint to probe yet")
+        step = int(self._meta(weights)["steps"])
+        params = yaml.safe_load(self.params.read_text())
+        probe = self.dir / "probe"
+        params["data_dir"] = str(probe)
+        params["eval"] = {**params.get("eval", {}), "model": str(weights)}
+        rendered = self.study / "data" / "eval" / "testset"
+        if rendered.is_dir() and not (probe / "eval" / "testset").exists():
+            (probe / "eval").mkdir(parents=True, exist_ok=True)
+            (probe / "eval" / "testset").symlink_to(rendered, target_is_directory=True)
+        file = self.dir / "probe.yaml"
+        file.write_text(yaml.safe_dump(params, sort_keys=False))
+        cmd = [sys.executable, "-c", "import cnnps, sys; assert cnnps.__file__.startswith(sys.argv[1]), cnnps.__file__; "
+               "from cnnps.pipeline.cli import main; sys.argv = ['cnnps'] + sys.argv[2:]; main()",
+               str(self.code), "run-stage", "eval", "--params", str(file)]
+        rc = self._timed("probe", cmd, self.code, poll, step=step)
+        if rc:
+            raise SystemExit(f"the probe's eval stage exited with {rc}")
+        em = json.loads((probe / "eval" / "metrics.json").read_text())
+        train = self.data / "train" / "plots" / "val.csv"
+        val = None
+        if train.is_file():
+            lines = [ln.split(",") for ln in train.read_text().splitlines()[1:] if ln.strip()]
+            done = [ln for ln in lines if int(float(ln[0])) <= step]
+            val = float(done[-1][1]) if done else None
+        row = {"name": f"step {step}", "step": step, "changes": [], "cpu_hours": 0.0, "val_mean_deg": val,
+               **metric_columns(em, params.get("eval") or {})}
+        record = self.carried / "probes.json"
+        rows = json.loads(record.read_text())["rows"] if record.is_file() else []
+        rows = [r for r in rows if r.get("step") != step] + [row]
+        _write_json(record, {"run": self.name, "rows": sorted(rows, key=lambda r: r["step"])})
+        return row
 
     def totals(self) -> dict:
         ledger = json.loads(self.ledger.read_text()) if self.ledger.is_file() else {"calls": []}
@@ -409,6 +437,27 @@ class Run:
         return int(base.get("max_steps") or 0) - int(params["train"].get("max_steps") or 0)
 
 
+def metric_columns(em: dict, ev: dict) -> dict:
+    """The study's columns from an eval ``metrics.json`` (``em``) and its eval section
+    (``ev``): the CNN's (largest K) non-convex ratios and means per light count, and each
+    real capture (and subset) mean, least squares beside it. Reads only numbers and keys
+    (``dvc exp show`` keeps no strings or lists of a metrics file)."""
+    row = {}
+    groups = em.get("by_lights_nonconvex") or {}
+    k = max((key[: -len("_vs_least_squares")] for g in groups.values() for key in g
+             if key.endswith("_vs_least_squares")), default=None, key=lambda m: int(m[5:]))
+    for n, g in groups.items():
+        row[f"nonconvex_{n}_vs_ls"] = g.get(f"{k}_vs_least_squares")
+        row[f"nonconvex_{n}_deg"] = (g.get(k) or {}).get("mean_deg")
+    for c in ev.get("real_captures") or []:
+        for name in [Path(c).name] + [f"{Path(c).name}-{n}" for n in ev.get("real_subsets") or []]:
+            methods = ((em.get("captures") or {}).get(name) or {}).get("methods") or {}
+            if k in methods:
+                row[f"{name}_deg"] = methods[k]["mean_deg"]
+                row[f"{name}_ls_deg"] = (methods.get("lambertian") or {}).get("mean_deg")
+    return row
+
+
 def format_study(rows: list[dict]) -> str:
     """The study as a Markdown table: K=10 mean errors in degrees, ratios to least squares."""
     def f(v, fmt="{:.2f}"):
@@ -428,7 +477,7 @@ def format_study(rows: list[dict]) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("cmd", choices=["start", "resume", "save", "status", "study", "exp", "table"])
+    ap.add_argument("cmd", choices=["start", "resume", "save", "status", "study", "exp", "table", "probe"])
     ap.add_argument("name")
     ap.add_argument("--root", type=Path, default=Path("/work/runs"))
     ap.add_argument("--preset")
@@ -474,6 +523,11 @@ def main(argv=None) -> int:
         _write_json(run.carried / "study.json", {"run": a.name, "commit": run.record()["commit"], "rows": rows})
         print(format_study(rows))
         print(f"(saved {run.carried / 'study.json'})")
+        return 0
+    if a.cmd == "probe":
+        row = run.probe(a.poll)
+        print(format_study([row]))
+        print(f"(added to {run.carried / 'probes.json'})")
         return 0
     if a.cmd == "save":
         out = run.save()

@@ -135,3 +135,34 @@ def test_the_study_table_shows_each_variants_measures():
     assert len(table) == 3 and table[0].startswith("| variant |")
     assert table[2] == ("| ft | `train.lr=1e-4` `train.pixelwise=0.25` | 0.41 | 5.12 | 0.663 / 0.492 / 0.178 "
                         "| 2.06 / 2.73 / 4.60 /  |")
+
+
+@pytest.mark.skipif(shutil.which("git") is None or not (REPO / ".git").exists(), reason="needs git and a clone")
+def test_a_probe_scores_the_newest_checkpoint_and_keeps_a_row(tmp_path):
+    import torch
+
+    from cnnps.models.network import CNNPS
+    from tests.stages.test_eval import make_capture
+
+    root, carried = tmp_path / "runs", tmp_path / "carried"
+    args = ["--root", str(root), "--carried", str(carried)]
+    assert long_run.main(["start", "r", "--preset", "demo", "--commit", "HEAD", *args]) == 0
+    cap = make_capture(tmp_path / "caps" / "ball")
+    params = yaml.safe_load((root / "r" / "params.yaml").read_text())
+    params["eval"] = {"synthetic": False, "real_captures": [str(cap)], "real_subsets": [6], "rotations": [1],
+                      "device": "cpu"}
+    (root / "r" / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    with pytest.raises(SystemExit, match="no checkpoint to probe"):
+        long_run.main(["probe", "r", *args])
+    ck = root / "r" / "data" / "train" / "checkpoints"
+    ck.mkdir(parents=True)
+    torch.manual_seed(0)
+    torch.save({"model": CNNPS(w=32).state_dict(), "step": 20}, ck / "step-00000020.pt")
+    (root / "r" / "data" / "train" / "plots").mkdir()
+    (root / "r" / "data" / "train" / "plots" / "val.csv").write_text("step,val_mean_deg,val_median_deg\n10,9.5,8\n20,7.25,6\n")
+    assert long_run.main(["probe", "r", "--poll", "0.5", *args]) == 0
+    rows = json.loads((carried / "r" / "probes.json").read_text())["rows"]
+    assert [r["step"] for r in rows] == [20] and rows[0]["val_mean_deg"] == 7.25
+    assert rows[0]["ball_ls_deg"] < 0.05 and rows[0]["ball-6_deg"] > 0  # least squares is exact on this capture
+    call = json.loads((root / "r" / "ledger.json").read_text())["calls"][-1]
+    assert call["stage"] == "probe" and call["step"] == 20 and call["finished"]
