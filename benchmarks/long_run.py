@@ -444,8 +444,7 @@ def metric_columns(em: dict, ev: dict) -> dict:
     (``dvc exp show`` keeps no strings or lists of a metrics file)."""
     row = {}
     groups = em.get("by_lights_nonconvex") or {}
-    k = max((key[: -len("_vs_least_squares")] for g in groups.values() for key in g
-             if key.endswith("_vs_least_squares")), default=None, key=lambda m: int(m[5:]))
+    k = f"cnn_k{max(ev.get('rotations') or [1, 10])}"  # the eval stage's default rotations: 1 and 10
     for n, g in groups.items():
         row[f"nonconvex_{n}_vs_ls"] = g.get(f"{k}_vs_least_squares")
         row[f"nonconvex_{n}_deg"] = (g.get(k) or {}).get("mean_deg")
