@@ -90,6 +90,7 @@ def test_a_run_outside_the_work_tree(tmp_path):
 
 @pytest.mark.skipif(shutil.which("git") is None or not (REPO / ".git").exists(), reason="needs git and a clone")
 def test_a_variant_study_runs_dvc_experiments_on_the_runs_data(tmp_path):
+    pytest.importorskip("dvc")
     root, carried = tmp_path / "runs", tmp_path / "carried"
     args = ["--root", str(root), "--carried", str(carried)]
     assert long_run.main(["start", "r", "--preset", "demo", "--commit", "HEAD", *args]) == 0
