@@ -59,6 +59,18 @@ def rig_name(name: str, rig) -> str:
     return f"{name}-{rig.suffix}"
 
 
+def twin_size(size: int, rig) -> int:
+    """Image size of a rig twin: ``rig.size``, or the orthographic capture's ``size``
+    scaled so that the object spans as many pixels. The orthographic camera sees 2 object
+    radii across; the pinhole camera, 5 radii from the object's centre
+    (:data:`cnnps.synth.blender_renderer.CAMERA_ORIGIN`), sees 2 x 5 tan(fov / 2) there."""
+    if rig.size is not None:
+        return int(rig.size)
+    from cnnps.synth.blender_renderer import CAMERA_ORIGIN
+
+    return int(round(size * CAMERA_ORIGIN[2] * np.tan(np.radians(rig.fov_deg) / 2)))
+
+
 RIG_KEY = "rig_key.json"  # beside a rig twin's files: the settings it was rendered with
 
 
@@ -78,8 +90,9 @@ def build_rig_twins(params, data_dir: Path) -> list[Path]:
     meshes: dict[str, object] = {}
     for c in testset_plan(params):
         folder = root / rig_name(c["name"], rig)
+        size = twin_size(params.size, rig)
         key = {"fov_deg": rig.fov_deg, "light_distance": rig.light_distance, "lights": c["lights"],
-               "size": params.size, "samples": params.samples, "material": c["category"],
+               "size": size, "samples": params.samples, "material": c["category"],
                "superpixels": params.superpixels, "seed": c["seed"], "shape": c["shape"], "shape_seed": c["shape_seed"]}
         done = folder / RIG_KEY
         if done.is_file() and json.loads(done.read_text()) == key:
@@ -91,7 +104,7 @@ def build_rig_twins(params, data_dir: Path) -> list[Path]:
             meshes.clear()
             meshes[c["shape"]] = test_mesh(c["shape"], c["shape_seed"])
         render_rig_capture(meshes[c["shape"]], folder, fov_deg=rig.fov_deg, light_distance=rig.light_distance,
-                           lights=c["lights"], size=params.size, samples=params.samples, material=c["category"],
+                           lights=c["lights"], size=size, samples=params.samples, material=c["category"],
                            superpixels=params.superpixels, seed=c["seed"], progress=False)
         write_text(done, json.dumps(key, indent=1) + "\n")
         out.append(folder)

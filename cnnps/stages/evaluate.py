@@ -75,12 +75,18 @@ from cnnps.stages.eval_testset import (  # noqa: F401 (part of this stage's API)
 class Rig:
     """The rig of the test set's twins (``eval.rig``): a pinhole camera with ``fov_deg``
     across the image and, with ``light_distance`` d, point lights d object radii from the
-    object's centre (None: the distant lights of the orthographic captures)."""
+    object's centre (None: the distant lights of the orthographic captures). ``size``:
+    the twins' image size; None renders them so that the object spans as many pixels as
+    in its orthographic capture (:func:`cnnps.stages.eval_testset.twin_size`), so that
+    ``rig_minus_ortho`` measures the rig and not a smaller object."""
 
     fov_deg: float = 40.0
     light_distance: float | None = 1.5
+    size: int | None = None  # pixels across; None: the object spans as many as in the orthographic capture
 
     def __post_init__(self):
+        if self.size is not None and self.size < 8:
+            raise ConfigError(f"eval.rig.size must be >= 8 pixels (or null), got {self.size}")
         if not 0 < self.fov_deg < 120:
             raise ConfigError(f"eval.rig.fov_deg must be in (0, 120), got {self.fov_deg}")
         if self.light_distance is not None and not 1 < self.light_distance < 5:

@@ -387,13 +387,14 @@ def test_rig_twins_are_rendered_once_reused_and_redone_when_the_rig_changes(tmp_
 
     from cnnps.synth import rig_render
 
-    made = []
+    made, sizes = [], []
 
     def fake_render(mesh, out_dir, **kw):
         out = Path(out_dir)
         out.mkdir(parents=True)
         (out / "scene.json").write_text(json.dumps(kw))
         made.append((out.name, kw["fov_deg"], kw["light_distance"], kw["lights"]))
+        sizes.append(kw["size"])
         return out
 
     monkeypatch.setattr(rig_render, "render_rig_capture", fake_render)
@@ -404,6 +405,9 @@ def test_rig_twins_are_rendered_once_reused_and_redone_when_the_rig_changes(tmp_
     twins = ev.build_rig_twins(params, tmp_path)
     assert [p.name for p in twins] == ["bowl-specular-10-fov40-point1.5", "bowl-specular-17-fov40-point1.5"]
     assert made == [("bowl-specular-10-fov40-point1.5", 40.0, 1.5, 10), ("bowl-specular-17-fov40-point1.5", 40.0, 1.5, 17)]
+    # the object spans as many pixels as in the 64-pixel orthographic capture (2 radii across):
+    # 5 radii away, a 40-degree frame is 2 x 5 tan(20 deg) = 3.64 radii across
+    assert sizes == [round(64 * 5 * np.tan(np.radians(20)))] * 2 == [116, 116]
     made.clear()
     assert ev.build_rig_twins(params, tmp_path) == twins and made == []  # reused
     (twins[0] / ev.RIG_KEY).unlink()  # killed before its key was written: redone
@@ -413,4 +417,9 @@ def test_rig_twins_are_rendered_once_reused_and_redone_when_the_rig_changes(tmp_
     wide = ev.Params(test_shapes=("bowl",), categories=("specular",), light_sets=(10, 17),
                      rig=ev.Rig(fov_deg=70.0, light_distance=None))
     assert [p.name for p in ev.build_rig_twins(wide, tmp_path)] == ["bowl-specular-10-fov70", "bowl-specular-17-fov70"]
-    assert len(made) == 2
+    assert len(made) == 2 and sizes[-1] == round(64 * 5 * np.tan(np.radians(35)))
+    made.clear()
+    fixed = ev.Params(test_shapes=("bowl",), categories=("specular",), light_sets=(10,),
+                      rig=ev.Rig(fov_deg=70.0, light_distance=None, size=64))
+    ev.build_rig_twins(fixed, tmp_path)
+    assert sizes[-1] == 64 and len(made) == 1  # another size, another key: rendered again
