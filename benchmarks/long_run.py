@@ -234,21 +234,37 @@ class Run:
 
         bindir = str(Path(sys.executable).parent)  # `cnnps` and `dvc` of this interpreter
         env = dict(os.environ, PYTHONPATH=str(cwd), PATH=bindir + os.pathsep + os.environ.get("PATH", ""))
-        ledger = json.loads(self.ledger.read_text()) if self.ledger.is_file() else {"calls": []}
         entry = {"stage": stage, **extra, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "cpu": cpu_info()["model"],
                  "logical_cpus": os.cpu_count(), "commit": self.record()["commit"][:12], "wall_s": 0.0, "cpu_s": 0.0,
-                 "finished": False}
-        ledger["calls"].append(entry)
+                 "finished": False, "id": f"{os.getpid()}-{time.time():.3f}"}
 
         def on_sample(wall, cpu):
             entry.update(wall_s=round(wall, 1), cpu_s=round(cpu, 1))
-            _write_json(self.ledger, ledger)
+            self._record_call(entry)
 
         run_timed.base = _children_cpu()
+        self._record_call(entry)
         rc = run_timed(cmd, env, cwd, poll, on_sample)
         entry.update(finished=rc == 0, exit=rc)
-        _write_json(self.ledger, ledger)
+        self._record_call(entry)
         return rc
+
+    def _record_call(self, entry: dict) -> None:
+        """Put ``entry`` into the ledger file (by its id), re-reading the file under a lock:
+        a probe or a study call may run beside the training one, and each writes only its own."""
+        import fcntl
+
+        self.ledger.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.ledger.with_name(".ledger.lock"), "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            ledger = json.loads(self.ledger.read_text()) if self.ledger.is_file() else {"calls": []}
+            calls = ledger["calls"]
+            at = next((i for i, c in enumerate(calls) if c.get("id") == entry["id"]), None)
+            if at is None:
+                calls.append(dict(entry))
+            else:
+                calls[at] = dict(entry)
+            _write_json(self.ledger, ledger)
 
     # ------------------------------------------------------------------------- the variant study
 

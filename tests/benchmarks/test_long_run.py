@@ -167,3 +167,14 @@ def test_a_probe_scores_the_newest_checkpoint_and_keeps_a_row(tmp_path):
     assert rows[0]["ball_ls_deg"] < 0.05 and rows[0]["ball-6_deg"] > 0  # least squares is exact on this capture
     call = json.loads((root / "r" / "ledger.json").read_text())["calls"][-1]
     assert call["stage"] == "probe" and call["step"] == 20 and call["finished"]
+
+
+def test_calls_that_run_side_by_side_keep_each_others_ledger_entries(tmp_path):
+    run = long_run.Run("r", tmp_path / "runs", tmp_path / "carried")
+    train = {"id": "1-1", "stage": "train", "cpu_s": 10.0}
+    probe = {"id": "2-2", "stage": "probe", "cpu_s": 3.0}
+    run._record_call(train)
+    run._record_call(probe)
+    run._record_call({**train, "cpu_s": 40.0})  # the training call's next sample
+    calls = json.loads(run.ledger.read_text())["calls"]
+    assert [(c["stage"], c["cpu_s"]) for c in calls] == [("train", 40.0), ("probe", 3.0)]
