@@ -222,11 +222,15 @@ class Run:
 
         return load_checkpoint(weights)[2]
 
+    def stage_command(self, stage: str, params: Path) -> list[str]:
+        """``cnnps run-stage STAGE --params PARAMS`` run by the clone's code (the command
+        checks that ``cnnps`` comes from there)."""
+        return [sys.executable, "-c", "import cnnps, sys; assert cnnps.__file__.startswith(sys.argv[1]), cnnps.__file__; "
+                "from cnnps.pipeline.cli import main; sys.argv = ['cnnps'] + sys.argv[2:]; main()",
+                str(self.code), "run-stage", stage, "--params", str(params)]
+
     def run_stage(self, stage: str, poll: float) -> int:
-        cmd = [sys.executable, "-c", "import cnnps, sys; assert cnnps.__file__.startswith(sys.argv[1]), cnnps.__file__; "
-               "from cnnps.pipeline.cli import main; sys.argv = ['cnnps'] + sys.argv[2:]; main()",
-               str(self.code), "run-stage", stage, "--params", str(self.params)]
-        return self._timed(stage, cmd, self.code, poll)
+        return self._timed(stage, self.stage_command(stage, self.params), self.code, poll)
 
     def _timed(self, stage: str, cmd: list[str], cwd: Path, poll: float, **extra) -> int:
         """Run ``cmd`` in ``cwd`` with ``cnnps`` imported from there; its time into the ledger."""
@@ -388,10 +392,7 @@ class Run:
             (probe / "eval" / "testset").symlink_to(rendered, target_is_directory=True)
         file = self.dir / "probe.yaml"
         file.write_text(yaml.safe_dump(params, sort_keys=False))
-        cmd = [sys.executable, "-c", "import cnnps, sys; assert cnnps.__file__.startswith(sys.argv[1]), cnnps.__file__; "
-               "from cnnps.pipeline.cli import main; sys.argv = ['cnnps'] + sys.argv[2:]; main()",
-               str(self.code), "run-stage", "eval", "--params", str(file)]
-        rc = self._timed("probe", cmd, self.code, poll, step=step)
+        rc = self._timed("probe", self.stage_command("eval", file), self.code, poll, step=step)
         if rc:
             raise SystemExit(f"the probe's eval stage exited with {rc}")
         em = json.loads((probe / "eval" / "metrics.json").read_text())

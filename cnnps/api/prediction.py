@@ -400,12 +400,11 @@ NEAR_TILE_BYTES = 1 << 27  # per-pixel light directions of one tile under point 
 def _near_tile(I: np.ndarray, near, K: np.ndarray, flat_index: np.ndarray, W: int):
     """A tile's values divided by each light's 1 / r^2 at its surface points, and its
     (n, m, 3) light directions, from ``near`` = (positions, depth)."""
-    from cnnps.ps.camera import point_light_directions
-    from cnnps.ps.near_lights import surface_points
+    from cnnps.ps.near_lights import pixel_lights_at
 
     positions, depth = near
     rows, cols = np.divmod(flat_index, W)
-    dirs, scale = point_light_directions(surface_points(K, rows, cols, depth.reshape(-1)[flat_index]), positions)
+    dirs, scale = pixel_lights_at(K, rows, cols, depth.reshape(-1)[flat_index], positions)
     return (I / scale).astype(np.float32), dirs
 
 

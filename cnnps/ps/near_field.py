@@ -25,10 +25,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cnnps.ps.camera import point_light_directions
 from cnnps.ps.integrate import integrate
 from cnnps.ps.least_squares import least_squares_per_pixel
-from cnnps.ps.near_lights import default_distance, depth_change, surface_points
+from cnnps.ps.near_lights import default_distance, depth_change, pixel_lights_at
 
 SCALE_PIXELS = 20000  # at most this many mask pixels (a regular subgrid) in the scale search
 SCALE_RANGE = (1 / 3, 3.0)  # candidate median depths, relative to the lights' median distance
@@ -123,7 +122,7 @@ def estimate_distance(values: Callable, mask: np.ndarray, K: np.ndarray, positio
     rows, cols = np.nonzero(small)
 
     def normals_at(depth: np.ndarray, _final: bool):
-        L, scale = point_light_directions(surface_points(Ks, rows, cols, depth[small]), positions)
+        L, scale = pixel_lights_at(Ks, rows, cols, depth[small], positions)
         N, albedo = least_squares_per_pixel(I / scale, L, shadow_threshold=0.0)
         normal = np.zeros(small.shape + (3,))
         normal[small] = np.where(albedo[:, None] > 0, N, [0.0, 0.0, 1.0])
@@ -135,7 +134,7 @@ def estimate_distance(values: Callable, mask: np.ndarray, K: np.ndarray, positio
         """The relit residual of the least-squares surface at median depth base * e^t."""
         depth = run_rounds(normals_at, small, Ks, positions, distance=base * np.exp(t), rounds=rounds,
                            tolerance=tolerance, final_pass=False).depth
-        L, scale = point_light_directions(surface_points(Ks, rows, cols, depth[small]), positions)
+        L, scale = pixel_lights_at(Ks, rows, cols, depth[small], positions)
         J = I / scale
         use = (J > 0) & (J <= np.quantile(np.where(J > 0, J, np.nan), KEEP_QUANTILE, axis=1)[:, None])
         N, albedo = least_squares_per_pixel(J, L, missing=~use)

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cnnps.ps.camera import pixel_rays
+from cnnps.ps.camera import pixel_rays, point_light_directions
 
 DEFAULT_ROUNDS = 8  # most rounds of normals -> depth -> lights
 DEFAULT_TOLERANCE = 1e-3  # stop when the median relative depth change falls below this
@@ -86,6 +86,14 @@ def directions_from_positions(positions: np.ndarray) -> np.ndarray:
 def surface_points(K: np.ndarray, rows: np.ndarray, cols: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """(P, 3) surface points of pixels (rows, cols) at ``depth`` (P,) along the optical axis."""
     return pixel_rays(K, rows, cols) * np.asarray(depth, np.float64)[:, None]
+
+
+def pixel_lights_at(K: np.ndarray, rows: np.ndarray, cols: np.ndarray, depth: np.ndarray,
+                    positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel's lights from its surface point at ``depth`` (P,) along the optical axis:
+    ((P, m, 3) unit directions, (P, m) 1 / r^2 fall-off), what the pixels' values are
+    divided by (:func:`cnnps.ps.camera.point_light_directions`)."""
+    return point_light_directions(surface_points(K, rows, cols, depth), positions)
 
 
 def depth_change(new: np.ndarray, old: np.ndarray) -> float:

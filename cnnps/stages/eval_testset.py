@@ -18,8 +18,6 @@ TEST_SEED_OFFSET = 1_000_003  # test shapes' seeds never coincide with the train
 SPHERE = "sphere"
 
 
-
-
 def testset_plan(params) -> list[dict]:
     """The synthetic test captures: shape x category x light set (names and seeds)."""
     from cnnps.infra.hashing import entropy_seed

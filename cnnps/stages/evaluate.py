@@ -260,10 +260,10 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> d
 def _capture_normals(cap, K, predict, params: Params, distance: float | None = None) -> tuple[dict, dict]:
     """({method: (H, W, 3) float32 normals}, {method: (H, W) depth} under point lights,
     whose rounds start at ``distance``, or at the estimated scale when it is None)."""
-    from cnnps.ps.camera import point_light_directions, view_directions
+    from cnnps.ps.camera import view_directions
     from cnnps.ps.least_squares import least_squares, least_squares_per_pixel
     from cnnps.ps.near_field import run_rounds
-    from cnnps.ps.near_lights import DEFAULT_ROUNDS, DEFAULT_TOLERANCE, surface_points
+    from cnnps.ps.near_lights import DEFAULT_ROUNDS, DEFAULT_TOLERANCE, pixel_lights_at
     from cnnps.ps.rotation import normalize
 
     I, L = cap.pixel_intensities(), cap.lights
@@ -285,7 +285,7 @@ def _capture_normals(cap, K, predict, params: Params, distance: float | None = N
     positions = cap.light_positions
 
     def near(depth):  # each pixel's lights from its surface point; values divided by 1 / r^2
-        dirs, scale = point_light_directions(surface_points(K, rows, cols, depth[cap.mask]), positions)
+        dirs, scale = pixel_lights_at(K, rows, cols, depth[cap.mask], positions)
         return I / scale, dirs
 
     def rounds(normals_at, final_pass):
