@@ -31,7 +31,7 @@ it often survives. So a run lives in ``ROOT/NAME/``:
 
 What git carries, in ``benchmarks/runs/NAME/``: ``run.json`` (commit, preset, params),
 ``ledger.json`` and at most one ``intermediate.pt`` (``save``: the newest checkpoint's
-weights, replaced each time, never a second file). ``resume`` on a machine where
+weights in float16, replaced each time, never a second file). ``resume`` on a machine where
 ``ROOT/NAME`` is gone clones the same commit again and regenerates the data (the stages
 are deterministic and seeded; the ledger records the time it took again). If the train
 stage then has no checkpoint but ``intermediate.pt`` exists, training restarts from those
@@ -423,7 +423,7 @@ class Run:
         return out
 
     def save(self) -> Path | None:
-        """Ledger and the newest checkpoint's weights into git's folder (one weights file)."""
+        """Ledger and the newest checkpoint's weights (float16) into git's folder (one weights file)."""
         dst = self.carried
         if self.ledger.is_file():
             shutil.copy(self.ledger, dst / "ledger.json")
@@ -444,7 +444,9 @@ class Run:
         net.load_state_dict(state["model"])
         out = dst / "intermediate.pt"
         done = int(cks[-1].stem.split("-")[1]) + int(self._offset())
-        save_checkpoint(out, net, meta={"steps": done, "run": self.name, "commit": self.record()["commit"]})
+        # float16, as the shipped weights: half the bytes in git; a fallback continues from
+        # weights rounded to 1 part in 2,000, far below what one training step changes
+        save_checkpoint(out, net, meta={"steps": done, "run": self.name, "commit": self.record()["commit"]}, half=True)
         return out
 
     def _offset(self) -> int:

@@ -73,7 +73,8 @@ def test_a_run_outside_the_work_tree(tmp_path):
     assert long_run.main(["save", "r", *args]) == 0
     saved, _, meta = load_checkpoint(carried / "r" / "intermediate.pt")
     assert meta["steps"] == 10 and meta["commit"] == head
-    assert all(torch.equal(v, net.state_dict()[k]) for k, v in saved.state_dict().items())
+    # the weights exactly, rounded to float16 (what git keeps)
+    assert all(torch.equal(v, net.state_dict()[k].half().float()) for k, v in saved.state_dict().items())
     assert json.loads((carried / "r" / "ledger.json").read_text())["calls"][0]["stage"] == "meshes"
 
     # the machine comes back bare: the clone and the data are gone, the weights of step 60 are in git
