@@ -9,6 +9,7 @@ CPU-time ledger, and a fallback to committed weights.
     .venv/bin/python benchmarks/long_run.py exp v4 -- -n NAME -S train.lr=1e-4   # one variant, timed
     .venv/bin/python benchmarks/long_run.py table v4                  # the study's table (and study.json)
     .venv/bin/python benchmarks/long_run.py probe v4                  # score the newest checkpoint now
+    .venv/bin/python benchmarks/long_run.py probe v4 --model MID.pt --name mid   # or a candidate weights file
 
 The work tree is laid anew every session and only git is certain, but a folder outside
 it often survives. So a run lives in ``ROOT/NAME/``:
@@ -372,18 +373,28 @@ class Run:
                     rows.append(row)
         return rows
 
-    def probe(self, poll: float) -> dict:
+    def probe(self, poll: float, model: Path | None = None, name: str | None = None) -> dict:
         """Score the newest checkpoint now, as the study scores a variant: ``save`` (the
         weights into ``intermediate.pt``), then the run's eval section with that model into
         ``probe/`` (its test set linked to the study's renders when there are some). The
         row (the study table's columns, step and validation error added) is appended to
-        ``probes.json`` in git's folder, the time to the ledger (stage ``probe``)."""
-        weights = self.save()
-        if weights is None:
-            raise SystemExit(f"{self.name}: no checkpoint to probe yet")
-        step = int(self._meta(weights)["steps"])
+        ``probes.json`` in git's folder, the time to the ledger (stage ``probe``).
+
+        ``model``: score that weights file instead (a candidate to ship, such as a
+        weight-space mid-point of the init and the run's model), as row ``name``; its
+        validation error is computed here on the train stage's validation sample (the
+        run's val shards, ``val_max_rows`` of them, the run's seed)."""
+        if model is None:
+            weights = self.save()
+            if weights is None:
+                raise SystemExit(f"{self.name}: no checkpoint to probe yet")
+            step = int(self._meta(weights)["steps"])
+        else:
+            weights, step = Path(model).resolve(), None
+            if not weights.is_file():
+                raise SystemExit(f"{weights}: no such weights file")
         params = yaml.safe_load(self.params.read_text())
-        probe = self.dir / "probe"
+        probe = self.dir / ("probe" if model is None else f"probe-{name}")
         params["data_dir"] = str(probe)
         params["eval"] = {**params.get("eval", {}), "model": str(weights)}
         rendered = self.study / "data" / "eval" / "testset"
@@ -392,23 +403,55 @@ class Run:
             (probe / "eval" / "testset").symlink_to(rendered, target_is_directory=True)
         file = self.dir / "probe.yaml"
         file.write_text(yaml.safe_dump(params, sort_keys=False))
-        rc = self._timed("probe", self.stage_command("eval", file), self.code, poll, step=step)
+        rc = self._timed("probe", self.stage_command("eval", file), self.code, poll,
+                         **({"step": step} if model is None else {"model": name}))
         if rc:
             raise SystemExit(f"the probe's eval stage exited with {rc}")
         em = json.loads((probe / "eval" / "metrics.json").read_text())
-        train = self.data / "train" / "plots" / "val.csv"
-        val = None
-        if train.is_file():
-            lines = [ln.split(",") for ln in train.read_text().splitlines()[1:] if ln.strip()]
-            done = [ln for ln in lines if int(float(ln[0])) <= step]
-            val = float(done[-1][1]) if done else None
-        row = {"name": f"step {step}", "step": step, "changes": [], "cpu_hours": 0.0, "val_mean_deg": val,
+        val = self._val_of_step(step) if model is None else self._val_of_model(weights, params)
+        label = f"step {step}" if model is None else name
+        row = {"name": label, "step": step, "changes": [], "cpu_hours": 0.0, "val_mean_deg": val,
                **metric_columns(em, params.get("eval") or {})}
+        if model is not None:
+            from cnnps.infra.hashing import file_sha256
+
+            row["model"] = {"file": str(weights), "sha256": file_sha256(weights)}
         record = self.carried / "probes.json"
         rows = json.loads(record.read_text())["rows"] if record.is_file() else []
-        rows = [r for r in rows if r.get("step") != step] + [row]
-        _write_json(record, {"run": self.name, "rows": sorted(rows, key=lambda r: r["step"])})
+        rows = [r for r in rows if r["name"] != label] + [row]
+        rows.sort(key=lambda r: (r.get("step") is None, r.get("step") or 0, r["name"]))
+        _write_json(record, {"run": self.name, "rows": rows})
         return row
+
+    def _val_of_step(self, step: int) -> float | None:
+        """The train stage's validation error at the last validation up to ``step``."""
+        train = self.data / "train" / "plots" / "val.csv"
+        if not train.is_file():
+            return None
+        lines = [ln.split(",") for ln in train.read_text().splitlines()[1:] if ln.strip()]
+        done = [ln for ln in lines if int(float(ln[0])) <= step]
+        return float(done[-1][1]) if done else None
+
+    def _val_of_model(self, weights: Path, params: dict) -> float | None:
+        """``weights``' mean error on the train stage's validation sample (as training scores
+        it); None before the extract stage has written one."""
+        import torch
+
+        from cnnps.io.shards import MANIFEST
+        from cnnps.models.checkpoint import load_checkpoint
+        from cnnps.models.training import open_training_data
+        from cnnps.models.validation import load_val, val_errors
+
+        if not (self.data / "extract" / MANIFEST).is_file():
+            return None
+        data = open_training_data(self.data / "extract", verify=False)
+        if not data.val_files:
+            return None
+        train = params.get("train") or {}
+        maps, normals = load_val(data.val_files, data.w, int(train.get("val_max_rows", 50000)),
+                                 int(train.get("seed", params.get("seed", 0))))
+        net, _, _ = load_checkpoint(weights, "cpu")
+        return val_errors(net, maps, normals, torch.device("cpu"), "fp32").get("val_mean_deg")
 
     def totals(self) -> dict:
         ledger = json.loads(self.ledger.read_text()) if self.ledger.is_file() else {"calls": []}
@@ -503,6 +546,8 @@ def main(argv=None) -> int:
     ap.add_argument("--stages", nargs="+", default=STAGES, choices=STAGES)
     ap.add_argument("--poll", type=float, default=30.0)
     ap.add_argument("--carried", type=Path, default=CARRIED, help="the runs' folder in git")
+    ap.add_argument("--model", type=Path, help="probe: score this weights file instead of the newest checkpoint")
+    ap.add_argument("--name", dest="label", help="probe --model: the row's name in probes.json")
     argv = list(sys.argv[1:] if argv is None else argv)
     exp_args = argv[argv.index("--") + 1:] if "--" in argv else []  # exp: the arguments of `dvc exp run`
     a = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
@@ -543,7 +588,9 @@ def main(argv=None) -> int:
         print(f"(saved {run.carried / 'study.json'})")
         return 0
     if a.cmd == "probe":
-        row = run.probe(a.poll)
+        if (a.model is None) != (a.label is None):
+            raise SystemExit("probe: --model and --name go together")
+        row = run.probe(a.poll, a.model, a.label)
         print(format_study([row]))
         print(f"(added to {run.carried / 'probes.json'})")
         return 0

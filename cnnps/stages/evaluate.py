@@ -75,13 +75,14 @@ from cnnps.stages.eval_testset import (  # noqa: F401 (part of this stage's API)
 class Rig:
     """The rig of the test set's twins (``eval.rig``): a pinhole camera with ``fov_deg``
     across the image and, with ``light_distance`` d, point lights d object radii from the
-    object's centre (None: the distant lights of the orthographic captures). ``size``:
+    object's centre (None: the distant lights of the orthographic captures). The default,
+    3 radii, is 1.5 object sizes: an LED ring or dome as near as rigs build them. ``size``:
     the twins' image size; None renders them so that the object spans as many pixels as
     in its orthographic capture (:func:`cnnps.stages.eval_testset.twin_size`), so that
     ``rig_minus_ortho`` measures the rig and not a smaller object."""
 
     fov_deg: float = 40.0
-    light_distance: float | None = 1.5
+    light_distance: float | None = 3.0
     size: int | None = None  # pixels across; None: the object spans as many as in the orthographic capture
 
     def __post_init__(self):

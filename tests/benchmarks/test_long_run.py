@@ -168,6 +168,17 @@ def test_a_probe_scores_the_newest_checkpoint_and_keeps_a_row(tmp_path):
     assert rows[0]["ball_ls_deg"] < 0.05 and rows[0]["ball-6_deg"] > 0  # least squares is exact on this capture
     call = json.loads((root / "r" / "ledger.json").read_text())["calls"][-1]
     assert call["stage"] == "probe" and call["step"] == 20 and call["finished"]
+    # a candidate weights file, scored the same way under its own name, beside the steps
+    with pytest.raises(SystemExit, match="go together"):
+        long_run.main(["probe", "r", "--model", str(carried / "r" / "intermediate.pt"), *args])
+    saved = carried / "r" / "intermediate.pt"  # what the probe saved of step 20
+    assert long_run.main(["probe", "r", "--poll", "0.5", "--model", str(saved), "--name", "same", *args]) == 0
+    rows = json.loads((carried / "r" / "probes.json").read_text())["rows"]
+    assert [r["name"] for r in rows] == ["step 20", "same"] and rows[1]["step"] is None
+    assert rows[1]["ball-6_deg"] == pytest.approx(rows[0]["ball-6_deg"], abs=0.05)  # the same weights (in float16)
+    assert rows[1]["model"]["sha256"] and rows[1]["val_mean_deg"] is None  # no val shards in this run
+    call = json.loads((root / "r" / "ledger.json").read_text())["calls"][-1]
+    assert call["stage"] == "probe" and call["model"] == "same" and call["finished"]
 
 
 def test_calls_that_run_side_by_side_keep_each_others_ledger_entries(tmp_path):

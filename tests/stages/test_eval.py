@@ -365,7 +365,7 @@ def test_rig_params_and_what_the_rig_costs():
         ev.Rig(fov_deg=130)
     with pytest.raises(ConfigError, match="light_distance must be in"):
         ev.Rig(light_distance=0.5)
-    assert ev.rig_name("bowl-metallic-17", ev.Rig()) == "bowl-metallic-17-fov40-point1.5"
+    assert ev.rig_name("bowl-metallic-17", ev.Rig()) == "bowl-metallic-17-fov40-point3"
     assert ev.rig_name("bowl-metallic-17", ev.Rig(fov_deg=70, light_distance=None)) == "bowl-metallic-17-fov70"
 
     def r(kind, **means):
@@ -403,8 +403,8 @@ def test_rig_twins_are_rendered_once_reused_and_redone_when_the_rig_changes(tmp_
     monkeypatch.setattr(eval_testset, "test_mesh", lambda shape, seed: shape)
     params = ev.Params(test_shapes=("bowl",), categories=("specular",), light_sets=(10, 17), rig=ev.Rig())
     twins = ev.build_rig_twins(params, tmp_path)
-    assert [p.name for p in twins] == ["bowl-specular-10-fov40-point1.5", "bowl-specular-17-fov40-point1.5"]
-    assert made == [("bowl-specular-10-fov40-point1.5", 40.0, 1.5, 10), ("bowl-specular-17-fov40-point1.5", 40.0, 1.5, 17)]
+    assert [p.name for p in twins] == ["bowl-specular-10-fov40-point3", "bowl-specular-17-fov40-point3"]
+    assert made == [("bowl-specular-10-fov40-point3", 40.0, 3.0, 10), ("bowl-specular-17-fov40-point3", 40.0, 3.0, 17)]
     # the object spans as many pixels as in the 64-pixel orthographic capture (2 radii across):
     # 5 radii away, a 40-degree frame is 2 x 5 tan(20 deg) = 3.64 radii across
     assert sizes == [round(64 * 5 * np.tan(np.radians(20)))] * 2 == [116, 116]
@@ -412,7 +412,7 @@ def test_rig_twins_are_rendered_once_reused_and_redone_when_the_rig_changes(tmp_
     assert ev.build_rig_twins(params, tmp_path) == twins and made == []  # reused
     (twins[0] / ev.RIG_KEY).unlink()  # killed before its key was written: redone
     ev.build_rig_twins(params, tmp_path)
-    assert [m[0] for m in made] == ["bowl-specular-10-fov40-point1.5"]
+    assert [m[0] for m in made] == ["bowl-specular-10-fov40-point3"]
     made.clear()
     wide = ev.Params(test_shapes=("bowl",), categories=("specular",), light_sets=(10, 17),
                      rig=ev.Rig(fov_deg=70.0, light_distance=None))
