@@ -291,7 +291,7 @@ def calibrate(chrome_dir, matte_dir=None, *, linearize: Linearize | None = None,
     names, paths = read_names(chrome_dir, "chrome ball")
     matte_dir = None if matte_dir is None else Path(matte_dir)
     if matte_dir is not None:
-        mnames, mpaths = _matte_names(matte_dir, chrome_dir, len(names))
+        mnames, mpaths = matte_names(matte_dir, chrome_dir, len(names))
     chrome = read_ball_photos(chrome_dir, names, paths, keep=True, progress=progress, desc="chrome ball",
                               linearize=linearize)
     ball, L, highs = _chrome_lights(chrome, paths)
@@ -331,7 +331,7 @@ def _perspective_directions(chrome: BallPhotos, ball: Ball, highs: list[Highligh
     return np.array([reflected_ray(K, h.y, h.x, centre, 1.0)[1] for h in highs])
 
 
-def _matte_names(matte_dir: Path, chrome_dir: Path, m: int) -> tuple[list[str], list[Path]]:
+def matte_names(matte_dir: Path, chrome_dir: Path, m: int) -> tuple[list[str], list[Path]]:
     """The matte folder's names and paths: one photo per light of the chrome folder."""
     mnames, mpaths = read_names(matte_dir, "matte ball")
     if len(mnames) != m:

@@ -13,7 +13,10 @@ Outputs (:func:`write_point_calibration`, all at once): ``light_positions.txt`` 
 ``intrinsics.txt`` (the K used, so the folder is a capture's calibration), and
 ``calibration.json``: each ball's centre and image circle, each light's position,
 residual (RMS distance of the position from its reflected rays) and that residual
-relative to the light's distance from the balls.
+relative to the light's distance from the balls. With a matte white ball (``--matte``,
+its radius ``--matte-radius``, default the chrome balls'), also ``light_intensities.txt``:
+each light's RGB radiant intensity, fitted on the matte ball against
+(n . l) / r^2 from the calibrated positions, normalised to a mean of 1.
 """
 
 from __future__ import annotations
@@ -27,14 +30,26 @@ import numpy as np
 from cnnps.api.calibration import (
     ball_outline,
     locate_ball,
+    matte_names,
     read_ball_photos,
+    read_linear,
     read_names,
 )
 from cnnps.infra.errors import ConfigError, InputError
-from cnnps.ps.light_calibration import CalibrationError, chrome_directions
+from cnnps.ps.light_calibration import (
+    MATTE_RADIUS_FRACTION,
+    MIN_SHADING,
+    SCALE_NOTE,
+    CalibrationError,
+    chrome_directions,
+    fit_scale,
+    normalise_intensities,
+)
 from cnnps.ps.point_light_calibration import (
     ball_centre,
+    point_shading,
     reflected_ray,
+    sphere_points,
     triangulate,
 )
 
@@ -52,13 +67,17 @@ class PointCalibration:
     intrinsics: np.ndarray
     report: dict
     notices: list[str] = field(default_factory=list)
+    intensities: np.ndarray | None = None  # (m, 3) normalised to mean 1, with a matte ball
 
 
 def calibrate_point_lights(chrome_dirs, *, ball_radius: float, intrinsics, linearize=None,
-                           progress: bool = False) -> PointCalibration:
+                           progress: bool = False, matte_dir=None,
+                           matte_radius: float | None = None) -> PointCalibration:
     """Point-light positions (m, 3) from chrome-ball folders (two or more), the balls'
     ``ball_radius`` (any length unit: the positions come out in it) and the camera's
     ``intrinsics`` (3 x 3 K, OpenCV convention). ``linearize``: as :func:`cnnps.calibrate`.
+    ``matte_dir``: photos of a matte white ball of ``matte_radius`` (default
+    ``ball_radius``) under the same lights, same order: then ``intensities`` (m, 3).
 
     Every folder is read and checked first; nothing is written. A bad folder or image is
     an :class:`InputError` naming it; fewer than two folders, or folders listing different
@@ -73,8 +92,12 @@ def calibrate_point_lights(chrome_dirs, *, ball_radius: float, intrinsics, linea
     if not (np.isfinite(ball_radius) and ball_radius > 0):
         raise ConfigError(f"--ball-radius must be a positive number, got {ball_radius}")
     K = check_intrinsics(intrinsics)
+    matte_radius = float(ball_radius if matte_radius is None else matte_radius)
+    if not (np.isfinite(matte_radius) and matte_radius > 0):
+        raise ConfigError(f"--matte-radius must be a positive number, got {matte_radius}")
     listed = [read_names(d, "chrome ball") for d in dirs]
     m = len(listed[0][0])
+    matte = None if matte_dir is None else (Path(matte_dir), *matte_names(Path(matte_dir), dirs[0], m))
     for d, (names, _paths) in zip(dirs[1:], listed[1:]):
         if len(names) != m:
             raise InputError(d / "filenames.txt", f"lists {len(names)} images but {dirs[0] / 'filenames.txt'} "
@@ -126,13 +149,70 @@ def calibrate_point_lights(chrome_dirs, *, ball_radius: float, intrinsics, linea
             "position": "least-squares nearest point to each light's reflected rays over the balls",
         },
         "linearize": linearize or "none",
-        "seconds": round(time.perf_counter() - t0, 3),
     }
-    return PointCalibration(listed[0][0], positions, centres, residuals, K, report, notices)
+    E = None
+    if matte is not None:
+        E = _point_intensities(*matte, K, matte_radius, positions, linearize, progress, report)
+    report["seconds"] = round(time.perf_counter() - t0, 3)
+    return PointCalibration(listed[0][0], positions, centres, residuals, K, report, notices, E)
+
+
+def _point_intensities(matte_dir: Path, names: list[str], paths: list[Path], K: np.ndarray, radius: float,
+                       positions: np.ndarray, linearize, progress: bool, report: dict) -> np.ndarray:
+    """(m, 3) radiant intensities normalised to mean 1, fitted per light and channel on the
+    matte ball against (n . l) / r^2 (module docstring); their record into ``report``."""
+    from cnnps.infra.progress import progress_bar
+
+    photos = read_ball_photos(matte_dir, names, paths, keep=False, progress=progress, desc="matte ball",
+                              linearize=linearize)
+    ball = locate_ball(photos, photos.max_image, "maximum image")
+    rows, cols, source = ball_outline(photos, ball)
+    try:
+        centre = ball_centre(K, rows, cols, radius)
+    except ValueError as exc:
+        raise InputError(matte_dir, str(exc)) from None
+    inside = ball.disc(photos.max_image.shape, ball.radius * MATTE_RADIUS_FRACTION)
+    if photos.mask is not None:
+        inside &= photos.mask
+    pr, pc = np.nonzero(inside)
+    hit, X, n = sphere_points(K, pr, pc, centre, radius)
+    pr, pc = pr[hit], pc[hit]
+    raw, rms = [], []
+    for j, p in enumerate(progress_bar(paths, desc="intensities", unit="img", disable=not progress, leave=False)):
+        img, sat, _ = read_linear(p, None, linearize)
+        img = img if img.ndim == 3 else img[:, :, None]
+        cos, s = point_shading(X, n, positions[j])
+        try:
+            e, info = fit_scale(img[pr, pc].astype(np.float64), s, cos >= MIN_SHADING,
+                                None if sat is None else (sat if sat.ndim == 3 else sat[:, :, None])[pr, pc])
+        except CalibrationError as exc:
+            raise InputError(p, str(exc)) from None
+        if e.size == 1:
+            e, info["relative_rms"] = np.repeat(e, 3), info["relative_rms"] * 3
+        raw.append(e)
+        rms.append(info["relative_rms"])
+    raw = np.array(raw)
+    E = normalise_intensities(raw)
+    report["matte_ball"] = {"folder": str(matte_dir), **ball.to_dict(), "outline": source,
+                            "radius": radius, "centre": [round(float(v), 9) for v in centre]}
+    report["intensities"] = {
+        "scale": SCALE_NOTE,
+        "raw_mean": float(raw.mean()),
+        "method": f"per light and channel, least squares of pixel = e * max(n.l, 0) / r^2 over the matte ball's "
+        f"pixels inside {MATTE_RADIUS_FRACTION:g} of its image radius with n.l >= {MIN_SHADING:g}, clipped pixels "
+        "left out; X and n where each pixel ray meets the ball placed from its outline, l and r toward the "
+        "calibrated position",
+        "relative_rms_max": float(np.max(rms)),
+    }
+    for rec, e, r in zip(report["lights"], E, rms):
+        rec["intensity"] = [round(float(v), 9) for v in e]
+        rec["fit_relative_rms"] = [round(float(v), 5) for v in r]
+    return E
 
 
 def write_point_calibration(cal: PointCalibration, out_dir) -> None:
-    """light_positions.txt, intrinsics.txt and calibration.json into ``out_dir``, all at once."""
+    """light_positions.txt, intrinsics.txt, calibration.json and, with a matte ball,
+    light_intensities.txt into ``out_dir``, all at once."""
     import json
 
     from cnnps.infra.atomic import atomic_dir
@@ -140,4 +220,6 @@ def write_point_calibration(cal: PointCalibration, out_dir) -> None:
     with atomic_dir(out_dir) as tmp:
         np.savetxt(tmp / "light_positions.txt", cal.positions, fmt="%.9f")
         np.savetxt(tmp / "intrinsics.txt", cal.intrinsics, fmt="%.12g")
+        if cal.intensities is not None:
+            np.savetxt(tmp / "light_intensities.txt", cal.intensities, fmt="%.9f")
         (tmp / "calibration.json").write_text(json.dumps(cal.report, indent=2) + "\n")

@@ -19,7 +19,8 @@ def _ball_line(what: str, ball) -> str:
 def calibrate(
     chrome_dirs: list[Path] = typer.Argument(..., metavar="CHROME_DIR...", help="Chrome (mirror) ball photos, one per light in the object's light order: filenames.txt, the images (PNG, JPEG, TIFF, EXR), optional mask.png of the ball. Two or more folders with --ball-radius: point lights."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (written atomically): light_directions.txt, light_intensities.txt (with --matte), calibration.json, calibration.png; with --ball-radius light_positions.txt, intrinsics.txt, calibration.json."),
-    matte: Optional[Path] = typer.Option(None, "--matte", help="Matte white ball photos under the same lights (same count and order; optional mask.png): per-light RGB intensities."),
+    matte: Optional[Path] = typer.Option(None, "--matte", help="Matte white ball photos under the same lights (same count and order; optional mask.png): per-light RGB intensities (with point lights: radiant intensities, the ball placed in 3D from its outline and --matte-radius)."),
+    matte_radius: Optional[float] = typer.Option(None, "--matte-radius", metavar="R", help="Point lights with --matte: the matte ball's radius, in the unit of --ball-radius (default: --ball-radius)."),
     ball_radius: Optional[float] = typer.Option(None, "--ball-radius", metavar="R", help="Point lights: the chrome balls' radius, in the unit the light positions should have; needs --intrinsics and two or more CHROME_DIRs (two balls, or one ball at two places)."),
     intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", metavar="K.txt", help="The camera's 3x3 K (OpenCV convention), as in a capture's intrinsics.txt: each highlight then reflects its own pixel's view (one ball: distant lights); needed for point lights."),
     linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none", help="How 8/16-bit images become linear, as in cnnps predict: srgb = decode the sRGB curve (camera JPEG/PNG), none = already linear. Unset: taken as linear, with a note when images are 8-bit. Camera RAW photos are always read linearly."),
@@ -31,8 +32,12 @@ def calibrate(
     from cnnps.api.calibration import calibrate as run
 
     if ball_radius is not None or len(chrome_dirs) > 1:
-        _point_lights(chrome_dirs, out, matte, ball_radius, intrinsics, linearize, progress)
+        _point_lights(chrome_dirs, out, matte, matte_radius, ball_radius, intrinsics, linearize, progress)
         return
+    if matte_radius is not None:
+        from cnnps.infra.errors import ConfigError
+
+        raise ConfigError("--matte-radius applies to point lights (--ball-radius and two or more CHROME_DIRs)")
     chrome_dir = chrome_dirs[0]
     check_out_dir(out, chrome_dir, matte)
     cal = run(chrome_dir, matte, progress=progress, linearize=linearize,
@@ -53,7 +58,7 @@ def calibrate(
                f"{Path(out) / 'calibration.png'}; {cal.report['seconds']:.1f} s)")
 
 
-def _point_lights(chrome_dirs, out, matte, ball_radius, intrinsics, linearize, progress) -> None:
+def _point_lights(chrome_dirs, out, matte, matte_radius, ball_radius, intrinsics, linearize, progress) -> None:
     from cnnps.api.calibration import check_out_dir
     from cnnps.api.point_calibration import (
         calibrate_point_lights,
@@ -63,18 +68,25 @@ def _point_lights(chrome_dirs, out, matte, ball_radius, intrinsics, linearize, p
 
     if ball_radius is None or intrinsics is None:
         raise ConfigError("point lights (two or more CHROME_DIRs) need --ball-radius and --intrinsics")
-    if matte is not None:
-        raise ConfigError("--matte applies to distant lights; with point lights give light_intensities.txt yourself")
-    check_out_dir(out, *chrome_dirs)
+    if matte_radius is not None and matte is None:
+        raise ConfigError("--matte-radius needs --matte (the matte ball's photos)")
+    check_out_dir(out, *chrome_dirs, *([] if matte is None else [matte]))
     K = _read_k(intrinsics)
     cal = calibrate_point_lights(chrome_dirs, ball_radius=ball_radius, intrinsics=K, linearize=linearize,
-                                 progress=progress)
+                                 progress=progress, matte_dir=matte, matte_radius=matte_radius)
     write_point_calibration(cal, out)
     for notice in cal.notices:
         typer.echo(f"cnnps: note: {notice}", err=True)
     for ball in cal.report["balls"]:
         typer.echo(f"ball {ball['folder']}: radius {ball['radius_px']:.2f} px, centre "
                    f"({', '.join(f'{v:.4g}' for v in ball['centre'])})")
+    if cal.intensities is not None:
+        mb = cal.report["matte_ball"]
+        typer.echo(f"matte ball {mb['folder']}: radius {mb['radius_px']:.2f} px, centre "
+                   f"({', '.join(f'{v:.4g}' for v in mb['centre'])}); light_intensities.txt: "
+                   f"{cal.report['intensities']['scale']}")
+    else:
+        typer.echo("note: no --matte: light_intensities.txt not written (identical LEDs: '1 1 1' on every line)")
     worst = max(cal.report["lights"], key=lambda r: r["residual_relative"])
     typer.echo(f"{len(cal.names)} light positions -> {out} (largest residual {worst['residual']:.3g}, "
                f"{100 * worst['residual_relative']:.2f} % of its distance, {worst['image']}; "

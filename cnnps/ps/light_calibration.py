@@ -447,18 +447,25 @@ def fit_intensities(
     l = np.asarray(light, dtype=np.float64)
     l = l / np.linalg.norm(l)
     s = N @ l
-    lit = s >= min_shading
-    vals = image[mask]  # (P, C)
     sat = None if saturated is None else np.asarray(saturated)[mask]
-    e = np.empty(image.shape[2])
+    return fit_scale(image[mask], s, s >= min_shading, sat)
+
+
+def fit_scale(values: np.ndarray, shading: np.ndarray, lit: np.ndarray,
+              saturated: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """Per-channel least-squares scale e (C,) of ``values`` (P, C) = e * ``shading`` (P,)
+    over the ``lit`` (P,) pixels that are, per channel, not ``saturated`` (P, C) (None:
+    nothing clipped): ``e = sum(I s) / sum(s^2)``; (e, info) as :func:`fit_intensities`,
+    whose errors it raises."""
+    e = np.empty(values.shape[1])
     rel_rms, used = [], []
-    for c in range(image.shape[2]):
-        ok = lit if sat is None else lit & ~sat[:, c]
+    for c in range(values.shape[1]):
+        ok = lit if saturated is None else lit & ~saturated[:, c]
         k = int(ok.sum())
         if k < MIN_FIT_PIXELS:
             raise CalibrationError(
                 f"only {k} lit, unclipped pixels on the matte ball in channel {c} (need {MIN_FIT_PIXELS})", "matte")
-        ss, ii = s[ok], vals[ok, c]
+        ss, ii = shading[ok], values[ok, c]
         e[c] = float(ss @ ii / (ss @ ss))
         if not e[c] > 0:
             raise CalibrationError("the matte ball is dark in this image (no light?)", "matte")

@@ -24,6 +24,12 @@ z toward the camera, origin at the optical centre); pixel coordinates x = column
    from P to those rays. Rays that are nearly parallel (balls close together, a distant
    light) leave P poorly determined along them: :func:`triangulate` reports the
    condition (the smallest eigenvalue of sum_k (I - l_k l_k^T)).
+4. **Intensities from a matte ball** (:func:`sphere_points`, :func:`point_shading`). A
+   matte white ball of known radius is placed in 3D from its outline as in 1; each pixel
+   ray meets it at X with normal n, and a light of radiant intensity I at P gives it the
+   irradiance I (n . l) / r^2, l = (P - X) / r, r = |P - X|. The pixel reads
+   albedo x that (times a constant), so a least-squares scale per light and channel
+   against s = (n . l) / r^2 is I up to one factor common to all lights.
 
 >>> import numpy as np
 >>> X = np.array([[0.0, 0, -1], [1.0, 0, -1]])
@@ -73,6 +79,30 @@ def reflected_ray(K: np.ndarray, row: float, col: float, centre: np.ndarray, rad
     v = -d
     l = 2.0 * float(n @ v) * n - v
     return X, l / np.linalg.norm(l)
+
+
+def sphere_points(K: np.ndarray, rows: np.ndarray, cols: np.ndarray, centre: np.ndarray, radius: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(hit (P,) bool, X (k, 3), n (k, 3)): which pixel rays (``rows``, ``cols``) meet the
+    sphere, and where (the near side) with its outward unit normal, for the k that do."""
+    d = pixel_rays(K, np.asarray(rows, np.float64), np.asarray(cols, np.float64))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    centre = np.asarray(centre, dtype=np.float64)
+    b = d @ centre
+    disc = b * b - (float(centre @ centre) - radius * radius)
+    hit = disc > 0
+    X = d[hit] * (b[hit] - np.sqrt(disc[hit]))[:, None]
+    return hit, X, (X - centre) / radius
+
+
+def point_shading(X: np.ndarray, n: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(cos (k,), s (k,)) at surface points ``X`` (k, 3) with unit normals ``n`` under a
+    point light at ``position`` (3,): cos = n . l toward the light, s = max(cos, 0) / r^2
+    (the irradiance of a unit-intensity light)."""
+    to = np.asarray(position, dtype=np.float64)[None] - X
+    r2 = np.sum(to * to, axis=1)
+    cos = np.sum(n * to, axis=1) / np.sqrt(r2)
+    return cos, np.maximum(cos, 0.0) / r2
 
 
 def triangulate(points: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, float, float]:
