@@ -394,7 +394,8 @@ class Run:
             if not weights.is_file():
                 raise SystemExit(f"{weights}: no such weights file")
         params = yaml.safe_load(self.params.read_text())
-        probe = self.dir / ("probe" if model is None else f"probe-{name}")
+        slug = "".join(ch if ch.isalnum() or ch in ".-_" else "-" for ch in str(name))
+        probe = self.dir / ("probe" if model is None else f"probe-{slug}")
         params["data_dir"] = str(probe)
         params["eval"] = {**params.get("eval", {}), "model": str(weights)}
         rendered = self.study / "data" / "eval" / "testset"
@@ -466,10 +467,16 @@ class Run:
         return out
 
     def save(self) -> Path | None:
-        """Ledger and the newest checkpoint's weights (float16) into git's folder (one weights file)."""
+        """Ledger, the train and eval stages' ``metrics.json`` (as ``train_metrics.json``
+        and ``eval_metrics.json``, when the stages have written them) and the newest
+        checkpoint's weights (float16) into git's folder (one weights file)."""
         dst = self.carried
         if self.ledger.is_file():
             shutil.copy(self.ledger, dst / "ledger.json")
+        for stage in ("train", "eval"):
+            metrics = self.data / stage / "metrics.json"
+            if metrics.is_file():
+                shutil.copy(metrics, dst / f"{stage}_metrics.json")
         cks = sorted((self.data / "train" / "checkpoints").glob("step-*.pt"))
         if not cks:
             return None

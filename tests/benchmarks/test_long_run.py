@@ -70,7 +70,10 @@ def test_a_run_outside_the_work_tree(tmp_path):
     ck = root / "r" / "data" / "train" / "checkpoints"
     ck.mkdir(parents=True)
     torch.save({"model": net.state_dict(), "step": 10}, ck / "step-00000010.pt")
+    (root / "r" / "data" / "train" / "metrics.json").write_text('{"val_mean_deg": 4.5}')
     assert long_run.main(["save", "r", *args]) == 0
+    assert json.loads((carried / "r" / "train_metrics.json").read_text()) == {"val_mean_deg": 4.5}
+    assert not (carried / "r" / "eval_metrics.json").exists()  # no eval stage yet
     saved, _, meta = load_checkpoint(carried / "r" / "intermediate.pt")
     assert meta["steps"] == 10 and meta["commit"] == head
     # the weights exactly, rounded to float16 (what git keeps)
