@@ -402,7 +402,7 @@ class Run:
         if rendered.is_dir() and not (probe / "eval" / "testset").exists():
             (probe / "eval").mkdir(parents=True, exist_ok=True)
             (probe / "eval" / "testset").symlink_to(rendered, target_is_directory=True)
-        file = self.dir / "probe.yaml"
+        file = probe.parent / f"{probe.name}.yaml"  # probe.yaml, or probe-NAME.yaml: probes side by side never share one
         file.write_text(yaml.safe_dump(params, sort_keys=False))
         rc = self._timed("probe", self.stage_command("eval", file), self.code, poll,
                          **({"step": step} if model is None else {"model": name}))
