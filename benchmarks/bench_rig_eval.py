@@ -19,7 +19,9 @@ depth error. For the distant-light rigs also ``intrinsics_used`` / ``intrinsics_
 (the same twin predicted as if orthographic) at K = 1 and K = 10, with ``cnnps predict``'s
 defaults otherwise (the Lambertian fill is on below 50 images, as in the eval stage).
 
-``--data DIR`` keeps the renders there (a rerun renders nothing); default a temporary folder.
+``--data DIR`` keeps the renders there (default a temporary folder): a rerun renders no
+orthographic capture again, but each rig's twins again except the last's, since the eval
+stage clears the twins of any other rig from its test set.
 """
 
 from __future__ import annotations
@@ -51,14 +53,12 @@ def eval_params(data: Path, model: Path, fov: float, distance: float | None) -> 
                      "rig": {"fov_deg": fov, "light_distance": distance}}}
 
 
-def used_and_ignored(folder: Path, model_path: Path, rotations: int) -> dict:
+def used_and_ignored(folder: Path, model, rotations: int) -> dict:
     """Mean error of a perspective, distant-light twin with its intrinsics and without."""
     from cnnps.io.capture import load_capture, read_intrinsics
-    from cnnps.models.checkpoint import load_checkpoint
     from cnnps.models.inference import predict_normals
     from cnnps.ps.camera import view_directions
 
-    model, _, _ = load_checkpoint(model_path)
     kw = dict(device="cpu", precision="fp32", progress=False)  # sparse fill 'auto', as `cnnps predict`
     cap = load_capture(folder)
     rows, cols = np.nonzero(cap.mask)
@@ -80,6 +80,9 @@ def main() -> None:
     ap.add_argument("--model", type=Path, default=REPO / "cnnps/models/weights/cnnps_default.pt")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks/results/rig_eval.json")
     a = ap.parse_args()
+    from cnnps.models.checkpoint import load_checkpoint
+
+    model = load_checkpoint(a.model)[0]
     with tempfile.TemporaryDirectory() as tmp:
         data = (a.data or Path(tmp) / "data").resolve()
         data.mkdir(parents=True, exist_ok=True)
@@ -103,8 +106,8 @@ def main() -> None:
                        for m, v in r["methods"].items()}
                 if distance is None:
                     folder = data / "eval" / "testset" / cap
-                    row["k1"] = used_and_ignored(folder, a.model, 1)
-                    row["k10"] = used_and_ignored(folder, a.model, 10)
+                    row["k1"] = used_and_ignored(folder, model, 1)
+                    row["k10"] = used_and_ignored(folder, model, 10)
                 captures[cap] = row
                 print(cap, json.dumps(row), flush=True)
             rigs[name] = {"fov_deg": fov, "light_distance_radii": distance, "captures": captures,

@@ -388,13 +388,28 @@ def _matte_intensities(matte_dir: Path, matte_ball: Ball, mpaths: list[Path], L:
                        progress: bool, report: dict) -> np.ndarray:
     """(m, 3) intensities normalised to mean 1, fitted per light on the matte ball; their
     record added to ``report``."""
+    return matte_intensities(
+        mpaths, lambda j, img, sat: fit_intensities(img, matte_ball, L[j], sat), linearize, progress, report,
+        {"folder": str(matte_dir), **matte_ball.to_dict()},
+        f"per light and channel, least squares of pixel = e * max(n.l, 0) over the matte ball's "
+        f"pixels inside {MATTE_RADIUS_FRACTION:g} r with n.l >= {MIN_SHADING:g}, clipped pixels left out, "
+        "n from the fitted circle, l the calibrated direction")
+
+
+def matte_intensities(paths: list[Path], fit, linearize, progress: bool, report: dict, matte_ball: dict,
+                      method: str) -> np.ndarray:
+    """(m, 3) intensities normalised to mean 1 from the matte ball's photos ``paths``, one
+    per light: ``fit(j, image (H, W, C), clipped (H, W, C) or None)`` -> (e (C,), info) as
+    :func:`cnnps.ps.light_calibration.fit_scale` (grey images give one channel, repeated
+    to RGB). A failed fit is an InputError naming the photo. Adds ``matte_ball``, the
+    ``intensities`` record (``method``) and each light's intensity and fit to ``report``."""
     from cnnps.infra.progress import progress_bar
 
     raw, rms = [], []
-    for j, p in enumerate(progress_bar(mpaths, desc="intensities", unit="img", disable=not progress, leave=False)):
+    for j, p in enumerate(progress_bar(paths, desc="intensities", unit="img", disable=not progress, leave=False)):
         img, sat, _ = read_linear(p, None, linearize)
         try:
-            e, info = fit_intensities(img, matte_ball, L[j], sat)
+            e, info = fit(j, img, sat)
         except CalibrationError as exc:
             raise InputError(p, str(exc)) from None
         if e.size == 1:
@@ -404,15 +419,9 @@ def _matte_intensities(matte_dir: Path, matte_ball: Ball, mpaths: list[Path], L:
         rms.append(info["relative_rms"])
     raw = np.array(raw)
     E = normalise_intensities(raw)
-    report["matte_ball"] = {"folder": str(matte_dir), **matte_ball.to_dict()}
-    report["intensities"] = {
-        "scale": SCALE_NOTE,
-        "raw_mean": float(raw.mean()),
-        "method": f"per light and channel, least squares of pixel = e * max(n.l, 0) over the matte ball's "
-        f"pixels inside {MATTE_RADIUS_FRACTION:g} r with n.l >= {MIN_SHADING:g}, clipped pixels left out, "
-        "n from the fitted circle, l the calibrated direction",
-        "relative_rms_max": float(np.max(rms)),
-    }
+    report["matte_ball"] = matte_ball
+    report["intensities"] = {"scale": SCALE_NOTE, "raw_mean": float(raw.mean()), "method": method,
+                             "relative_rms_max": float(np.max(rms))}
     for rec, e, r in zip(report["lights"], E, rms):
         rec["intensity"] = [round(float(v), 9) for v in e]
         rec["fit_relative_rms"] = [round(float(v), 5) for v in r]

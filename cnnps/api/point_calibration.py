@@ -30,20 +30,18 @@ import numpy as np
 from cnnps.api.calibration import (
     ball_outline,
     locate_ball,
+    matte_intensities,
     matte_names,
     read_ball_photos,
-    read_linear,
     read_names,
 )
 from cnnps.infra.errors import ConfigError, InputError
 from cnnps.ps.light_calibration import (
     MATTE_RADIUS_FRACTION,
     MIN_SHADING,
-    SCALE_NOTE,
     CalibrationError,
     chrome_directions,
     fit_scale,
-    normalise_intensities,
 )
 from cnnps.ps.point_light_calibration import (
     ball_centre,
@@ -161,8 +159,6 @@ def _point_intensities(matte_dir: Path, names: list[str], paths: list[Path], K: 
                        positions: np.ndarray, linearize, progress: bool, report: dict) -> np.ndarray:
     """(m, 3) radiant intensities normalised to mean 1, fitted per light and channel on the
     matte ball against (n . l) / r^2 (module docstring); their record into ``report``."""
-    from cnnps.infra.progress import progress_bar
-
     photos = read_ball_photos(matte_dir, names, paths, keep=False, progress=progress, desc="matte ball",
                               linearize=linearize)
     ball = locate_ball(photos, photos.max_image, "maximum image")
@@ -177,37 +173,21 @@ def _point_intensities(matte_dir: Path, names: list[str], paths: list[Path], K: 
     pr, pc = np.nonzero(inside)
     hit, X, n = sphere_points(K, pr, pc, centre, radius)
     pr, pc = pr[hit], pc[hit]
-    raw, rms = [], []
-    for j, p in enumerate(progress_bar(paths, desc="intensities", unit="img", disable=not progress, leave=False)):
-        img, sat, _ = read_linear(p, None, linearize)
+
+    def fit(j: int, img: np.ndarray, sat: np.ndarray | None):
         img = img if img.ndim == 3 else img[:, :, None]
+        sat = None if sat is None else (sat if sat.ndim == 3 else sat[:, :, None])[pr, pc]
         cos, s = point_shading(X, n, positions[j])
-        try:
-            e, info = fit_scale(img[pr, pc].astype(np.float64), s, cos >= MIN_SHADING,
-                                None if sat is None else (sat if sat.ndim == 3 else sat[:, :, None])[pr, pc])
-        except CalibrationError as exc:
-            raise InputError(p, str(exc)) from None
-        if e.size == 1:
-            e, info["relative_rms"] = np.repeat(e, 3), info["relative_rms"] * 3
-        raw.append(e)
-        rms.append(info["relative_rms"])
-    raw = np.array(raw)
-    E = normalise_intensities(raw)
-    report["matte_ball"] = {"folder": str(matte_dir), **ball.to_dict(), "outline": source,
-                            "radius": radius, "centre": [round(float(v), 9) for v in centre]}
-    report["intensities"] = {
-        "scale": SCALE_NOTE,
-        "raw_mean": float(raw.mean()),
-        "method": f"per light and channel, least squares of pixel = e * max(n.l, 0) / r^2 over the matte ball's "
+        return fit_scale(img[pr, pc].astype(np.float64), s, cos >= MIN_SHADING, sat)
+
+    return matte_intensities(
+        paths, fit, linearize, progress, report,
+        {"folder": str(matte_dir), **ball.to_dict(), "outline": source, "radius": radius,
+         "centre": [round(float(v), 9) for v in centre]},
+        f"per light and channel, least squares of pixel = e * max(n.l, 0) / r^2 over the matte ball's "
         f"pixels inside {MATTE_RADIUS_FRACTION:g} of its image radius with n.l >= {MIN_SHADING:g}, clipped pixels "
         "left out; X and n where each pixel ray meets the ball placed from its outline, l and r toward the "
-        "calibrated position",
-        "relative_rms_max": float(np.max(rms)),
-    }
-    for rec, e, r in zip(report["lights"], E, rms):
-        rec["intensity"] = [round(float(v), 9) for v in e]
-        rec["fit_relative_rms"] = [round(float(v), 5) for v in r]
-    return E
+        "calibrated position")
 
 
 def write_point_calibration(cal: PointCalibration, out_dir) -> None:

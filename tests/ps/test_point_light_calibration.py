@@ -9,7 +9,6 @@ import json
 import numpy as np
 import pytest
 
-from cnnps.ps.camera import pixel_rays
 from cnnps.ps.point_light_calibration import ball_centre, reflected_ray, triangulate
 
 W, H = 640, 480
@@ -24,18 +23,25 @@ def _lights(m=10, seed=0):
     return np.array([0, 0, -7.5]) + 6.0 * np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], 1)
 
 
+def _sphere_hits(centre, radius):
+    """Every pixel's unit ray d (H W, 3) through K (pinhole, capture frame, written out
+    here rather than taken from the code under test), which rays meet the sphere, and
+    where (near side, X) with the outward normal n."""
+    rows, cols = (a.ravel().astype(float) for a in np.mgrid[0:H, 0:W])
+    d = np.stack([(cols - K[0, 2]) / K[0, 0], -(rows - K[1, 2]) / K[1, 1], -np.ones_like(rows)], 1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    b = d @ centre
+    disc = b * b - (centre @ centre - radius**2)
+    hit = disc > 0
+    X = d[hit] * (b[hit] - np.sqrt(disc[hit]))[:, None]
+    return d, hit, X, (X - centre) / radius
+
+
 def _mirror_ball(centre, toward_light, sigma_deg=1.0):
     """(image, mask) of a mirror ball seen through K: brightness falls with the angle
     between each pixel's reflected ray and ``toward_light(X)``, the unit direction from
     the hit points X (P, 3) to the light."""
-    rows, cols = (a.ravel().astype(float) for a in np.mgrid[0:H, 0:W])
-    d = pixel_rays(K, rows, cols)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    b = d @ centre
-    disc = b * b - (centre @ centre - RADIUS**2)
-    hit = disc > 0
-    X = d[hit] * (b[hit] - np.sqrt(disc[hit]))[:, None]
-    n = (X - centre) / RADIUS
+    d, hit, X, n = _sphere_hits(centre, RADIUS)
     v = -d[hit]
     l = 2 * np.sum(n * v, 1, keepdims=True) * n - v
     ang = np.arccos(np.clip(np.sum(l * toward_light(X), 1), -1, 1))
@@ -129,15 +135,8 @@ def test_calibrate_finds_point_lights_within_one_percent(tmp_path, capsys):
 def _matte(centre, radius, light, intensity, albedo=0.8):
     """(image (H, W, 3), mask) of a Lambertian ball of ``radius`` under a point light of
     RGB radiant ``intensity`` at ``light``: albedo x I (n.l) / r^2, written independently
-    of the code under test (its own ray-sphere intersection)."""
-    rows, cols = (a.ravel().astype(float) for a in np.mgrid[0:H, 0:W])
-    d = np.stack([(cols - K[0, 2]) / K[0, 0], -(rows - K[1, 2]) / K[1, 1], -np.ones_like(rows)], 1)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    b = d @ centre
-    disc = b * b - (centre @ centre - radius**2)
-    hit = disc > 0
-    X = d[hit] * (b[hit] - np.sqrt(disc[hit]))[:, None]
-    n = (X - centre) / radius
+    of the code under test (:func:`_sphere_hits`)."""
+    _d, hit, X, n = _sphere_hits(centre, radius)
     to = light - X
     r = np.linalg.norm(to, axis=1)
     shade = np.maximum(np.sum(n * to, 1) / r, 0) / r**2
