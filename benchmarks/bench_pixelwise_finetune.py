@@ -5,9 +5,12 @@
 
 Each variant starts from ``cnnps/models/weights/cnnps_default.pt`` and trains the same
 number of steps (batch 128, lr 1e-4, counter dropout masks) with ``train.pixelwise`` 0,
-0.5 and 1 (per-pixel effects: cast shadows 0.3, inter-reflection 0.3, ambient 0.05,
-gains 0.05, noise 0.01; sparse share 0.2); its wall time is recorded beside it (equal
-steps, so the CPU time differs by what making per-pixel maps costs). Every model, the
+``--mix`` (default 0.25, v4's recipe) and 1 (per-pixel effects: cast shadows 0.3,
+inter-reflection 0.3, ambient 0.05, gains 0.05, noise 0.01; sparse share 0.2); its wall
+and CPU time are recorded beside it. With ``--cpu-minutes M`` each variant instead
+trains as many steps as fill M CPU-minutes of this process (per-step and fixed CPU time
+from two pilots of 20 and 60 steps of the same variant): equal CPU time, so a variant whose maps cost more gets fewer
+steps. Every model, the
 shipped one included, is scored on the same things: the shards' validation maps (K=1,
 each map alone), the eval-stage captures under ``--testset`` (K=10, sparse fill auto,
 grouped by light count), and DiLiGenT BALL at 96 and 10 images (K=10, ``cnnps.predict``).
@@ -20,6 +23,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import resource
 import sys
 import tempfile
 import time
@@ -40,6 +44,12 @@ EFFECTS = {"cast_shadow": 0.3, "interreflection": 0.3, "ambient": 0.05, "intensi
 VARIANTS = {"cycles": 0.0, "cycles+pixelwise": 0.5, "pixelwise": 1.0}
 
 
+def cpu_seconds() -> float:
+    """This process's CPU time so far (all its threads, user and system)."""
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
+
+
 def finetune(share: float, shards: Path, steps: int, work: Path, init: Path | None = None) -> tuple[Path, dict]:
     """``steps`` steps from ``init`` (default: the shipped weights); the model and its timing."""
     from cnnps.models.shipped import weights_path
@@ -48,10 +58,22 @@ def finetune(share: float, shards: Path, steps: int, work: Path, init: Path | No
     params = train.Params(pixelwise=share, pixelwise_effects=EFFECTS, pixelwise_sparse_fraction=0.2,
                           shards=str(shards), init=str(init or weights_path()), max_steps=steps, epochs=1000, lr=1e-4,
                           batch_size=128, val_every=0, checkpoint_every=steps, progress=False)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), cpu_seconds()
     metrics = train.run(params, work)
     return work / "train" / "model.pt", {"seconds": round(time.perf_counter() - t0, 1),
+                                         "cpu_seconds": round(cpu_seconds() - c0, 1),
                                          "samples_per_s": metrics["samples_per_s"], "steps": metrics["steps"]}
+
+
+def steps_for(share: float, shards: Path, cpu_budget: float, work: Path, pilots=(20, 60)) -> tuple[int, dict]:
+    """The steps that fill ``cpu_budget`` CPU-seconds of a whole run of this variant: the
+    CPU time per step and the fixed cost (start-up, shard checks, the last validation)
+    from two pilot runs of different lengths."""
+    a, b = (finetune(share, shards, n, work / str(n))[1] for n in pilots)
+    per_step = (b["cpu_seconds"] - a["cpu_seconds"]) / (pilots[1] - pilots[0])
+    fixed = max(0.0, a["cpu_seconds"] - pilots[0] * per_step)
+    steps = max(pilots[0], int((cpu_budget - fixed) / per_step))
+    return steps, {"cpu_seconds_per_step": round(per_step, 3), "fixed_cpu_seconds": round(fixed, 1)}
 
 
 def score(model_path: Path, shards: Path, testset: Path | None, ball: Path | None) -> dict:
@@ -94,6 +116,10 @@ def main() -> None:
     ap.add_argument("--testset", type=Path, default=None)
     ap.add_argument("--ball", type=Path, default=REPO.parent / "shared/data/diligent/ballPNG")
     ap.add_argument("--steps", type=int, default=600)
+    ap.add_argument("--cpu-minutes", type=float, default=0.0,
+                    help="equal CPU time instead of equal steps: each variant trains as many steps as fill this "
+                         "many CPU-minutes (from two short pilots of it)")
+    ap.add_argument("--mix", type=float, default=0.25, help="train.pixelwise of the mixed variant (v4's: 0.25)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks/results/pixelwise_finetune.json")
     a = ap.parse_args()
     from cnnps.models.shipped import weights_path
@@ -105,11 +131,19 @@ def main() -> None:
     print("shipped ...", flush=True)
     res["models"]["shipped"] = score(weights_path(), a.shards, a.testset, a.ball)
     print(json.dumps(res["models"]["shipped"]), flush=True)
+    variants = {**VARIANTS, "cycles+pixelwise": a.mix}
+    if a.cpu_minutes:
+        res["cpu_minutes_each"] = a.cpu_minutes
+        res.pop("steps")
     with tempfile.TemporaryDirectory(prefix="bench-px-") as tmp:
-        for name, share in VARIANTS.items():
-            print(f"{name} (pixelwise {share}) ...", flush=True)
-            model, run = finetune(share, a.shards, a.steps, Path(tmp) / name)
-            res["models"][name] = {"pixelwise": share, **run, **score(model, a.shards, a.testset, a.ball)}
+        for name, share in variants.items():
+            steps, pilot = a.steps, None
+            if a.cpu_minutes:
+                steps, pilot = steps_for(share, a.shards, 60 * a.cpu_minutes, Path(tmp) / f"{name}-pilot")
+            print(f"{name} (pixelwise {share}, {steps} steps) ...", flush=True)
+            model, run = finetune(share, a.shards, steps, Path(tmp) / name)
+            res["models"][name] = {"pixelwise": share, **run, **({"pilot": pilot} if pilot else {}),
+                                   **score(model, a.shards, a.testset, a.ball)}
             print(json.dumps(res["models"][name]), flush=True)
     a.out.write_text(json.dumps(res, indent=1) + "\n")
     print(f"wrote {a.out}")

@@ -11,7 +11,8 @@ Three rates, samples per second, measured one after the other in the same proces
   device (real maps from the shards, gathered once), nothing else: the network's rate;
 - ``stage``: ``cnnps.stages.train.run`` itself for ``--steps`` steps from scratch with
   the stage's defaults (prefetch, channels_last, fused Adam, progress bar, loss log), a
-  validation and a checkpoint every ``--steps // 2`` steps; its rate is the one the stage
+  validation (of as many maps per step as the defaults: 50,000 every 2,000 steps) and a
+  checkpoint every ``--steps // 2`` steps; its rate is the one the stage
   reports (the step loop's samples over its wall time) and ``seconds`` is its own split
   (``metrics.json``: data wait, validation, checkpoints).
 
@@ -25,6 +26,12 @@ Shards: ``--shards`` (an extract output), else the first of
 scenes (default 12) of Lambertian spheres made without Blender and extracted with the
 stage's code into a temporary folder (what a GPU machine without the data sets uses).
 Results: ``benchmarks/results/stage/<device kind>.json`` with the CPU model (and GPU name).
+
+``--vs-before ROUNDS --shards DIR`` measures only the stage, end to end: with the settings
+it had before the fast CPU step (:data:`BEFORE`: torch's dropout masks, torch's layers,
+glibc's allocator as it comes) and with today's defaults, each run in its own process,
+alternately, ``ROUNDS`` times; it writes ``<device kind>-vs-before.json`` with the
+medians and the ratio of each round.
 """
 
 from __future__ import annotations
@@ -55,7 +62,7 @@ from cnnps.io.shards import ShardStream, load_manifest, manifest_files  # noqa: 
 from cnnps.models.shard_dataset import ShardDataset  # noqa: E402
 
 CANDIDATES = ("data/cpu-train-v3/extract", "data/cpu-train/extract")
-DEFAULT_VAL_EVERY, DEFAULT_CKPT_EVERY = 2000, 1000
+DEFAULT_VAL_EVERY, DEFAULT_CKPT_EVERY, DEFAULT_VAL_ROWS = 2000, 1000, 50000
 
 
 def synthetic_shards(root: Path, scenes: int) -> Path:
@@ -119,12 +126,21 @@ def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: flo
             "step_seconds": dt / n}
 
 
-def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path, masks: str = "counter") -> dict:
+# the train stage's CPU settings before the fast step: torch's dropout masks, torch's layers,
+# glibc's allocator as it comes (the stage's speed when the work on it began)
+BEFORE = dict(dropout_masks="torch", cpu_layers="reference", keep_freed_memory=False)
+
+
+def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path, masks: str = "counter",
+               **settings) -> dict:
     from cnnps.stages import train
 
     every = max(1, steps // 2)
+    # as many validation maps per step as the defaults (50,000 every 2,000 steps)
+    val_rows = max(1000, round(DEFAULT_VAL_ROWS * every / DEFAULT_VAL_EVERY))
     params = train.Params(batch_size=batch, max_steps=steps, epochs=1000, val_every=every, checkpoint_every=every,
-                          shards=str(shards), device=device, progress=True, dropout_masks=masks)
+                          val_max_rows=val_rows, shards=str(shards), device=device, progress=True,
+                          **{"dropout_masks": masks, **settings})
     t = time.perf_counter()
     m = train.run(params, work)
     wall = time.perf_counter() - t
@@ -136,7 +152,30 @@ def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path, ma
             "val_rows": m["val_rows"], "params": {k: v for k, v in dataclasses.asdict(params).items()
                                                   if k in ("batch_size", "max_steps", "val_every", "checkpoint_every",
                                                            "val_max_rows", "prefetch", "channels_last", "fused_adam",
-                                                           "precision", "num_workers", "dropout_masks")}}
+                                                           "precision", "num_workers", "dropout_masks",
+                                                           "cpu_layers", "keep_freed_memory")}}
+
+
+def stage_vs_before(shards: Path, batch: int, steps: int, device: str, rounds: int) -> dict:
+    """The stage with :data:`BEFORE`'s settings and with today's defaults, each in its own
+    process (the allocator setting lasts for a process), alternately for ``rounds`` rounds."""
+    import statistics
+    import subprocess
+
+    runs: dict[str, list[dict]] = {"before": [], "now": []}
+    for rnd in range(rounds):
+        for which in ("before", "now"):
+            cmd = [sys.executable, __file__, "--one-stage", which, "--shards", str(shards), "--steps", str(steps),
+                   "--batch-size", str(batch), "--device", device]
+            out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+            res = json.loads(out.strip().splitlines()[-1])
+            runs[which].append(res)
+            print(f"  round {rnd + 1}, {which}: {res['samples_per_s']:,.0f} samples/s over {res['seconds']['loop']:.0f} s",
+                  flush=True)
+    med = {k: statistics.median(r["samples_per_s"] for r in v) for k, v in runs.items()}
+    ratios = [n["samples_per_s"] / b["samples_per_s"] for b, n in zip(runs["before"], runs["now"])]
+    return {"before_settings": BEFORE, "runs": runs, "median_samples_per_s": med,
+            "ratio_per_round": [round(r, 3) for r in ratios], "median_ratio": round(statistics.median(ratios), 3)}
 
 
 def main() -> None:
@@ -151,9 +190,37 @@ def main() -> None:
     ap.add_argument("--compare-masks", action="store_true",
                     help="also measure the bare step and the stage with torch's dropout masks (the former default), "
                          "first, in the same run")
+    ap.add_argument("--vs-before", type=int, default=0, metavar="ROUNDS",
+                    help="only the stage: before the fast step (torch masks and layers, glibc's allocator as it "
+                         "comes) against today's defaults, each in its own process, alternately, ROUNDS rounds")
+    ap.add_argument("--one-stage", choices=("before", "now"), help=argparse.SUPPRESS)
     args = ap.parse_args()
 
     from cnnps.models.devices import resolve_device
+
+    if args.one_stage:  # a child of --vs-before: one stage run, its result as JSON on the last line
+        with tempfile.TemporaryDirectory(prefix="bench-stage-") as tmp:
+            settings = BEFORE if args.one_stage == "before" else {}
+            res = stage_rate(args.shards, args.batch_size, args.steps, args.device, Path(tmp), **settings)
+        print(json.dumps(res))
+        return
+    if args.vs_before:
+        shards = args.shards or next((REPO / c for c in CANDIDATES if (REPO / c / "manifest.json").is_file()), None)
+        if shards is None:
+            sys.exit("bench_stage: --vs-before needs --shards (an extract output)")
+        info = cpu_info()
+        res = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+               "command": "benchmarks/bench_stage.py " + " ".join(sys.argv[1:]), "cpu": info,
+               "torch": torch.__version__, "shards": str(shards), "batch_size": args.batch_size, "steps": args.steps,
+               "load_average_before": [round(x, 2) for x in os.getloadavg()]}
+        res.update(stage_vs_before(shards, args.batch_size, args.steps, args.device, args.vs_before))
+        res["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
+        out = args.out or REPO / "benchmarks" / "results" / "stage" / f"cpu-{cpu_kind(info)}-vs-before.json"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_text(out, json.dumps(res, indent=2) + "\n")
+        print(f"stage: {res['median_samples_per_s']} samples/s (medians), ratio {res['median_ratio']} "
+              f"(per round {res['ratio_per_round']}); wrote {out}")
+        return
 
     device = resolve_device(args.device)
     with tempfile.TemporaryDirectory(prefix="bench-stage-") as tmp:

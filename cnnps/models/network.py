@@ -59,6 +59,9 @@ class CNNPS(nn.Module):
         self.fc2 = nn.Linear(128, 3)
         self.drop = nn.Dropout(dropout)
         self._mask_key: tuple[int, ...] | None = None
+        # eager float32 CPU training with counter masks runs cnnps.models.train_layers
+        # (same results up to float rounding); False keeps the layers above
+        self.fused_cpu_layers = True
         for mod in self.modules():  # he_normal, as the Keras model
             if isinstance(mod, (nn.Conv2d, nn.Linear)):
                 nn.init.kaiming_normal_(mod.weight, nonlinearity="relu")
@@ -92,8 +95,20 @@ class CNNPS(nn.Module):
         r = torch.cat([r, F.relu(self._drop(self.block2_conv2(r), 4))], dim=1)
         return self.final_conv(r)
 
+    def _fused_training(self, x: torch.Tensor) -> bool:
+        """Whether this pass runs :func:`cnnps.models.train_layers.features`: training on a
+        CPU, float32 channels_last input, counter masks, no autocast."""
+        return (self.training and self.fused_cpu_layers and self._mask_key is not None and x.device.type == "cpu"
+                and x.dtype == torch.float32 and x.dim() == 4 and x.shape[1] == 1
+                and x.is_contiguous(memory_format=torch.channels_last) and not torch.is_autocast_enabled("cpu"))
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = self.features(x).flatten(1)
+        if self._fused_training(x):
+            from cnnps.models.train_layers import features
+
+            x = features(self, x, self._mask_key)
+        else:
+            x = self.features(x).flatten(1)
         x = self.fc2(F.relu(self.fc1(x)))
         return F.normalize(x.float(), dim=1)
 
@@ -111,18 +126,23 @@ def counter_dropout(t: torch.Tensor, p: float, key: tuple[int, ...]) -> torch.Te
     of a training step on 2 cores; ``benchmarks/bench_train.py``). The layout follows
     ``t``'s memory order (channels_last included), so the multiply streams.
     """
-    n = t.numel()
-    raw = np.random.SFC64(list(key)).random_raw((n + 1) // 2)
-    bits = torch.from_numpy(raw.view(np.int32)[:n])
-    threshold = -(2**31) + int(round(p * 2**32))
-    scale = 1.0 / (1.0 - (threshold + 2**31) / 2**32)
-    keep = bits >= threshold
+    keep, scale = counter_keep(t.numel(), p, key)
     if t.dim() == 4 and not t.is_contiguous() and t.is_contiguous(memory_format=torch.channels_last):
         B, C, H, W = t.shape
         keep = keep.view(B, H, W, C).permute(0, 3, 1, 2)
     else:
         keep = keep.view(t.shape)
     return t * torch.mul(keep, scale).to(t.dtype)
+
+
+def counter_keep(n: int, p: float, key: tuple[int, ...]) -> tuple[torch.Tensor, float]:
+    """The ``n`` keep decisions (bool) of :func:`counter_dropout` for ``key``, in memory
+    order, and the scale of kept elements."""
+    raw = np.random.SFC64(list(key)).random_raw((n + 1) // 2)
+    bits = torch.from_numpy(raw.view(np.int32)[:n])
+    threshold = -(2**31) + int(round(p * 2**32))
+    scale = 1.0 / (1.0 - (threshold + 2**31) / 2**32)
+    return bits >= threshold, scale
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -199,7 +219,7 @@ def fold_for_inference(model: CNNPS) -> FoldedCNNPS:
 
 
 @functools.lru_cache(maxsize=1)
-def _mkldnn_pointwise_available() -> bool:
+def mkldnn_pointwise_available() -> bool:
     try:
         return torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")
     except (AttributeError, RuntimeError):
@@ -255,7 +275,7 @@ class FastCNNPS(nn.Module):
         self.eval()
 
     def _conv(self, x, w, b, pad, relu, add=None):
-        if x.device.type == "cpu" and x.dtype == torch.float32 and _mkldnn_pointwise_available():
+        if x.device.type == "cpu" and x.dtype == torch.float32 and mkldnn_pointwise_available():
             p, one = [pad, pad], [1, 1]
             if add is None:
                 return torch.ops.mkldnn._convolution_pointwise(x, w, b, p, one, one, 1, "relu" if relu else "none", [], "")

@@ -44,6 +44,7 @@ def make_model(w: int, params, device: torch.device) -> tuple[CNNPS, torch.optim
     ``device``, channels_last if asked, and its Adam optimiser."""
     torch.manual_seed(params.seed)
     model = CNNPS(w=w, dropout=params.dropout).to(device)
+    model.fused_cpu_layers = getattr(params, "cpu_layers", "fused") == "fused"
     if params.channels_last:
         model = model.to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(model.parameters(), lr=params.lr, weight_decay=params.weight_decay,

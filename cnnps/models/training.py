@@ -44,6 +44,7 @@ from cnnps.io.shards import (
     shard_path,
     verify_shards,
 )
+from cnnps.models.allocator import keep_freed_memory
 from cnnps.models.checkpoint import (
     load_checkpoint,
     read_checkpoint,
@@ -93,6 +94,8 @@ def training_processes(params) -> Iterator[tuple[DistInfo, torch.device]]:
         )
     set_threads(params.threads, info)
     device = process_device(params.device, info)
+    if device.type == "cpu" and getattr(params, "keep_freed_memory", True):
+        keep_freed_memory()  # every step's activations reuse the last step's pages
     with process_group(info, device):
         yield info, device
 

@@ -119,6 +119,12 @@ class Params:
     # ~4x cheaper than torch's and resume-exact with no RNG state (cnnps.models.network.counter_dropout);
     # "torch" = torch's generator, as before. CUDA and compiled models always use torch's.
     dropout_masks: Literal["counter", "torch"] = "counter"
+    # eager float32 CPU steps with counter masks: "fused" = the layers of cnnps.models.train_layers
+    # (fewer passes over memory, the same results up to float rounding); "reference" = torch's layers
+    cpu_layers: Literal["fused", "reference"] = "fused"
+    # on a CPU, glibc keeps freed memory for the next step instead of returning it to the kernel
+    # (cnnps.models.allocator: a tenth of the machine's time went to page faults); process-wide
+    keep_freed_memory: bool = True
     # per-pixel maps (cnnps.synth.pixelwise) in every batch: this share of its rows, the rest
     # from the Cycles shards; 1 = per-pixel maps only (no renders or shards: a core install or
     # a GPU machine trains; needs max_steps, and validates on a fixed per-pixel set)

@@ -141,8 +141,8 @@ def test_fast_cpu_model_matches_original(monkeypatch, use_mkldnn, w):
     import cnnps.models.network as network
 
     if not use_mkldnn:
-        monkeypatch.setattr(network, "_mkldnn_pointwise_available", lambda: False)
-    elif not network._mkldnn_pointwise_available():
+        monkeypatch.setattr(network, "mkldnn_pointwise_available", lambda: False)
+    elif not network.mkldnn_pointwise_available():
         pytest.skip("torch without oneDNN pointwise kernels")
     torch.manual_seed(2)
     model = CNNPS(w=w).eval()
