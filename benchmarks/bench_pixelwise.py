@@ -12,7 +12,8 @@
    (``normal_gt.npy``) under the same lights and parameters. Measure per pixel:
    ``|a - b|.sum() / |b|.sum()`` (a pixelwise, b Cycles); reported per category: median
    and 90th percentile over the pixels of all its renders, also for the interior
-   (n_z >= 0.3) alone. Skipped without bpy.
+   (n_z >= 0.3) alone; and, beside it, the same with the Disney sheen term and with no
+   sheen (``sheen_model``). Skipped without bpy.
 2. Speed: :func:`cnnps.synth.pixelwise.generate` maps per second at batch 256, 1300
    lights (best of ``--repeat``), effects off and all on, on this machine's CPU threads.
 """
@@ -57,7 +58,7 @@ def agreement(size: int, n_lights: int, samples: int, per_category: int, seed: i
     with tempfile.TemporaryDirectory() as tmp:
         for cat in ("diffuse", "specular", "metallic"):
             rows = sample_parameters(ranges.get(cat), per_category, rng)
-            errs, errs_in, errs_nosheen, renders = [], [], [], []
+            errs, errs_in, errs_nosheen, errs_disney, renders = [], [], [], [], []
             for i in range(per_category):
                 p = {k: v[i] for k, v in rows.items()}
                 folder = Path(tmp) / f"{cat}{i}"
@@ -78,24 +79,28 @@ def agreement(size: int, n_lights: int, samples: int, per_category: int, seed: i
                 tp = {k: torch.as_tensor(np.broadcast_to(v, (P, 3) if k == "base_color" else (P,)).copy())
                       for k, v in p.items()}
                 nt, Lt = torch.from_numpy(n).float(), torch.from_numpy(Lw).float()
-                for sheen_model, dest in (("disney", errs), ("none", errs_nosheen)):
+                for sheen_model, dest in (("microfiber", errs), ("disney", errs_disney), ("none", errs_nosheen)):
                     a = px.observation_maps_torch(px.shade(nt, Lt, tp, sheen_model=sheen_model), Lt, 32).reshape(P, -1)
                     e = np.abs(a.numpy() - b).sum(1) / np.maximum(np.abs(b).sum(1), 1e-12)
                     dest.append(e)
-                    if sheen_model == "disney":
+                    if sheen_model == "microfiber":
                         errs_in.append(e[n[:, 2] >= 0.3])
                 renders.append({"params": {k: np.round(np.asarray(v), 4).tolist() for k, v in p.items()},
                                 "pixels": int(P), "median": float(np.median(errs[-1])),
                                 "p90": float(np.percentile(errs[-1], 90)),
                                 "median_sheen_none": float(np.median(errs_nosheen[-1])),
+                                "median_sheen_disney": float(np.median(errs_disney[-1])),
                                 "render_s": round(time.perf_counter() - t0, 2)})
                 print(f"{cat} {i}: median {renders[-1]['median']:.4f} p90 {renders[-1]['p90']:.4f} "
-                      f"(sheen off {renders[-1]['median_sheen_none']:.4f})  {renders[-1]['params']}", flush=True)
+                      f"(Disney sheen {renders[-1]['median_sheen_disney']:.4f}, sheen off "
+                      f"{renders[-1]['median_sheen_none']:.4f})  {renders[-1]['params']}", flush=True)
             e, ei, en = np.concatenate(errs), np.concatenate(errs_in), np.concatenate(errs_nosheen)
+            ed = np.concatenate(errs_disney)
             out[cat] = {
                 "median": float(np.median(e)), "p90": float(np.percentile(e, 90)),
                 "interior_median": float(np.median(ei)), "interior_p90": float(np.percentile(ei, 90)),
                 "sheen_none_median": float(np.median(en)), "sheen_none_p90": float(np.percentile(en, 90)),
+                "sheen_disney_median": float(np.median(ed)), "sheen_disney_p90": float(np.percentile(ed, 90)),
                 "renders": renders,
             }
     return {"size": size, "lights": n_lights, "samples": samples, "max_bounces": 1, "per_category": per_category,

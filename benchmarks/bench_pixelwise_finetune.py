@@ -10,7 +10,8 @@ inter-reflection 0.3, ambient 0.05, gains 0.05, noise 0.01; sparse share 0.2); i
 and CPU time are recorded beside it. With ``--cpu-minutes M`` each variant instead
 trains as many steps as fill M CPU-minutes of this process (per-step and fixed CPU time
 from two pilots of 20 and 60 steps of the same variant): equal CPU time, so a variant whose maps cost more gets fewer
-steps. Every model, the
+steps. The pilots are short: on a machine whose load changes they misjudge the steps (by
+1.4-1.9x in the recorded run), so the JSON keeps each run's actual CPU seconds. Every model, the
 shipped one included, is scored on the same things: the shards' validation maps (K=1,
 each map alone), the eval-stage captures under ``--testset`` (K=10, sparse fill auto,
 grouped by light count), and DiLiGenT BALL at 96 and 10 images (K=10, ``cnnps.predict``).

@@ -168,7 +168,14 @@ def main():
     ap.add_argument("--only", default="", help="comma-separated substrings of variant names to run")
     ap.add_argument("--accuracy-steps", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/train.json"))
+    ap.add_argument("--keep-freed-memory", action="store_true",
+                    help="as the train stage does on a CPU (cnnps.models.allocator), for every variant: it lasts "
+                         "for the process, so compare with a run without it")
     a = ap.parse_args()
+    if a.keep_freed_memory:
+        from cnnps.models.allocator import keep_freed_memory
+
+        keep_freed_memory()
     maps, normals = data(8192, a.w, np.random.default_rng(0))
     chosen = [v for v in VARIANTS if not a.only or any(s in v["name"] for s in a.only.split(","))]
     load_before = os.getloadavg()[0]
@@ -192,7 +199,8 @@ def main():
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps({
         "command": f"benchmarks/bench_train.py --seconds {a.seconds} --rounds {a.rounds} --w {a.w}"
-                   + (f" --only {a.only}" if a.only else "") + (f" --accuracy-steps {a.accuracy_steps}" if acc else ""),
+                   + (f" --only {a.only}" if a.only else "") + (f" --accuracy-steps {a.accuracy_steps}" if acc else "")
+                   + (" --keep-freed-memory" if a.keep_freed_memory else ""),
         "machine": f"2 CPU cores; load average {load_before:.1f} before, "
                    f"{os.getloadavg()[0]:.1f} after (variants interleaved, best of {a.rounds} rounds)",
         "cpu": cpu_info(),

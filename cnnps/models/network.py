@@ -21,12 +21,12 @@ the last 1x1 convolution is multiplied into the first dense layer.
 
 from __future__ import annotations
 
-import functools
-
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from cnnps.models.train_layers import counter_keep, mkldnn_pointwise_available
+from cnnps.models.train_layers import features as fused_features
 
 # Bump whenever the layer layout or the state-dict names change: old checkpoints then
 # fail to load with a clear message instead of loading garbage.
@@ -104,9 +104,7 @@ class CNNPS(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self._fused_training(x):
-            from cnnps.models.train_layers import features
-
-            x = features(self, x, self._mask_key)
+            x = fused_features(self, x, self._mask_key)
         else:
             x = self.features(x).flatten(1)
         x = self.fc2(F.relu(self.fc1(x)))
@@ -133,16 +131,6 @@ def counter_dropout(t: torch.Tensor, p: float, key: tuple[int, ...]) -> torch.Te
     else:
         keep = keep.view(t.shape)
     return t * torch.mul(keep, scale).to(t.dtype)
-
-
-def counter_keep(n: int, p: float, key: tuple[int, ...]) -> tuple[torch.Tensor, float]:
-    """The ``n`` keep decisions (bool) of :func:`counter_dropout` for ``key``, in memory
-    order, and the scale of kept elements."""
-    raw = np.random.SFC64(list(key)).random_raw((n + 1) // 2)
-    bits = torch.from_numpy(raw.view(np.int32)[:n])
-    threshold = -(2**31) + int(round(p * 2**32))
-    scale = 1.0 / (1.0 - (threshold + 2**31) / 2**32)
-    return bits >= threshold, scale
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -216,14 +204,6 @@ def fold_for_inference(model: CNNPS) -> FoldedCNNPS:
     if not isinstance(model, CNNPS):
         raise TypeError(f"expected a CNNPS model, got {type(model).__name__}")
     return FoldedCNNPS(model)
-
-
-@functools.lru_cache(maxsize=1)
-def mkldnn_pointwise_available() -> bool:
-    try:
-        return torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")
-    except (AttributeError, RuntimeError):
-        return False
 
 
 class FastCNNPS(nn.Module):

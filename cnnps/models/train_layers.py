@@ -26,11 +26,30 @@ All activations are NHWC (channels_last). The masks are those of
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from cnnps.models.network import counter_keep, mkldnn_pointwise_available
+
+def counter_keep(n: int, p: float, key: tuple[int, ...]) -> tuple[torch.Tensor, float]:
+    """The ``n`` keep decisions (bool) of :func:`counter_dropout` for ``key``, in memory
+    order, and the scale of kept elements."""
+    raw = np.random.SFC64(list(key)).random_raw((n + 1) // 2)
+    bits = torch.from_numpy(raw.view(np.int32)[:n])
+    threshold = -(2**31) + int(round(p * 2**32))
+    scale = 1.0 / (1.0 - (threshold + 2**31) / 2**32)
+    return bits >= threshold, scale
+
+
+
+@functools.lru_cache(maxsize=1)
+def mkldnn_pointwise_available() -> bool:
+    try:
+        return torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_convolution_pointwise")
+    except (AttributeError, RuntimeError):
+        return False
 
 
 def keep_mask(shape: tuple[int, ...], p: float, key: tuple[int, ...]) -> tuple[torch.Tensor, float]:

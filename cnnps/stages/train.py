@@ -56,7 +56,11 @@ are channels_last (``channels_last``, ~1.3x), Adam uses torch's fused kernel
 ``OMP_WAIT_POLICY=PASSIVE`` before torch loads unless the environment sets a policy
 (with another busy process on a 2-core machine, spinning OpenMP threads made training
 2.7x slower); dropout masks are drawn from a counter-based stream keyed by the step
-(``dropout_masks: counter``; torch's ``bernoulli_`` took a third of a step on 2 cores).
+(``dropout_masks: counter``; torch's ``bernoulli_`` took a third of a step on 2 cores);
+with those masks the layers run as :mod:`cnnps.models.train_layers` (``cpu_layers:
+fused``: fewer passes over memory, the same results up to float rounding); and glibc
+keeps freed memory for the next step instead of page-faulting it back in
+(``keep_freed_memory``, :mod:`cnnps.models.allocator`; docs/performance.md).
 ``precision: bf16`` (slower on CPUs without AMX) and ``compile: true``
 (torch.compile; slower than eager here, ~40 s to compile; falls back to eager with a
 warning when compilation fails) are opt-in. None of these changes the model or the loss;
@@ -178,7 +182,8 @@ class Params:
         enters :func:`run_key` as the SHA-256 of its weights, not as a path."""
         d = asdict(self)
         for k in ("epochs", "max_steps", "val_every", "val_max_rows", "checkpoint_every", "keep_checkpoints",
-                  "log_every", "threads", "num_workers", "prefetch", "progress", "shards", "init"):
+                  "log_every", "threads", "num_workers", "prefetch", "progress", "shards", "init",
+                  "keep_freed_memory"):
             d.pop(k)
         d["lr_milestones"] = list(self.lr_milestones)
         return d

@@ -272,13 +272,51 @@ def kulla_conty_fss(eta: torch.Tensor) -> torch.Tensor:
     return (eta - 1.0) / (4.08567 + 1.00071 * eta)
 
 
+SHEEN_ROUGHNESS = 0.5  # the Principled BSDF's Sheen Roughness as cnnps.synth.bsdf sets it
+
+
+def sheen_ltc(mu: torch.Tensor, roughness: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(a, b, R): the microfiber sheen's LTC coefficients and directional albedo at
+    cos(n, v) = ``mu`` (Zeltner, Burley & Chiang 2022, "Practical Multiple-Scattering Sheen
+    Using Linearly Transformed Cosines": their rational fits of the inverse matrix entries
+    a = 1/M_00, b = -M_02/M_00 and their Gaussian fit of the albedo R, over the roughness
+    range [0.01, 1]). Cycles reads the same quantities from a 32 x 32 table of the
+    same data."""
+    x = mu.clamp(0.0, 1.0)
+    y = torch.as_tensor(roughness, dtype=mu.dtype, device=mu.device).clamp(0.01, 1.0)
+    a = (2.58126 * x + 0.813703 * y) * y / (1.0 + 0.310327 * x * x + 2.60994 * x * y)
+    b = torch.sqrt(1.0 - x) * (y - 1.0) * y ** 3 / (0.0000254053 + 1.71228 * x - 1.71506 * x * y + 1.34174 * y * y)
+    s = y * (0.0206607 + 1.58491 * y) / (0.0379424 + y * (1.32227 + y))
+    m = y * (-0.193854 + y * (-1.14885 + y * (1.7932 - 0.95943 * y * y))) / (0.046391 + y)
+    o = y * (0.000654023 + (-0.0207818 + 0.119681 * y) * y) / (1.26264 + y * (-1.92021 + y))
+    R = torch.exp(-0.5 * ((x - m) / s) ** 2) / (s * math.sqrt(2.0 * math.pi)) + o
+    return a, b, R.clamp(0.0, 1.0)
+
+
+def microfiber_sheen(normals: torch.Tensor, L: torch.Tensor, roughness: float = SHEEN_ROUGHNESS):
+    """(π · BSDF · cos (P, m), albedo R (P, 1)) of the microfiber sheen lobe seen from
+    v = (0, 0, 1): R · D_LTC(l), the clamped cosine transformed by the inverse matrix
+    [[a, 0, b], [0, a, 0], [0, 0, 1]] in the frame whose x axis is v's tangential
+    direction (:func:`sheen_ltc`); ``L`` (1 or P, m, 3) unit light directions."""
+    mu = normals[:, 2:3].clamp(min=1e-4)  # (P, 1)
+    a, b, R = sheen_ltc(mu, roughness)
+    n = normals[:, None, :]
+    z = (n * L).sum(-1)  # (P, m) = cos(n, l)
+    s = torch.sqrt((1.0 - mu * mu).clamp(min=1e-12))
+    x = (L[..., 2] - mu * z) / s  # l . X, X = (v - n mu) / |v - n mu|
+    # |M^-1 l|^2 with x^2 + y^2 = 1 - z^2 (x matters only through b, which is 0 where n = v)
+    len2 = a * a * (1.0 - z * z).clamp(min=0.0) + 2.0 * a * b * x * z + (b * b + 1.0) * z * z
+    d = z.clamp(min=0.0) * (a / len2.clamp(min=1e-12)) ** 2  # π · D_LTC(l)
+    return R * d, R
+
+
 def shade(
     normals: torch.Tensor,
     lights: torch.Tensor,
     params: dict[str, torch.Tensor],
     *,
     diffuse_model: str = "lambert",
-    sheen_model: str = "disney",
+    sheen_model: str = "microfiber",
     multiscatter: bool = True,
     rgb: bool = False,
 ) -> torch.Tensor:
@@ -296,9 +334,12 @@ def shade(
     F0 = 0.08 · specular, the same compensation, over a diffuse base attenuated by the
     layer's albedo (Cycles' ``closure_layering_weight``); the diffuse is Lambertian
     (``diffuse_model="lambert"``, Blender's Diffuse Roughness 0) or Burley 2012 with its
-    retro-reflection (``"burley"``, the paper's). Sheen: ``"disney"`` (Burley 2012:
-    sheen · tint · (1 − l·h)^5, added) or ``"none"``; weight sheen · (1 − metallic),
-    tint mix(white, base_color, sheen_tint).
+    retro-reflection (``"burley"``, the paper's). Sheen, weight sheen · (1 − metallic) and
+    tint mix(white, base_color, sheen_tint): ``"microfiber"`` (Blender's: Zeltner et al.
+    2022, :func:`microfiber_sheen`, roughness 0.5, a layer over everything else, which it
+    attenuates by 1 − max over R, G, B of weight · tint · its albedo, as Cycles'
+    ``closure_layering_weight``), ``"disney"`` (Burley 2012: sheen · tint · (1 − l·h)^5,
+    added) or ``"none"``.
     """
     dt = normals.dtype
     n = normals[:, None, :]  # (P, 1, 3)
@@ -356,16 +397,22 @@ def shade(
         fd = cnl * (1.0 + (fd90 - 1.0) * fl) * (1.0 + (fd90 - 1.0) * fv)
     else:
         raise ConfigError(f"diffuse_model must be 'lambert' or 'burley', got {diffuse_model!r}")
-    if sheen_model not in ("disney", "none"):
-        raise ConfigError(f"sheen_model must be 'disney' or 'none', got {sheen_model!r}")
+    if sheen_model not in ("microfiber", "disney", "none"):
+        raise ConfigError(f"sheen_model must be 'microfiber', 'disney' or 'none', got {sheen_model!r}")
     tint = 1.0 + sheen_tint * (base - 1.0)  # (P, 3)
-    w_sheen = (sheen * (1.0 - metallic)) * tint if sheen_model == "disney" else torch.zeros_like(base)
-    d = 1.0 - metallic  # (P, 1)
+    w_sheen = (sheen * (1.0 - metallic)) * tint if sheen_model != "none" else torch.zeros_like(base)
+    if sheen_model == "microfiber":
+        sheen_lobe, sheen_albedo = microfiber_sheen(normals, L)  # (P, m), (P, 1)
+        below = (1.0 - (w_sheen * sheen_albedo).amax(1, keepdim=True)).clamp(0.0, 1.0)  # (P, 1)
+    else:
+        sheen_lobe, below = schlick * cnl, torch.ones_like(mu)[:, None]
+    d = (1.0 - metallic) * below  # (P, 1)
+    metallic = metallic * below
     if rgb:
         F_metal = base[:, None, :] + (1.0 - base[:, None, :]) * schlick[..., None]
         out = (d[..., None] * ((diffuse_w * fd)[..., None] * base[:, None, :] + (math.pi * F_d * lobe * ms_d)[..., None])
                + metallic[..., None] * math.pi * F_metal * (lobe[..., None] * ms_metal[:, None, :])
-               + w_sheen[:, None, :] * (schlick * cnl)[..., None])
+               + w_sheen[:, None, :] * sheen_lobe[..., None])
         return out * lit[..., None]
     # grey = mean over R, G, B; every term is linear in a per-pixel colour, so the mean
     # is taken on the (P,) coefficients and the (P, m) work is done once
@@ -374,7 +421,7 @@ def shade(
     c_m0 = metallic * math.pi * (base * ms_metal).mean(1, keepdim=True)
     c_m1 = metallic * math.pi * ((1.0 - base) * ms_metal).mean(1, keepdim=True)
     c_sheen = w_sheen.mean(1, keepdim=True)
-    out = c_diff * fd + lobe * (c_spec * F_d + c_m0 + c_m1 * schlick) + c_sheen * schlick * cnl
+    out = c_diff * fd + lobe * (c_spec * F_d + c_m0 + c_m1 * schlick) + c_sheen * sheen_lobe
     return out * lit
 
 
@@ -540,7 +587,7 @@ def generate(
     grazing_fraction: float = 0.1,
     effects: Effects = Effects(),
     diffuse_model: str = "lambert",
-    sheen_model: str = "disney",
+    sheen_model: str = "microfiber",
     return_details: bool = False,
 ):
     """``batch_size`` training samples: (maps (B, 1, w, w) float32, normals (B, 3) float32),

@@ -474,16 +474,28 @@ def work_copy(base: Path, dest: Path) -> tuple[Path, Path]:
 
 
 def run_cli(params_path: Path, stage: str) -> tuple[int, str]:
-    """``cnnps run-stage STAGE --params PARAMS`` in this process: (exit status, stderr)."""
+    """``cnnps run-stage STAGE --params PARAMS`` in this process: (exit status, stderr).
+
+    With one torch thread, as the stage subprocesses that built the upstream outputs
+    (``OMP_NUM_THREADS=1``, :mod:`tests.support.faults`): a training step's float
+    rounding depends on the thread count, and whatever an earlier test left in this
+    process must not decide whether a re-run reproduces the baseline."""
+    import torch
+
     from cnnps.pipeline.cli import main
 
     err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        try:
-            main(["run-stage", stage, "--params", str(params_path)])
-            code = 0
-        except SystemExit as exc:
-            code = 0 if exc.code is None else (exc.code if isinstance(exc.code, int) else 1)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            try:
+                main(["run-stage", stage, "--params", str(params_path)])
+                code = 0
+            except SystemExit as exc:
+                code = 0 if exc.code is None else (exc.code if isinstance(exc.code, int) else 1)
+    finally:
+        torch.set_num_threads(threads)
     return code, err.getvalue()
 
 

@@ -143,6 +143,34 @@ def test_white_furnace_no_gain(kind):
             assert torch.all(albedo >= 0.97), (r, albedo)
 
 
+def test_microfiber_sheen_reflects_its_albedo_and_covers_the_base():
+    """The sheen lobe (an LTC: a clamped cosine under a linear map that keeps the horizon)
+    integrates to its fitted albedo R at every view angle; R grows toward grazing views
+    (~0.02 facing, ~0.5 at 80 deg, roughness 0.5); the layers below are dimmed by 1 - R
+    for a white sheen of weight 1 (Cycles' layering)."""
+    d, dw = _hemisphere_grid(400, sphere=True)
+    albedos = []
+    for deg in (0, 30, 60, 80):
+        t = math.radians(deg)
+        n = torch.tensor([[math.sin(t), 0.0, math.cos(t)]], dtype=torch.float64)
+        lobe, R = px.microfiber_sheen(n, d[None])
+        assert (lobe * dw).sum().item() / math.pi == pytest.approx(R.item(), rel=1e-3)
+        albedos.append(R.item())
+    assert 0.01 < albedos[0] < 0.04 and 0.4 < albedos[-1] < 0.6 and albedos == sorted(albedos)
+    n = torch.tensor([[0.0, 0.0, 1.0], [0.8, 0.0, 0.6], [0.0, -0.9, 0.43589]])
+    L = torch.from_numpy(uniform_lights(80)).float()
+    white = _params(3, sheen=1.0, sheen_tint=0.0)
+    lobe, R = px.microfiber_sheen(n, L[None])
+    torch.testing.assert_close(px.shade(n, L, white),
+                               (1 - R) * px.shade(n, L, white, sheen_model="none") + lobe * (n @ L.T > 0),
+                               rtol=1e-5, atol=1e-6)
+    # a tinted sheen dims the base by its strongest channel
+    tinted = _params(3, sheen=1.0, sheen_tint=1.0, base_color=torch.tensor([0.2, 0.8, 0.4]))
+    below = px.shade(n, L, tinted) - (torch.tensor([0.2, 0.8, 0.4]).mean() * lobe) * (n @ L.T > 0)
+    torch.testing.assert_close(below, (1 - 0.8 * R) * px.shade(n, L, tinted, sheen_model="none"),
+                               rtol=1e-5, atol=1e-6)
+
+
 def test_multiscatter_raises_rough_metal_only():
     n = torch.tensor([[0.0, 0.0, 1.0]])
     L = torch.from_numpy(uniform_lights(50)).float()
