@@ -215,11 +215,9 @@ def main() -> None:
                "load_average_before": [round(x, 2) for x in os.getloadavg()]}
         res.update(stage_vs_before(shards, args.batch_size, args.steps, args.device, args.vs_before))
         res["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
-        from benchmarks.bench_train import (
-            roofline,  # GEMM peak of this machine, measured now
-        )
+        from benchmarks.bench_train import roofline
 
-        res["roofline"] = roofline(32, res["median_samples_per_s"])
+        res["roofline"] = roofline(32, res["median_samples_per_s"])  # this machine's GEMM peak, measured now
         out = args.out or REPO / "benchmarks" / "results" / "stage" / f"cpu-{cpu_kind(info)}-vs-before.json"
         out.parent.mkdir(parents=True, exist_ok=True)
         write_text(out, json.dumps(res, indent=2) + "\n")

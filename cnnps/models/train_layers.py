@@ -1,6 +1,6 @@
 """CNN-PS's training pass on a CPU, layer by layer, with fewer passes over memory.
 
-:meth:`cnnps.models.network.CNNPS.features` uses :func:`features` for eager float32
+:meth:`cnnps.models.network.CNNPS.forward` uses :func:`features` for eager float32
 training steps on a CPU with counter-based dropout masks (``train.cpu_layers: fused``,
 the default). It computes what the reference layers compute, with the same dropout
 masks, up to float rounding (``tests/models/test_train_layers.py`` compares gradients
@@ -34,14 +34,13 @@ import torch.nn.functional as F
 
 
 def counter_keep(n: int, p: float, key: tuple[int, ...]) -> tuple[torch.Tensor, float]:
-    """The ``n`` keep decisions (bool) of :func:`counter_dropout` for ``key``, in memory
+    """The ``n`` keep decisions (bool) of :func:`cnnps.models.network.counter_dropout` for ``key``, in memory
     order, and the scale of kept elements."""
     raw = np.random.SFC64(list(key)).random_raw((n + 1) // 2)
     bits = torch.from_numpy(raw.view(np.int32)[:n])
     threshold = -(2**31) + int(round(p * 2**32))
     scale = 1.0 / (1.0 - (threshold + 2**31) / 2**32)
     return bits >= threshold, scale
-
 
 
 @functools.lru_cache(maxsize=1)
@@ -91,7 +90,6 @@ class TransitionDropPoolRelu(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x, w, b, keep, scale):
-        B, C, H, W = x.shape
         z = F.conv2d(x, w, b)
         z.mul_(keep.permute(0, 3, 1, 2))
         r = F.avg_pool2d(z, 2).clamp_min_(0).mul_(scale)

@@ -293,15 +293,16 @@ def sheen_ltc(mu: torch.Tensor, roughness: float | torch.Tensor) -> tuple[torch.
     return a, b, R.clamp(0.0, 1.0)
 
 
-def microfiber_sheen(normals: torch.Tensor, L: torch.Tensor, roughness: float = SHEEN_ROUGHNESS):
+def microfiber_sheen(normals: torch.Tensor, L: torch.Tensor, roughness: float = SHEEN_ROUGHNESS,
+                     cos_nl: torch.Tensor | None = None):
     """(π · BSDF · cos (P, m), albedo R (P, 1)) of the microfiber sheen lobe seen from
     v = (0, 0, 1): R · D_LTC(l), the clamped cosine transformed by the inverse matrix
     [[a, 0, b], [0, a, 0], [0, 0, 1]] in the frame whose x axis is v's tangential
-    direction (:func:`sheen_ltc`); ``L`` (1 or P, m, 3) unit light directions."""
+    direction (:func:`sheen_ltc`); ``L`` (1 or P, m, 3) unit light directions;
+    ``cos_nl`` (P, m) their cosines with the normals when the caller has them."""
     mu = normals[:, 2:3].clamp(min=1e-4)  # (P, 1)
     a, b, R = sheen_ltc(mu, roughness)
-    n = normals[:, None, :]
-    z = (n * L).sum(-1)  # (P, m) = cos(n, l)
+    z = (normals[:, None, :] * L).sum(-1) if cos_nl is None else cos_nl  # (P, m) = cos(n, l)
     s = torch.sqrt((1.0 - mu * mu).clamp(min=1e-12))
     x = (L[..., 2] - mu * z) / s  # l . X, X = (v - n mu) / |v - n mu|
     # |M^-1 l|^2 with x^2 + y^2 = 1 - z^2 (x matters only through b, which is 0 where n = v)
@@ -402,7 +403,7 @@ def shade(
     tint = 1.0 + sheen_tint * (base - 1.0)  # (P, 3)
     w_sheen = (sheen * (1.0 - metallic)) * tint if sheen_model != "none" else torch.zeros_like(base)
     if sheen_model == "microfiber":
-        sheen_lobe, sheen_albedo = microfiber_sheen(normals, L)  # (P, m), (P, 1)
+        sheen_lobe, sheen_albedo = microfiber_sheen(normals, L, cos_nl=cos_nl)  # (P, m), (P, 1)
         below = (1.0 - (w_sheen * sheen_albedo).amax(1, keepdim=True)).clamp(0.0, 1.0)  # (P, 1)
     else:
         sheen_lobe, below = schlick * cnl, torch.ones_like(mu)[:, None]
