@@ -144,18 +144,33 @@ def test_killed_render_worker_is_retried(local_render, materials_dir, ray_ex, tm
     partial: list[str] = []  # scenes with some, not all, images when the workers died
     stop = threading.Event()
 
-    def killer():
-        while not stop.is_set():
-            if out.is_dir() and list(out.glob("*/[0-9]*.exr")):
-                procs = _render_workers()
+    def scan() -> tuple[bool, list[str]]:
+        """(an image is on disk, scenes with some but not all images). A scene's temporary
+        folder is renamed when it completes, so one seen a moment ago may be gone: a scan
+        that meets a vanished folder is simply repeated."""
+        while True:
+            try:
+                if not (out.is_dir() and list(out.glob("*/[0-9]*.exr"))):
+                    return False, []
+                some = []
                 for d in out.iterdir():
                     n = len(list(d.glob("[0-9]*.exr")))
                     if 0 < n < RENDER["lights"] and not (d / "scene.json").exists():
-                        partial.append(d.name)
+                        some.append(d.name)
+                return True, some
+            except FileNotFoundError:
+                continue
+
+    def killer():
+        while not stop.is_set():
+            started, some = scan()
+            if started:
+                procs = _render_workers()
                 for p in procs:
                     p.kill()
                     killed.append(p.pid)
                 if procs:
+                    partial.extend(some)
                     return
             time.sleep(0.002)
 
