@@ -8,10 +8,11 @@ number of steps (batch 128, lr 1e-4, counter dropout masks) with ``train.pixelwi
 ``--mix`` (default 0.25, v4's recipe) and 1 (per-pixel effects: cast shadows 0.3,
 inter-reflection 0.3, ambient 0.05, gains 0.05, noise 0.01; sparse share 0.2); its wall
 and CPU time are recorded beside it. With ``--cpu-minutes M`` each variant instead
-trains as many steps as fill M CPU-minutes of this process (per-step and fixed CPU time
-from two pilots of 20 and 60 steps of the same variant): equal CPU time, so a variant whose maps cost more gets fewer
-steps. The pilots are short: on a machine whose load changes they misjudge the steps (by
-1.4-1.9x in the recorded run), so the JSON keeps each run's actual CPU seconds. Every model, the
+trains until its training loop has used M CPU-minutes (``train.run``'s ``until``, asked
+after every step, reads the process's CPU clock; start-up, shard checks and the last
+validation are outside the budget): equal CPU time, so a variant whose maps cost more
+gets fewer steps. The three variants then run at once, one process and one torch thread
+each, so a machine whose load changes slows all three alike. Every model, the
 shipped one included, is scored on the same things: the shards' validation maps (K=1,
 each map alone), the eval-stage captures under ``--testset`` (K=10, sparse fill auto,
 grouped by light count), and DiLiGenT BALL at 96 and 10 images (K=10, ``cnnps.predict``).
@@ -51,30 +52,54 @@ def cpu_seconds() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def finetune(share: float, shards: Path, steps: int, work: Path, init: Path | None = None) -> tuple[Path, dict]:
-    """``steps`` steps from ``init`` (default: the shipped weights); the model and its timing."""
+class CpuBudget:
+    """``until`` for :func:`cnnps.stages.train.run`: true once the process has used
+    ``seconds`` of CPU time (all its threads) since the first step ended, so start-up and
+    the first step's one-off work are not counted."""
+
+    def __init__(self, seconds: float):
+        self.seconds, self.start, self.steps = seconds, None, 0
+
+    def __call__(self, step: int) -> bool:
+        now = cpu_seconds()
+        if self.start is None:
+            self.start, self.first_step = now, step
+            return False
+        self.steps = step - self.first_step
+        return now - self.start >= self.seconds
+
+
+def finetune(share: float, shards: Path, steps: int, work: Path, cpu_budget: float = 0.0,
+             threads: int = 0) -> tuple[Path, dict]:
+    """``steps`` steps from the shipped weights (or, with ``cpu_budget`` seconds, as many as
+    fill that much CPU time); the model and its timing."""
     from cnnps.models.shipped import weights_path
     from cnnps.stages import train
 
     params = train.Params(pixelwise=share, pixelwise_effects=EFFECTS, pixelwise_sparse_fraction=0.2,
-                          shards=str(shards), init=str(init or weights_path()), max_steps=steps, epochs=1000, lr=1e-4,
-                          batch_size=128, val_every=0, checkpoint_every=steps, progress=False)
+                          shards=str(shards), init=str(weights_path()), max_steps=10**7 if cpu_budget else steps,
+                          epochs=1000, lr=1e-4, batch_size=128, val_every=0,
+                          checkpoint_every=10**7 if cpu_budget else steps, progress=False, threads=threads)
+    budget = CpuBudget(cpu_budget) if cpu_budget else None
     t0, c0 = time.perf_counter(), cpu_seconds()
-    metrics = train.run(params, work)
-    return work / "train" / "model.pt", {"seconds": round(time.perf_counter() - t0, 1),
-                                         "cpu_seconds": round(cpu_seconds() - c0, 1),
-                                         "samples_per_s": metrics["samples_per_s"], "steps": metrics["steps"]}
+    metrics = train.run(params, work, until=budget)
+    run = {"seconds": round(time.perf_counter() - t0, 1), "cpu_seconds": round(cpu_seconds() - c0, 1),
+           "samples_per_s": metrics["samples_per_s"], "steps": metrics["steps"]}
+    if budget is not None:
+        run["budget_cpu_seconds"] = round(budget.seconds, 1)
+        run["budget_steps"] = budget.steps  # the steps inside the budget (all but the first)
+    return work / "train" / "model.pt", run
 
 
-def steps_for(share: float, shards: Path, cpu_budget: float, work: Path, pilots=(20, 60)) -> tuple[int, dict]:
-    """The steps that fill ``cpu_budget`` CPU-seconds of a whole run of this variant: the
-    CPU time per step and the fixed cost (start-up, shard checks, the last validation)
-    from two pilot runs of different lengths."""
-    a, b = (finetune(share, shards, n, work / str(n))[1] for n in pilots)
-    per_step = (b["cpu_seconds"] - a["cpu_seconds"]) / (pilots[1] - pilots[0])
-    fixed = max(0.0, a["cpu_seconds"] - pilots[0] * per_step)
-    steps = max(pilots[0], int((cpu_budget - fixed) / per_step))
-    return steps, {"cpu_seconds_per_step": round(per_step, 3), "fixed_cpu_seconds": round(fixed, 1)}
+def variant(name: str, share: float, a: argparse.Namespace, work: Path) -> dict:
+    """Train one variant and score it (in its own process when the variants run at once)."""
+    threads = 1 if a.cpu_minutes else 2
+    torch.set_num_threads(threads)
+    print(f"{name} (pixelwise {share}) ...", flush=True)
+    model, run = finetune(share, a.shards, a.steps, work / name, 60 * a.cpu_minutes, threads)
+    out = {"pixelwise": share, **run, **score(model, a.shards, a.testset, a.ball)}
+    print(name, json.dumps(out), flush=True)
+    return out
 
 
 def score(model_path: Path, shards: Path, testset: Path | None, ball: Path | None) -> dict:
@@ -118,8 +143,8 @@ def main() -> None:
     ap.add_argument("--ball", type=Path, default=REPO.parent / "shared/data/diligent/ballPNG")
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--cpu-minutes", type=float, default=0.0,
-                    help="equal CPU time instead of equal steps: each variant trains as many steps as fill this "
-                         "many CPU-minutes (from two short pilots of it)")
+                    help="equal CPU time instead of equal steps: each variant trains until its loop has used "
+                         "this many CPU-minutes (the three at once, one thread each)")
     ap.add_argument("--mix", type=float, default=0.25, help="train.pixelwise of the mixed variant (v4's: 0.25)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks/results/pixelwise_finetune.json")
     a = ap.parse_args()
@@ -137,15 +162,18 @@ def main() -> None:
         res["cpu_minutes_each"] = a.cpu_minutes
         res.pop("steps")
     with tempfile.TemporaryDirectory(prefix="bench-px-") as tmp:
-        for name, share in variants.items():
-            steps, pilot = a.steps, None
-            if a.cpu_minutes:
-                steps, pilot = steps_for(share, a.shards, 60 * a.cpu_minutes, Path(tmp) / f"{name}-pilot")
-            print(f"{name} (pixelwise {share}, {steps} steps) ...", flush=True)
-            model, run = finetune(share, a.shards, steps, Path(tmp) / name)
-            res["models"][name] = {"pixelwise": share, **run, **({"pilot": pilot} if pilot else {}),
-                                   **score(model, a.shards, a.testset, a.ball)}
-            print(json.dumps(res["models"][name]), flush=True)
+        if a.cpu_minutes:  # at once: one process and one thread each
+            import concurrent.futures
+            import multiprocessing
+
+            with concurrent.futures.ProcessPoolExecutor(len(variants),
+                                                        mp_context=multiprocessing.get_context("spawn")) as pool:
+                futs = {name: pool.submit(variant, name, share, a, Path(tmp)) for name, share in variants.items()}
+                for name, fut in futs.items():
+                    res["models"][name] = fut.result()
+        else:
+            for name, share in variants.items():
+                res["models"][name] = variant(name, share, a, Path(tmp))
     a.out.write_text(json.dumps(res, indent=1) + "\n")
     print(f"wrote {a.out}")
 

@@ -215,16 +215,20 @@ def write_plots(out_dir: Path, history: dict) -> None:
 
 def train(params, data: TrainingData, out_dir: Path, run_key: str, info: DistInfo, device: torch.device,
           init_state: dict | None = None, init_sha: str | None = None, *,
-          stop_after_step: int | None = None, make_pixelwise=None) -> dict:
+          stop_after_step: int | None = None, make_pixelwise=None, until=None) -> dict:
     """Train (resuming the newest checkpoint of ``run_key``); returns the final metrics.
     ``stop_after_step`` (tests only) raises ``KeyboardInterrupt`` after that step, like a
     killed run. ``make_pixelwise(n, generator, device, w) -> (maps (n, 1, w, w), normals
-    (n, 3))`` makes the per-pixel rows of ``params.pixelwise``."""
+    (n, 3))`` makes the per-pixel rows of ``params.pixelwise``. ``until(step) -> bool``,
+    asked after every step, ends the run there, normally (last validation, checkpoint,
+    ``model.pt``): a budget of time, say. The steps it allows then depend on the clock,
+    so such a run is not reproducible from its params alone (under torchrun every rank
+    must answer alike)."""
     trainer = Trainer(params, data, out_dir, run_key, info, device, init_state, init_sha)
     trainer.make_pixelwise = make_pixelwise
     trainer.resume()
     trainer.load_validation()
-    trainer.run_steps(stop_after_step)
+    trainer.run_steps(stop_after_step, until)
     return trainer.finish()
 
 
@@ -426,9 +430,10 @@ class Trainer:
     def _mean_loss(self, total: torch.Tensor, n: int) -> float:
         return mean_over_ranks(float(total) / n, self.info, self.device)
 
-    def run_steps(self, stop_after_step: int | None = None) -> None:
-        """Step until ``total_steps``: log the loss every ``log_every`` steps, validate
-        every ``val_every``, checkpoint every ``checkpoint_every`` and at the end."""
+    def run_steps(self, stop_after_step: int | None = None, until=None) -> None:
+        """Step until ``total_steps`` (or the first step for which ``until(step)`` is true:
+        the run ends there): log the loss every ``log_every`` steps, validate every
+        ``val_every``, checkpoint every ``checkpoint_every`` and at the end."""
         p, info = self.params, self.info
         if self.stream is None:  # per-pixel maps only, made on the training device
             ds = loader = GeneratedBatches(lambda step: self._pixelwise(self.generated, (self.info.rank, step)),
@@ -458,6 +463,8 @@ class Trainer:
                 step = self.step
                 if step in p.lr_milestones:
                     set_lr(self.opt, lr_at(p, step))
+                if until is not None and until(step):
+                    self.total_steps = step  # ends here: the loss, the checkpoint and the loop below see the end
                 loss_acc += loss.float()
                 loss_n += 1
                 bar.update(p.batch_size)

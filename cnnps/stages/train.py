@@ -196,9 +196,11 @@ def run_key(params: Params, manifest_sha256: str, init_sha256: str | None = None
     return stable_hash([params.result_key(), manifest_sha256] + ([init_sha256] if init_sha256 else []), compact=False)
 
 
-def run(params: Params, data_dir: Path, *, _stop_after_step: int | None = None) -> dict:
-    """Train; returns the final metrics. ``_stop_after_step`` (tests only) raises
-    ``KeyboardInterrupt`` after that step, like a killed run.
+def run(params: Params, data_dir: Path, *, until=None, _stop_after_step: int | None = None) -> dict:
+    """Train; returns the final metrics. ``until(step) -> bool``, asked after every step,
+    ends the run early and normally (e.g. a CPU-time budget; the number of steps then
+    depends on the clock). ``_stop_after_step`` (tests only) raises ``KeyboardInterrupt``
+    after that step, like a killed run.
 
     Under torchrun (``WORLD_SIZE`` > 1) this process is one rank of a
     DistributedDataParallel job (see the module docstring); the process group is
@@ -216,7 +218,8 @@ def run(params: Params, data_dir: Path, *, _stop_after_step: int | None = None) 
         init_state, init_sha = training.load_init_weights(params.init, data.w)
         key = run_key(params, data.manifest_sha256, init_sha)
         return training.train(params, data, data_dir / "train", key, info, device, init_state, init_sha,
-                              stop_after_step=_stop_after_step, make_pixelwise=pixelwise_maker(params))
+                              stop_after_step=_stop_after_step, make_pixelwise=pixelwise_maker(params),
+                              until=until)
 
 
 def pixelwise_maker(params: Params):
