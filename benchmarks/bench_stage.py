@@ -31,7 +31,10 @@ Results: ``benchmarks/results/stage/<device kind>.json`` with the CPU model (and
 it had before the fast CPU step (:data:`BEFORE`: torch's dropout masks, torch's layers,
 glibc's allocator as it comes) and with today's defaults, each run in its own process,
 alternately, ``ROUNDS`` times; it writes ``<device kind>-vs-before.json`` with the
-medians and the ratio of each round.
+medians and the ratio of each round. ``--ahead ROUNDS --share S`` does the same for a
+stage whose batches are ``S`` per-pixel maps (:data:`PIXELWISE`'s effects), made in the
+step's thread against made a step ahead (``pixelwise_ahead`` 0 and 1):
+``<device kind>-pixelwise-S-ahead.json``.
 """
 
 from __future__ import annotations
@@ -153,29 +156,37 @@ def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path, ma
                                                   if k in ("batch_size", "max_steps", "val_every", "checkpoint_every",
                                                            "val_max_rows", "prefetch", "channels_last", "fused_adam",
                                                            "precision", "num_workers", "dropout_masks",
-                                                           "cpu_layers", "keep_freed_memory")}}
+                                                           "cpu_layers", "keep_freed_memory", "pixelwise",
+                                                           "pixelwise_ahead")}}
 
 
-def stage_vs_before(shards: Path, batch: int, steps: int, device: str, rounds: int) -> dict:
-    """The stage with :data:`BEFORE`'s settings and with today's defaults, each in its own
-    process (the allocator setting lasts for a process), alternately for ``rounds`` rounds."""
+def stage_vs(shards: Path, batch: int, steps: int, device: str, rounds: int, settings: dict[str, dict]) -> dict:
+    """The stage under each of two named ``settings`` (train params over the defaults),
+    each run in its own process (the allocator setting lasts for a process), alternately
+    for ``rounds`` rounds; the ratio is the second's rate over the first's."""
     import statistics
     import subprocess
 
-    runs: dict[str, list[dict]] = {"before": [], "now": []}
+    runs: dict[str, list[dict]] = {name: [] for name in settings}
     for rnd in range(rounds):
-        for which in ("before", "now"):
-            cmd = [sys.executable, __file__, "--one-stage", which, "--shards", str(shards), "--steps", str(steps),
-                   "--batch-size", str(batch), "--device", device]
+        for which, values in settings.items():
+            cmd = [sys.executable, __file__, "--one-stage", json.dumps(values), "--shards", str(shards),
+                   "--steps", str(steps), "--batch-size", str(batch), "--device", device]
             out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
             res = json.loads(out.strip().splitlines()[-1])
             runs[which].append(res)
             print(f"  round {rnd + 1}, {which}: {res['samples_per_s']:,.0f} samples/s over {res['seconds']['loop']:.0f} s",
                   flush=True)
+    first, second = runs.values()
     med = {k: statistics.median(r["samples_per_s"] for r in v) for k, v in runs.items()}
-    ratios = [n["samples_per_s"] / b["samples_per_s"] for b, n in zip(runs["before"], runs["now"])]
-    return {"before_settings": BEFORE, "runs": runs, "median_samples_per_s": med,
+    ratios = [b["samples_per_s"] / a["samples_per_s"] for a, b in zip(first, second)]
+    return {"settings": settings, "runs": runs, "median_samples_per_s": med,
             "ratio_per_round": [round(r, 3) for r in ratios], "median_ratio": round(statistics.median(ratios), 3)}
+
+
+# per-pixel maps for --ahead: the fine-tune benchmark's effects and sparse share
+PIXELWISE = dict(pixelwise_effects={"cast_shadow": 0.3, "interreflection": 0.3, "ambient": 0.05,
+                                    "intensity_error": 0.05, "noise": 0.01}, pixelwise_sparse_fraction=0.2)
 
 
 def main() -> None:
@@ -193,18 +204,22 @@ def main() -> None:
     ap.add_argument("--vs-before", type=int, default=0, metavar="ROUNDS",
                     help="only the stage: before the fast step (torch masks and layers, glibc's allocator as it "
                          "comes) against today's defaults, each in its own process, alternately, ROUNDS rounds")
-    ap.add_argument("--one-stage", choices=("before", "now"), help=argparse.SUPPRESS)
+    ap.add_argument("--ahead", type=int, default=0, metavar="ROUNDS",
+                    help="only the stage with --share per-pixel maps: made in the step's thread "
+                         "(pixelwise_ahead 0) against a step ahead (1), each in its own process, alternately")
+    ap.add_argument("--share", type=float, default=1.0, help="train.pixelwise of --ahead (1: per-pixel maps only)")
+    ap.add_argument("--one-stage", help=argparse.SUPPRESS)  # a child: the JSON of its train settings
     args = ap.parse_args()
 
     from cnnps.models.devices import resolve_device
 
     if args.one_stage:  # a child of --vs-before: one stage run, its result as JSON on the last line
         with tempfile.TemporaryDirectory(prefix="bench-stage-") as tmp:
-            settings = BEFORE if args.one_stage == "before" else {}
-            res = stage_rate(args.shards, args.batch_size, args.steps, args.device, Path(tmp), **settings)
+            res = stage_rate(args.shards, args.batch_size, args.steps, args.device, Path(tmp),
+                             **json.loads(args.one_stage))
         print(json.dumps(res))
         return
-    if args.vs_before:
+    if args.vs_before or args.ahead:
         shards = args.shards or next((REPO / c for c in CANDIDATES if (REPO / c / "manifest.json").is_file()), None)
         if shards is None:
             sys.exit("bench_stage: --vs-before needs --shards (an extract output)")
@@ -213,12 +228,18 @@ def main() -> None:
                "command": "benchmarks/bench_stage.py " + " ".join(sys.argv[1:]), "cpu": info,
                "torch": torch.__version__, "shards": str(shards), "batch_size": args.batch_size, "steps": args.steps,
                "load_average_before": [round(x, 2) for x in os.getloadavg()]}
-        res.update(stage_vs_before(shards, args.batch_size, args.steps, args.device, args.vs_before))
+        if args.vs_before:
+            settings = {"before": BEFORE, "now": {}}
+        else:
+            px = dict(PIXELWISE, pixelwise=args.share)
+            settings = {"in_step": dict(px, pixelwise_ahead=0), "ahead": dict(px, pixelwise_ahead=1)}
+        res.update(stage_vs(shards, args.batch_size, args.steps, args.device, args.vs_before or args.ahead, settings))
         res["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
         from benchmarks.bench_train import roofline
 
         res["roofline"] = roofline(32, res["median_samples_per_s"])  # this machine's GEMM peak, measured now
-        out = args.out or REPO / "benchmarks" / "results" / "stage" / f"cpu-{cpu_kind(info)}-vs-before.json"
+        name = "vs-before" if args.vs_before else f"pixelwise-{args.share:g}-ahead"
+        out = args.out or REPO / "benchmarks" / "results" / "stage" / f"cpu-{cpu_kind(info)}-{name}.json"
         out.parent.mkdir(parents=True, exist_ok=True)
         write_text(out, json.dumps(res, indent=2) + "\n")
         print(f"stage: {res['median_samples_per_s']} samples/s (medians), ratio {res['median_ratio']} "

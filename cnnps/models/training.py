@@ -20,6 +20,7 @@ resuming, several processes, outputs.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import sys
 import time
@@ -64,6 +65,7 @@ from cnnps.models.distributed import (
     rank_steps_per_epoch,
     set_threads,
 )
+from cnnps.models.maps_ahead import made_ahead
 from cnnps.models.optimiser import compile_model, lr_at, make_model, set_lr, train_step
 from cnnps.models.shard_dataset import ShardDataset
 from cnnps.models.step_clock import StepClock
@@ -175,8 +177,9 @@ class GeneratedBatches:
     a generator seeded by (seed, rank, step), so a resumed run makes what an uninterrupted
     one made. ``steps``: the batches of one pass (the run's steps)."""
 
-    def __init__(self, make, steps: int):
+    def __init__(self, make, steps: int, device: torch.device | None = None, ahead: int = 0):
         self.make, self.steps, self.skip = make, int(steps), 0
+        self.device, self.ahead = device or torch.device("cpu"), int(ahead)
 
     def set_epoch(self, epoch: int) -> None:
         pass
@@ -185,8 +188,8 @@ class GeneratedBatches:
         self.skip = int(batches)
 
     def __iter__(self):
-        for step in range(self.skip, self.steps):
-            yield self.make(step)
+        # made ahead of the step in a background thread (cnnps.models.maps_ahead) when ``ahead``
+        yield from made_ahead(self.make, range(self.skip, self.steps), self.device, self.ahead)
 
 
 def load_init_weights(init: str | None, w: int) -> tuple[dict | None, str | None]:
@@ -421,9 +424,13 @@ class Trainer:
         gen.manual_seed(derive_seed64("pixelwise", self.params.seed, *key) & ((1 << 63) - 1))
         return self.make_pixelwise(n, gen, device, self.data.w)
 
-    def _mix(self, maps: torch.Tensor, normals: torch.Tensor):
-        """The shard batch with this step's per-pixel rows appended (float32 on the device)."""
-        gm, gn = self._pixelwise(self.generated, (self.info.rank, self.step))
+    def _step_maps(self, step: int):
+        """This rank's per-pixel rows of ``step``."""
+        return self._pixelwise(self.generated, (self.info.rank, step))
+
+    def _mix(self, maps: torch.Tensor, normals: torch.Tensor, made: tuple[torch.Tensor, torch.Tensor]):
+        """The shard batch with this step's per-pixel rows ``made`` appended (float32 on the device)."""
+        gm, gn = made
         maps = torch.cat([maps.to(self.device).float(), gm.to(memory_format=torch.contiguous_format)])
         return maps, torch.cat([normals.to(self.device).float(), gn])
 
@@ -434,13 +441,24 @@ class Trainer:
         """Step until ``total_steps`` (or the first step for which ``until(step)`` is true:
         the run ends there): log the loss every ``log_every`` steps, validate every
         ``val_every``, checkpoint every ``checkpoint_every`` and at the end."""
-        p, info = self.params, self.info
+        p = self.params
+        ahead = int(getattr(p, "pixelwise_ahead", 0))
+        made = None  # the per-pixel rows of a mixed batch, step by step
         if self.stream is None:  # per-pixel maps only, made on the training device
-            ds = loader = GeneratedBatches(lambda step: self._pixelwise(self.generated, (self.info.rank, step)),
-                                           self.total_steps)
+            ds = loader = GeneratedBatches(self._step_maps, self.total_steps, self.device, ahead)
         else:
             ds = ShardDataset(self.stream, float32=self.device.type != "cuda")  # a GPU converts float16 itself
             loader = self._loader(ds)
+            if self.generated:
+                made = made_ahead(self._step_maps, itertools.count(self.step), self.device, ahead)
+        try:
+            self._loop(ds, loader, made, stop_after_step, until)
+        finally:
+            if made is not None:
+                made.close()
+
+    def _loop(self, ds, loader, made, stop_after_step, until) -> None:
+        p, info = self.params, self.info
         bar = progress_bar(total=self.total_steps * p.batch_size, initial=self.step * p.batch_size,
                            desc="train" if not info.enabled else f"train ({info.world_size} processes)",
                            unit="sample", unit_scale=True, disable=not p.progress or not self.main, leave=True)
@@ -455,9 +473,9 @@ class Trainer:
             ds.set_skip(skip)
             batches = loader if self.stream is None else fed(loader, self.device)  # generated: on the device
             for maps, normals in clock.waiting(batches):
-                if self.stream is not None and self.generated:
+                if made is not None:
                     with clock.part("pixelwise"):
-                        maps, normals = self._mix(maps, normals)
+                        maps, normals = self._mix(maps, normals, next(made))
                 loss, step_model = self._train_step(step_model, maps, normals)
                 self.step += 1
                 step = self.step

@@ -72,7 +72,10 @@ Feeding a GPU: Parquet row groups are decoded ``prefetch`` groups ahead in a bac
 thread; on CUDA the float16 batches go through a ring of pinned host buffers with
 non-blocking copies (:mod:`cnnps.models.device_feed`) and are converted on the device,
 and the logged loss is summed on the device and read every ``log_every`` steps only, so
-no step waits for the one before. ``metrics.json`` (``seconds``,
+no step waits for the one before. Per-pixel maps (``pixelwise``) are made
+``pixelwise_ahead`` steps ahead in a background thread, on CUDA on a stream of their own
+(:mod:`cnnps.models.maps_ahead`); each step's maps come from a generator seeded by the
+step, so they are the same made ahead or in the step. ``metrics.json`` (``seconds``,
 :mod:`cnnps.models.step_clock`) splits the step loop's wall time: waiting for data,
 validation, checkpoints (benchmarks/bench_stage.py compares the stage with the bare step).
 
@@ -136,6 +139,9 @@ class Params:
     pixelwise_effects: dict[str, float] = field(default_factory=dict)  # cnnps.synth.pixelwise.Effects, e.g. {ambient: 0.05}
     pixelwise_sparse_fraction: Annotated[float, Range(ge=0.0, le=1.0)] = 0.0  # per-pixel maps of 6..49 lights
     w: Annotated[int, Range(ge=2)] = 32  # map width of per-pixel-only training (shards carry their own)
+    # per-pixel batches made this many steps ahead in a background thread (on CUDA on a stream of its
+    # own; cnnps.models.maps_ahead); 0 = in the step's thread. The maps do not change.
+    pixelwise_ahead: Annotated[int, Range(ge=0, le=8)] = 1
     num_workers: int = 0  # DataLoader worker processes; 0 = load in the main process
     prefetch: int = 2  # row groups decoded ahead in a background thread (0 = none); batches do not change
     progress: bool = True
@@ -183,7 +189,7 @@ class Params:
         d = asdict(self)
         for k in ("epochs", "max_steps", "val_every", "val_max_rows", "checkpoint_every", "keep_checkpoints",
                   "log_every", "threads", "num_workers", "prefetch", "progress", "shards", "init",
-                  "keep_freed_memory"):
+                  "keep_freed_memory", "pixelwise_ahead"):
             d.pop(k)
         d["lr_milestones"] = list(self.lr_milestones)
         return d

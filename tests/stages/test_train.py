@@ -309,3 +309,36 @@ def test_a_share_of_per_pixel_maps_joins_the_shard_batches(dataset, tmp_path):
     w1, w2 = _weights(tmp_path / "m1"), _weights(tmp_path / "m2")
     for k in w1["model"]:
         assert torch.equal(w1["model"][k], w2["model"][k])
+
+
+@pytest.mark.parametrize("share", [1.0, 0.25])
+def test_per_pixel_maps_made_ahead_are_the_maps_made_in_the_step(dataset, tmp_path, share):
+    """pixelwise_ahead (a background thread making the next step's maps) changes when the
+    maps are made, not what they are: the weights equal those of maps made in the step."""
+    extra = dict(w=16) if share == 1.0 else {}
+    runs = {}
+    for ahead in (0, 1):
+        d = tmp_path / f"a{ahead}" if share == 1.0 else fresh_copy(dataset, tmp_path / f"a{ahead}")
+        runs[ahead] = train.run(train.Params(pixelwise=share, pixelwise_ahead=ahead, max_steps=5, val_every=0,
+                                             val_max_rows=100, pixelwise_effects={"cast_shadow": 0.3}, **extra,
+                                             **BASE), d)
+    w0, w1 = _weights(tmp_path / "a0"), _weights(tmp_path / "a1")
+    assert w0["step"] == w1["step"] == 5
+    for k in w0["model"]:
+        assert torch.equal(w0["model"][k], w1["model"][k]), k
+    assert runs[0]["train_loss"] == runs[1]["train_loss"]
+
+
+def test_until_ends_the_run_early_and_normally(dataset, tmp_path):
+    """``until(step)``, asked after each step, ends the run there as max_steps would: the
+    model, checkpoint and metrics of that step, the weights of a run of that many steps."""
+    asked = []
+    m = train.run(train.Params(max_steps=50, val_every=0, **BASE), fresh_copy(dataset, tmp_path / "u"),
+                  until=lambda step: asked.append(step) or step >= 3)
+    ref = train.run(train.Params(max_steps=3, val_every=0, **BASE), fresh_copy(dataset, tmp_path / "r"))
+    assert asked == [1, 2, 3] and m["steps"] == ref["steps"] == 3
+    assert (tmp_path / "u/train/model.pt").is_file() and m["val_mean_deg"] == ref["val_mean_deg"]
+    wu, wr = _weights(tmp_path / "u"), _weights(tmp_path / "r")
+    assert wu["step"] == 3
+    for k in wu["model"]:
+        assert torch.equal(wu["model"][k], wr["model"][k]), k
