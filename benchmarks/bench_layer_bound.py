@@ -5,8 +5,11 @@ of the first dense layer, timed one by one with warm caches, summed.
 
 Prints each layer's milliseconds and GFLOP/s and the sum as samples per second: a bound
 for the whole step (no masks, ReLUs, concatenations, pooling, Adam, data), which on 2 AMD
-EPYC cores (AVX2) measured 140 ms a batch of 128 (912 samples/s, 98 GFLOP/s) while the
-fused step ran at ~600 samples/s (docs/performance.md).
+EPYC cores (AVX2) measured 128-140 ms a batch of 128 (912-1,004 samples/s) while the
+fused step ran at ~600-680 samples/s (docs/performance.md). Each convolution's rate is
+also given for its forward, its input gradient (dx) and its weight gradient (dw) alone:
+there, oneDNN's weight gradients of the 16-channel layers ran at 52-76 GFLOP/s against
+128-177 for the forward passes, a third of the step's convolution time.
 """
 
 from __future__ import annotations
@@ -46,10 +49,19 @@ def main() -> None:
         b = torch.randn(cout)
         g = torch.randn_like(F.conv2d(x, w, b, padding=k // 2))
         fwd = median_ms(lambda: F.conv2d(x, w, b, padding=k // 2))
-        bwd = median_ms(lambda: torch.ops.aten.convolution_backward(
-            g, x, w, [cout], [1, 1], [k // 2] * 2, [1, 1], False, [0, 0], 1, [need_dx, True, True]))
-        flop = 2 * B * cin * cout * k * k * hw * hw * (3 if need_dx else 2)
-        print(f"{name:13s} forward {fwd:6.2f} ms  backward {bwd:6.2f} ms  {flop / (fwd + bwd) / 1e6:6.1f} GFLOP/s")
+
+        def backward(mask):
+            return torch.ops.aten.convolution_backward(g, x, w, [cout], [1, 1], [k // 2] * 2, [1, 1], False, [0, 0],
+                                                       1, mask)
+
+        bwd = median_ms(lambda: backward([need_dx, True, True]))
+        dx = median_ms(lambda: backward([True, False, False])) if need_dx else 0.0
+        dw = median_ms(lambda: backward([False, True, True]))
+        one = 2 * B * cin * cout * k * k * hw * hw  # the FLOPs of one of forward, dx, dw
+        flop = one * (3 if need_dx else 2)
+        print(f"{name:13s} forward {fwd:6.2f} ms  backward {bwd:6.2f} ms  {flop / (fwd + bwd) / 1e6:6.1f} GFLOP/s"
+              f"   (forward {one / fwd / 1e6:4.0f}, dx {one / dx / 1e6 if dx else 0:4.0f}, "
+              f"dw {one / dw / 1e6:4.0f} GFLOP/s)")
         total_ms += fwd + bwd
         total_flop += flop
     x, w, b, g = torch.randn(B, 20480), torch.randn(128, 20480), torch.randn(128), torch.randn(B, 128)

@@ -18,7 +18,9 @@ with a float64 reference); only the order of the arithmetic changes:
   spreads the pooled gradient over each 2x2 window and masks it in one broadcast multiply
   (no zero-filled ``avg_pool2d_backward``);
 - **last 1x1 convolution**: a batched GEMM that writes its output directly in the
-  (channel, pixel) order the first dense layer reads, so flattening copies nothing.
+  (channel, pixel) order the first dense layer reads, so flattening copies nothing;
+- **bias gradients** are column sums of the NHWC output gradient, outside oneDNN's
+  ``convolution_backward``, which computed them slowly.
 
 All activations are NHWC (channels_last). The masks are those of
 :func:`cnnps.models.network.counter_dropout` for the same key and layer.
@@ -65,6 +67,15 @@ def _conv3x3_relu(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Te
     return F.relu(F.conv2d(x, w, b, padding=1))
 
 
+def bias_grad(gz: torch.Tensor) -> torch.Tensor:
+    """The bias gradient of a convolution, ``gz.sum((0, 2, 3))``, read as the column sums
+    of the (B*H*W, C) matrix a channels_last ``gz`` is: a third to a half of what oneDNN
+    took for it inside ``convolution_backward`` (~10 ms a step on 2 EPYC cores)."""
+    if gz.is_contiguous(memory_format=torch.channels_last):
+        return gz.permute(0, 2, 3, 1).reshape(-1, gz.shape[1]).sum(0)
+    return gz.sum((0, 2, 3))
+
+
 class ConvReluDrop(torch.autograd.Function):
     """``relu(conv3x3(x) * keep * scale)`` (x channels_last; keep NHWC 0/1)."""
 
@@ -80,9 +91,9 @@ class ConvReluDrop(torch.autograd.Function):
     def backward(ctx, grad):
         x, w, out = ctx.saved_tensors
         gz = torch.ops.aten.threshold_backward(grad, out, 0).mul_(ctx.scale)
-        dx, dw, db = torch.ops.aten.convolution_backward(
-            gz, x, w, [w.shape[0]], [1, 1], [1, 1], [1, 1], False, [0, 0], 1, [ctx.needs_input_grad[0], True, True])
-        return dx, dw, db, None, None
+        dx, dw, _ = torch.ops.aten.convolution_backward(
+            gz, x, w, None, [1, 1], [1, 1], [1, 1], False, [0, 0], 1, [ctx.needs_input_grad[0], True, False])
+        return dx, dw, bias_grad(gz), None, None
 
 
 class TransitionDropPoolRelu(torch.autograd.Function):
@@ -105,9 +116,9 @@ class TransitionDropPoolRelu(torch.autograd.Function):
         gp = gp.permute(0, 2, 3, 1).contiguous()  # (B, H/2, W/2, Co)
         gz = gp.view(B, H // 2, 1, W // 2, 1, Co) * keep.view(B, H // 2, 2, W // 2, 2, Co)
         gz = gz.view(B, H, W, Co).permute(0, 3, 1, 2)  # channels_last (B, Co, H, W)
-        dx, dw, db = torch.ops.aten.convolution_backward(
-            gz, x, w, [Co], [1, 1], [0, 0], [1, 1], False, [0, 0], 1, [ctx.needs_input_grad[0], True, True])
-        return dx, dw, db, None, None
+        dx, dw, _ = torch.ops.aten.convolution_backward(
+            gz, x, w, None, [1, 1], [0, 0], [1, 1], False, [0, 0], 1, [ctx.needs_input_grad[0], True, False])
+        return dx, dw, bias_grad(gz), None, None
 
 
 def first_conv_relu(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

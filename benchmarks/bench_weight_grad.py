@@ -1,0 +1,113 @@
+"""The weight gradient of CNN-PS's 16-channel 3x3 convolutions: oneDNN against other ways
+of computing the same sum, each timed in the same process (medians of 9, warm caches).
+
+    .venv/bin/python benchmarks/bench_weight_grad.py [THREADS] [BATCH]     (defaults: 2 128)
+
+For each layer shape (input channels, map side) it prints GFLOP/s of:
+
+- ``onednn``: ``aten.convolution_backward`` for the weights alone, NHWC (what training runs);
+- ``nchw``: the same in NCHW;
+- ``chunks4``: the same over 4 batch chunks, summed;
+- ``shifted_mm``: nine GEMMs, one per kernel offset, over a zero-padded flat copy (the
+  offset is a shift of rows, so each operand is a view);
+- ``chunked_bmm``: the same nine as batched GEMMs over 1,024-row chunks, then summed;
+- ``batch_as_channels``: one convolution of the input (channels as batch) by the output
+  gradient (batch as channels).
+
+Every variant is checked against oneDNN's result (relative max difference printed). On 2
+AMD EPYC cores (AVX2) none beat oneDNN's 52-86 GFLOP/s by a useful margin, while the
+forward passes of the same layers ran at 130-165 (docs/performance.md).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import torch
+import torch.nn.functional as F
+
+SHAPES = [(16, 32), (32, 32), (48, 16), (64, 16)]  # (input channels, side) of the four 3x3 layers
+
+
+def median_ms(fn, reps: int = 9) -> float:
+    fn()
+    fn()
+    times = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return sorted(times)[reps // 2] * 1e3
+
+
+def onednn(g, x, w):
+    return torch.ops.aten.convolution_backward(g, x, w, [g.shape[1]], [1, 1], [1, 1], [1, 1], False, [0, 0], 1,
+                                               [False, True, False])[1]
+
+
+def _padded_flat(x: torch.Tensor, rows: int) -> tuple[torch.Tensor, int]:
+    """x (B, C, H, W) -> (rows + 2 (W + 3), C) zero-padded NHWC rows, image at offset W + 3."""
+    B, C, H, W = x.shape
+    P = W + 2
+    flat = x.new_zeros(rows + 2 * (P + 1), C)
+    flat[P + 1: P + 1 + B * (H + 2) * P].view(B, H + 2, P, C)[:, 1:H + 1, 1:W + 1] = x.permute(0, 2, 3, 1)
+    return flat, P
+
+
+def shifted_mm(g, x, w=None, chunk: int = 0):
+    B, Ci, H, W = x.shape
+    Co = g.shape[1]
+    P = W + 2
+    m = B * (H + 2) * P
+    rows = -(-m // chunk) * chunk if chunk else m
+    xp, P = _padded_flat(x, rows)
+    gp = g.new_zeros(rows, Co)
+    gp[:m].view(B, H + 2, P, Co)[:, 1:H + 1, 1:W + 1] = g.permute(0, 2, 3, 1)
+    out = torch.empty(3, 3, Co, Ci)
+    for ky in range(3):
+        for kx in range(3):
+            off = P + 1 + (ky - 1) * P + (kx - 1)
+            if chunk:
+                n = rows // chunk
+                torch.sum(torch.bmm(gp.view(n, chunk, Co).transpose(1, 2), xp[off: off + rows].view(n, chunk, Ci)), 0,
+                          out=out[ky, kx])
+            else:
+                torch.mm(gp.t(), xp[off: off + rows], out=out[ky, kx])
+    return out.permute(2, 3, 0, 1)
+
+
+def batch_as_channels(g, x, w=None):
+    return F.conv2d(x.transpose(0, 1), g.transpose(0, 1), padding=1).transpose(0, 1)
+
+
+def main() -> None:
+    threads = int(sys.argv[1]) if len(sys.argv) > 1 else 2
+    B = int(sys.argv[2]) if len(sys.argv) > 2 else 128
+    torch.set_num_threads(threads)
+    cl = torch.channels_last
+    for cin, hw in SHAPES:
+        x = torch.randn(B, cin, hw, hw).contiguous(memory_format=cl)
+        w = torch.randn(16, cin, 3, 3).contiguous(memory_format=cl)
+        g = torch.randn(B, 16, hw, hw).contiguous(memory_format=cl)
+        xc, wc, gc = x.contiguous(), w.contiguous(), g.contiguous()
+        ref = onednn(g, x, w)
+        flop = 2 * B * cin * 16 * 9 * hw * hw
+        variants = {
+            "onednn": lambda: onednn(g, x, w),
+            "nchw": lambda: onednn(gc, xc, wc),
+            "chunks4": lambda: sum(onednn(g[i * B // 4:(i + 1) * B // 4], x[i * B // 4:(i + 1) * B // 4], w)
+                                   for i in range(4)),
+            "shifted_mm": lambda: shifted_mm(g, x),
+            "chunked_bmm": lambda: shifted_mm(g, x, chunk=1024),
+            "batch_as_channels": lambda: batch_as_channels(g, x),
+        }
+        parts = []
+        for name, fn in variants.items():
+            err = ((fn() - ref).abs().max() / ref.abs().max()).item()
+            parts.append(f"{name} {flop / median_ms(fn) / 1e6:4.0f} (diff {err:.0e})")
+        print(f"C={cin:2d} {hw}x{hw}: " + ", ".join(parts), flush=True)
+
+
+if __name__ == "__main__":
+    main()
