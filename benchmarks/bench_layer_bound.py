@@ -7,9 +7,10 @@ Prints each layer's milliseconds and GFLOP/s and the sum as samples per second: 
 for the whole step (no masks, ReLUs, concatenations, pooling, Adam, data), which on 2 AMD
 EPYC cores (AVX2) measured 128-140 ms a batch of 128 (912-1,004 samples/s) while the
 fused step ran at ~600-680 samples/s (docs/performance.md). Each convolution's rate is
-also given for its forward, its input gradient (dx) and its weight gradient (dw) alone:
-there, oneDNN's weight gradients of the 16-channel layers ran at 52-76 GFLOP/s against
-128-177 for the forward passes, a third of the step's convolution time.
+also given for its forward, its input gradient (dx) and its weight and bias gradient
+(dw) alone: there, oneDNN's weight and bias gradients of the 16-channel layers ran at
+52-86 GFLOP/s against 130-165 for the forward passes (the training layers now sum the
+bias gradient themselves: cnnps.models.train_layers.bias_grad).
 """
 
 from __future__ import annotations

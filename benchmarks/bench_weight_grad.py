@@ -14,18 +14,31 @@ For each layer shape (input channels, map side) it prints GFLOP/s of:
 - ``batch_as_channels``: one convolution of the input (channels as batch) by the output
   gradient (batch as channels).
 
+Then the whole backward of each layer (dx, dw and the bias gradient) with the bias
+gradient computed inside oneDNN's call and apart, as the training layers do
+(:func:`cnnps.models.train_layers.bias_grad`), timed in turn (medians of 15), and the
+milliseconds that saves: 8-9 ms a batch of 128 on 2 AMD EPYC cores (1 ms in one run
+under heavy load that timed them one after the other).
+
 Every variant is checked against oneDNN's result (relative max difference printed). On 2
-AMD EPYC cores (AVX2) none beat oneDNN's 52-86 GFLOP/s by a useful margin, while the
-forward passes of the same layers ran at 130-165 (docs/performance.md).
+AMD EPYC cores (AVX2) oneDNN ran at 104-111 GFLOP/s on the 32x32 layers and 64 on the
+16x16 ones; only NCHW beat it there (99-103), by less than converting to NCHW and back
+costs; the others were slower (docs/performance.md).
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from cnnps.models.train_layers import bias_grad  # noqa: E402
 
 SHAPES = [(16, 32), (32, 32), (48, 16), (64, 16)]  # (input channels, side) of the four 3x3 layers
 
@@ -39,6 +52,18 @@ def median_ms(fn, reps: int = 9) -> float:
         fn()
         times.append(time.perf_counter() - t)
     return sorted(times)[reps // 2] * 1e3
+
+
+def paired_ms(fa, fb, reps: int = 15) -> tuple[float, float]:
+    """Medians of ``fa`` and ``fb`` timed in turn, so a change of the machine's load hits both."""
+    fa(), fb(), fa(), fb()
+    ta, tb = [], []
+    for _ in range(reps):
+        for fn, times in ((fa, ta), (fb, tb)):
+            t = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t)
+    return sorted(ta)[reps // 2] * 1e3, sorted(tb)[reps // 2] * 1e3
 
 
 def onednn(g, x, w):
@@ -86,6 +111,7 @@ def main() -> None:
     B = int(sys.argv[2]) if len(sys.argv) > 2 else 128
     torch.set_num_threads(threads)
     cl = torch.channels_last
+    saved_ms = 0.0
     for cin, hw in SHAPES:
         x = torch.randn(B, cin, hw, hw).contiguous(memory_format=cl)
         w = torch.randn(16, cin, 3, 3).contiguous(memory_format=cl)
@@ -107,6 +133,16 @@ def main() -> None:
             err = ((fn() - ref).abs().max() / ref.abs().max()).item()
             parts.append(f"{name} {flop / median_ms(fn) / 1e6:4.0f} (diff {err:.0e})")
         print(f"C={cin:2d} {hw}x{hw}: " + ", ".join(parts), flush=True)
+
+        def backward(with_bias: bool):
+            return torch.ops.aten.convolution_backward(g, x, w, [16] if with_bias else None, [1, 1], [1, 1], [1, 1],
+                                                       False, [0, 0], 1, [True, True, with_bias])
+
+        inside, apart = paired_ms(lambda: backward(True), lambda: (backward(False), bias_grad(g)))
+        saved_ms += inside - apart
+        print(f"        whole backward, bias gradient inside oneDNN {inside:.2f} ms, as column sums {apart:.2f} ms",
+              flush=True)
+    print(f"the bias gradients apart save {saved_ms:.1f} ms a batch of {B} over the four layers")
 
 
 if __name__ == "__main__":
