@@ -63,10 +63,12 @@ def test_an_error_reaches_the_consumer_at_its_step():
 
 
 def test_closing_early_stops_the_thread():
+    before = set(threading.enumerate())
     it = made_ahead(_make([]), iter(range(10**9)), torch.device("cpu"), depth=1)
     next(it)
+    assert set(threading.enumerate()) - before  # the maker's thread runs
     it.close()
-    assert not [t for t in threading.enumerate() if t.name == "cnnps-prefetch" and t.is_alive()]
+    assert not [t for t in set(threading.enumerate()) - before if t.is_alive()]
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
@@ -75,7 +77,7 @@ def test_on_cuda_the_batches_wait_for_their_stream():
 
     def make(step):
         g = torch.Generator(device=dev).manual_seed(step)
-        return (torch.rand(1 << 16, generator=g, device=dev).cumsum(0),)
+        return (torch.rand(1 << 16, generator=g, device=dev).mul_(2).add_(1),)
 
     ref = [make(s)[0] for s in range(4)]
     got = [b[0] for b in made_ahead(make, range(4), dev, depth=2)]
