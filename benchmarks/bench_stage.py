@@ -59,6 +59,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from benchmarks.bench_inference import cpu_kind  # noqa: E402
+from benchmarks.bench_pixelwise_finetune import EFFECTS as FINETUNE_EFFECTS  # noqa: E402
 from benchmarks.machine import cpu_info  # noqa: E402
 from cnnps.infra.atomic import write_text  # noqa: E402
 from cnnps.io.shards import ShardStream, load_manifest, manifest_files  # noqa: E402
@@ -185,8 +186,7 @@ def stage_vs(shards: Path, batch: int, steps: int, device: str, rounds: int, set
 
 
 # per-pixel maps for --ahead: the fine-tune benchmark's effects and sparse share
-PIXELWISE = dict(pixelwise_effects={"cast_shadow": 0.3, "interreflection": 0.3, "ambient": 0.05,
-                                    "intensity_error": 0.05, "noise": 0.01}, pixelwise_sparse_fraction=0.2)
+PIXELWISE = dict(pixelwise_effects=FINETUNE_EFFECTS, pixelwise_sparse_fraction=0.2)
 
 
 def main() -> None:
@@ -222,7 +222,7 @@ def main() -> None:
     if args.vs_before or args.ahead:
         shards = args.shards or next((REPO / c for c in CANDIDATES if (REPO / c / "manifest.json").is_file()), None)
         if shards is None:
-            sys.exit("bench_stage: --vs-before needs --shards (an extract output)")
+            sys.exit("bench_stage: --vs-before and --ahead need --shards (an extract output)")
         info = cpu_info()
         res = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                "command": "benchmarks/bench_stage.py " + " ".join(sys.argv[1:]), "cpu": info,

@@ -38,20 +38,10 @@ import torch.nn.functional as F
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from benchmarks.bench_layer_bound import median_ms  # noqa: E402
 from cnnps.models.train_layers import bias_grad  # noqa: E402
 
 SHAPES = [(16, 32), (32, 32), (48, 16), (64, 16)]  # (input channels, side) of the four 3x3 layers
-
-
-def median_ms(fn, reps: int = 9) -> float:
-    fn()
-    fn()
-    times = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return sorted(times)[reps // 2] * 1e3
 
 
 def paired_ms(fa, fb, reps: int = 15) -> tuple[float, float]:
@@ -131,7 +121,7 @@ def main() -> None:
         parts = []
         for name, fn in variants.items():
             err = ((fn() - ref).abs().max() / ref.abs().max()).item()
-            parts.append(f"{name} {flop / median_ms(fn) / 1e6:4.0f} (diff {err:.0e})")
+            parts.append(f"{name} {flop / median_ms(fn, reps=9) / 1e6:4.0f} (diff {err:.0e})")
         print(f"C={cin:2d} {hw}x{hw}: " + ", ".join(parts), flush=True)
 
         def backward(with_bias: bool):

@@ -9,8 +9,8 @@ On CUDA the thread queues its kernels on a stream of its own: they run beside th
 step's, and before a batch is handed over the training stream waits for an event
 recorded after it (``record_stream`` keeps the caching allocator from reusing its memory
 too early). On a CPU the thread uses ``cpu_threads`` torch threads (default 1) beside
-the step's: the step leaves a core idle for part of every step (elementwise work,
-Python, the optimiser), which the maps fill (``docs/pixelwise.md`` has the measurement).
+the step's: the step no longer waits for its maps, though on 2 cores, which the step
+keeps busy, that buys no speed (``docs/pixelwise.md`` has the measurement).
 ``depth`` batches at most wait, made; 0 makes each in the caller's thread when asked.
 """
 
@@ -38,20 +38,21 @@ def made_ahead(make: Callable[[int], Batch], steps: Iterable[int], device: torch
     if device.type == "cuda":
         yield from _cuda_ahead(make, steps, device, depth)
         return
-    first, callers = [True], torch.get_num_threads()
+    callers, own = torch.get_num_threads(), max(1, int(cpu_threads))
+    started = []
 
     def make_here(step: int) -> Batch:
-        if first[0]:  # this thread's own intra-op team (OpenMP's and MKL's counts are per thread)
-            first[0] = False
-            if max(1, int(cpu_threads)) != callers:
-                torch.set_num_threads(max(1, int(cpu_threads)))
+        if not started:  # this thread's own intra-op team (OpenMP's and MKL's counts are per thread)
+            started.append(True)
+            if own != callers:
+                torch.set_num_threads(own)
         return make(step)
 
     try:
         yield from prefetched(make_here, steps, depth)
     finally:
-        if torch.get_num_threads() == callers:  # torch also stored the thread's count for threads started
-            torch.set_num_threads(callers)      # later: the caller's, again
+        if started and own != callers:  # torch also stored the thread's count for threads started
+            torch.set_num_threads(callers)  # later: the caller's, again
 
 
 def _cuda_ahead(make: Callable[[int], Batch], steps: Iterable[int], device: torch.device,
