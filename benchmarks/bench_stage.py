@@ -132,7 +132,7 @@ def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: flo
 
 # the train stage's CPU settings before the fast step: torch's dropout masks, torch's layers,
 # glibc's allocator as it comes (the stage's speed when the work on it began)
-BEFORE = dict(dropout_masks="torch", cpu_layers="reference", keep_freed_memory=False)
+BEFORE = dict(dropout_masks="torch", cpu_layers="reference", keep_freed_memory=False, step_processes=1)
 
 
 def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path, masks: str = "counter",
@@ -162,9 +162,10 @@ def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path, ma
 
 
 def stage_vs(shards: Path, batch: int, steps: int, device: str, rounds: int, settings: dict[str, dict]) -> dict:
-    """The stage under each of two named ``settings`` (train params over the defaults),
+    """The stage under each of the named ``settings`` (train params over the defaults),
     each run in its own process (the allocator setting lasts for a process), alternately
-    for ``rounds`` rounds; the ratio is the second's rate over the first's."""
+    for ``rounds`` rounds; the ratio is the last one's rate over the first's (with more than
+    two settings, ``ratios_vs_first`` has every one's)."""
     import statistics
     import subprocess
 
@@ -178,11 +179,16 @@ def stage_vs(shards: Path, batch: int, steps: int, device: str, rounds: int, set
             runs[which].append(res)
             print(f"  round {rnd + 1}, {which}: {res['samples_per_s']:,.0f} samples/s over {res['seconds']['loop']:.0f} s",
                   flush=True)
-    first, second = runs.values()
+    first, *others = runs.values()
     med = {k: statistics.median(r["samples_per_s"] for r in v) for k, v in runs.items()}
-    ratios = [b["samples_per_s"] / a["samples_per_s"] for a, b in zip(first, second)]
-    return {"settings": settings, "runs": runs, "median_samples_per_s": med,
-            "ratio_per_round": [round(r, 3) for r in ratios], "median_ratio": round(statistics.median(ratios), 3)}
+    vs_first = {name: [round(b["samples_per_s"] / a["samples_per_s"], 3) for a, b in zip(first, runs[name])]
+                for name in list(runs)[1:]}
+    ratios = vs_first[list(runs)[-1]]
+    res = {"settings": settings, "runs": runs, "median_samples_per_s": med,
+           "ratio_per_round": ratios, "median_ratio": round(statistics.median(ratios), 3)}
+    if len(others) > 1:
+        res["ratios_vs_first"] = {k: {"per_round": v, "median": round(statistics.median(v), 3)} for k, v in vs_first.items()}
+    return res
 
 
 # per-pixel maps for --ahead: the fine-tune benchmark's effects and sparse share
@@ -208,6 +214,12 @@ def main() -> None:
                     help="only the stage with --share per-pixel maps: made in the step's thread "
                          "(pixelwise_ahead 0) against a step ahead (1), each in its own process, alternately")
     ap.add_argument("--share", type=float, default=1.0, help="train.pixelwise of --ahead (1: per-pixel maps only)")
+    ap.add_argument("--processes", type=int, default=0, metavar="ROUNDS",
+                    help="only the stage: one process against --step-processes sharing each step "
+                         "(train.step_processes), each in its own process, alternately, ROUNDS rounds")
+    ap.add_argument("--step-processes", type=int, default=2,
+                    help="train.step_processes of --processes and of --vs-before's third setting (today's "
+                         "defaults with that many step processes; the second: with one)")
     ap.add_argument("--one-stage", help=argparse.SUPPRESS)  # a child: the JSON of its train settings
     args = ap.parse_args()
 
@@ -219,7 +231,7 @@ def main() -> None:
                              **json.loads(args.one_stage))
         print(json.dumps(res))
         return
-    if args.vs_before or args.ahead:
+    if args.vs_before or args.ahead or args.processes:
         shards = args.shards or next((REPO / c for c in CANDIDATES if (REPO / c / "manifest.json").is_file()), None)
         if shards is None:
             sys.exit("bench_stage: --vs-before and --ahead need --shards (an extract output)")
@@ -229,16 +241,22 @@ def main() -> None:
                "torch": torch.__version__, "shards": str(shards), "batch_size": args.batch_size, "steps": args.steps,
                "load_average_before": [round(x, 2) for x in os.getloadavg()]}
         if args.vs_before:
-            settings = {"before": BEFORE, "now": {}}
+            settings = {"before": BEFORE, "now_1_process": {"step_processes": 1},
+                        f"now_{args.step_processes}_processes": {"step_processes": args.step_processes}}
+        elif args.processes:
+            settings = {"one_process": {"step_processes": 1},
+                        f"{args.step_processes}_processes": {"step_processes": args.step_processes}}
         else:
             px = dict(PIXELWISE, pixelwise=args.share)
             settings = {"in_step": dict(px, pixelwise_ahead=0), "ahead": dict(px, pixelwise_ahead=1)}
-        res.update(stage_vs(shards, args.batch_size, args.steps, args.device, args.vs_before or args.ahead, settings))
+        rounds = args.vs_before or args.ahead or args.processes
+        res.update(stage_vs(shards, args.batch_size, args.steps, args.device, rounds, settings))
         res["load_average_after"] = [round(x, 2) for x in os.getloadavg()]
         from benchmarks.bench_train import roofline
 
         res["roofline"] = roofline(32, res["median_samples_per_s"])  # this machine's GEMM peak, measured now
-        name = "vs-before" if args.vs_before else f"pixelwise-{args.share:g}-ahead"
+        name = ("vs-before" if args.vs_before else f"{args.step_processes}-step-processes" if args.processes
+                else f"pixelwise-{args.share:g}-ahead")
         out = args.out or REPO / "benchmarks" / "results" / "stage" / f"cpu-{cpu_kind(info)}-{name}.json"
         out.parent.mkdir(parents=True, exist_ok=True)
         write_text(out, json.dumps(res, indent=2) + "\n")

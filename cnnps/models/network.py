@@ -59,6 +59,7 @@ class CNNPS(nn.Module):
         self.fc2 = nn.Linear(128, 3)
         self.drop = nn.Dropout(dropout)
         self._mask_key: tuple[int, ...] | None = None
+        self._mask_row0 = 0
         # eager float32 CPU training with counter masks runs cnnps.models.train_layers
         # (same results up to float rounding); False keeps the layers above
         self.fused_cpu_layers = True
@@ -67,17 +68,19 @@ class CNNPS(nn.Module):
                 nn.init.kaiming_normal_(mod.weight, nonlinearity="relu")
                 nn.init.zeros_(mod.bias)
 
-    def set_mask_key(self, key) -> None:
+    def set_mask_key(self, key, row0: int = 0) -> None:
         """Draw the dropout masks of the next training passes on a CPU from the counter-based
         stream keyed by ``key`` (e.g. ``(seed, rank, step)``; see :func:`counter_dropout`),
-        or from torch's generator as :class:`torch.nn.Dropout` does (``None``, the default;
-        always on CUDA, where torch's masks are cheap)."""
+        for inputs that are a batch's rows from ``row0`` on, or from torch's generator as
+        :class:`torch.nn.Dropout` does (``None``, the default; always on CUDA, where torch's
+        masks are cheap)."""
         self._mask_key = None if key is None else tuple(int(k) for k in key)
+        self._mask_row0 = int(row0)
 
     def _drop(self, t: torch.Tensor, site: int) -> torch.Tensor:
         if self._mask_key is None or not self.training or t.device.type != "cpu" or self.dropout_p == 0.0:
             return self.drop(t)
-        return counter_dropout(t, self.dropout_p, self._mask_key + (site,))
+        return counter_dropout(t, self.dropout_p, self._mask_key + (site,), self._mask_row0)
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 1, w, w) -> (B, 80, w/2, w/2), the output of the last 1x1 convolution.
@@ -104,31 +107,37 @@ class CNNPS(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self._fused_training(x):
-            x = fused_features(self, x, self._mask_key)
+            x = fused_features(self, x, self._mask_key, self._mask_row0)
         else:
             x = self.features(x).flatten(1)
         x = self.fc2(F.relu(self.fc1(x)))
         return F.normalize(x.float(), dim=1)
 
 
-def counter_dropout(t: torch.Tensor, p: float, key: tuple[int, ...]) -> torch.Tensor:
-    """Dropout of ``t`` (training) with its mask drawn from a counter-based stream: NumPy's
-    SFC64 seeded with ``key`` (a SeedSequence of the integers, e.g. seed, rank, step and
-    layer), 32 random bits per element.
+def counter_dropout(t: torch.Tensor, p: float, key: tuple[int, ...], row0: int = 0) -> torch.Tensor:
+    """Dropout of ``t`` (training; its first dimension the batch rows ``row0`` on of a
+    batch) with its mask drawn from a counter-based stream: NumPy's SFC64 seeded with
+    ``key`` (a SeedSequence of the integers, e.g. seed, rank, step and layer) and the row
+    block, 32 random bits per element (:func:`cnnps.models.train_layers.counter_keep`).
 
     An element is kept when its bits, read as int32, are >= -2^31 + round(p 2^32): the
     drop rate is p to within 2^-33, and kept elements are scaled by 1 / (1 - that rate),
     as :class:`torch.nn.Dropout` does. The masks follow from ``key`` alone: a run resumed
-    at step k draws what the uninterrupted run drew, with no generator state to save.
-    Drawing them is ~4x cheaper on a CPU than torch's ``bernoulli_`` (which took a third
-    of a training step on 2 cores; ``benchmarks/bench_train.py``). The layout follows
-    ``t``'s memory order (channels_last included), so the multiply streams.
+    at step k draws what the uninterrupted run drew, with no generator state to save, and
+    a batch split between processes draws what it draws whole. Drawing them is ~4x
+    cheaper on a CPU than torch's ``bernoulli_`` (which took a third of a training step
+    on 2 cores; ``benchmarks/bench_train.py``). The layout follows ``t``'s memory order
+    (channels_last included), so the multiply streams.
+
+    Example: ``counter_dropout(x, 0.2, (seed, 0, step, layer))`` equals the rows 16 on
+    of the same call on a batch whose rows from 16 on are ``x``, with ``row0=16``.
     """
-    keep, scale = counter_keep(t.numel(), p, key)
     if t.dim() == 4 and not t.is_contiguous() and t.is_contiguous(memory_format=torch.channels_last):
         B, C, H, W = t.shape
+        keep, scale = counter_keep((B, H, W, C), p, key, row0)
         keep = keep.view(B, H, W, C).permute(0, 3, 1, 2)
     else:
+        keep, scale = counter_keep(tuple(t.shape), p, key, row0)
         keep = keep.view(t.shape)
     return t * torch.mul(keep, scale).to(t.dtype)
 

@@ -253,6 +253,8 @@ class Trainer:
         self.val_maps, self.val_normals = no_val(data.w)
         self.step0, self.seconds = 0, 0.0  # where this call started, and the step loop's time
         self.clock: StepClock | None = None  # where the step loop's time went (run_steps)
+        self.procs = None  # the processes sharing each step (step_processes > 1), while run_steps runs
+        self.step_processes = 1  # how many processes shared the last run_steps' steps
 
     def _build_model(self, init_state: dict | None) -> None:
         """``raw`` (the CNN-PS) and ``opt`` (Adam); ``model``, what a step runs: ``raw``,
@@ -383,8 +385,11 @@ class Trainer:
 
     def _train_step(self, step_model, maps, normals):
         """(loss, the model to step next): a compiled model's first step compiles; when
-        that fails, this step is redone eagerly (RNG restored) and training stays eager."""
+        that fails, this step is redone eagerly (RNG restored) and training stays eager.
+        With step processes, they share the step (:mod:`cnnps.models.step_processes`)."""
         p = self.params
+        if self.procs is not None:
+            return self.procs.step(self.opt, maps, normals, (p.seed, self.info.rank, self.step)), step_model
         if step_model is self.model:
             self._mask_key(eager=True)
             return train_step(self.model, self.opt, maps, normals, self.device, p.precision, p.channels_last), step_model
@@ -444,6 +449,8 @@ class Trainer:
         p = self.params
         ahead = int(getattr(p, "pixelwise_ahead", 0))
         made = None  # the per-pixel rows of a mixed batch, step by step
+        threads = torch.get_num_threads()
+        self._start_step_processes()
         if self.stream is None:  # per-pixel maps only, made on the training device
             ds = loader = GeneratedBatches(self._step_maps, self.total_steps, self.device, ahead)
         else:
@@ -456,6 +463,47 @@ class Trainer:
         finally:
             if made is not None:
                 made.close()
+            if self.procs is not None:
+                self.procs.close()
+                self.procs = None
+                torch.set_num_threads(threads)
+
+    def _start_step_processes(self) -> None:
+        """With ``step_processes`` N > 1 (0: :func:`cnnps.models.step_processes.auto_processes`
+        where the step allows it, else 1), start the N - 1 helpers that share each step
+        (:class:`cnnps.models.step_processes.StepProcesses`) and give each process, this
+        one included, 1/N of torch's threads (all of them again for validation)."""
+        from cnnps.models.step_processes import StepProcesses, auto_processes
+
+        p = self.params
+        n = int(getattr(p, "step_processes", 1))
+        self.all_threads = torch.get_num_threads()
+        eligible = (self.device.type == "cpu" and not self.info.enabled and not p.compile and p.precision == "fp32"
+                    and getattr(p, "dropout_masks", "torch") == "counter")
+        if n == 0:  # auto
+            n = auto_processes(self.all_threads, p.batch_size) if eligible else 1
+        self.step_processes = max(1, n)
+        if n < 2:
+            return
+        if not eligible:
+            raise ConfigError("train.step_processes > 1 is for eager float32 training on a CPU in one process "
+                              "(not on CUDA, not under torchrun, not compiled, not bf16: there use 1)")
+        per = max(1, self.all_threads // n)
+        self.procs = StepProcesses(self.raw, n, max_rows=self.params.batch_size, w=self.data.w, threads=per,
+                                   channels_last=self.params.channels_last,
+                                   keep_freed_memory=getattr(self.params, "keep_freed_memory", True))
+        torch.set_num_threads(per)
+
+    def _validate_all_threads(self) -> dict:
+        """:meth:`validate` on all of torch's threads (the step processes wait meanwhile)."""
+        if self.procs is None:
+            return self.validate()
+        per = torch.get_num_threads()
+        torch.set_num_threads(self.all_threads)
+        try:
+            return self.validate()
+        finally:
+            torch.set_num_threads(per)
 
     def _loop(self, ds, loader, made, stop_after_step, until) -> None:
         p, info = self.params, self.info
@@ -492,7 +540,7 @@ class Trainer:
                     loss_acc, loss_n = torch.zeros((), device=self.device), 0
                 if p.val_every and step % p.val_every == 0 and step != self.total_steps and self.main:
                     with clock.part("validation"):
-                        v = self.validate()
+                        v = self._validate_all_threads()
                     if v:
                         self.history["val"].append([step, v["val_mean_deg"], v["val_median_deg"]])
                 if step % p.checkpoint_every == 0 or step == self.total_steps:
@@ -544,6 +592,7 @@ class Trainer:
             "device": str(self.device),
             "precision": p.precision,
             "processes": info.world_size,
+            "step_processes": self.step_processes,  # this run's processes sharing each step (1: none)
         }
         if self.main:
             save_checkpoint(

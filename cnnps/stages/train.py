@@ -68,6 +68,17 @@ they change float rounding (and, for channels_last or compile, which elements a 
 mask draws), so they are part of the resume key. ``threads: 1`` is faster than 2 threads
 when another job keeps a core busy.
 
+Processes sharing each step (``step_processes``; 0, the default, means one per thread
+where it applies: eager float32 steps with counter masks on a CPU, one training process).
+The run's process computes its rows of every batch and ``step_processes - 1`` helper
+processes, started for the run, the rest, each on ``threads / step_processes`` threads
+(:mod:`cnnps.models.step_processes`); it adds their gradients and steps Adam on weights
+kept in shared memory. The dropout masks are drawn per block of 16 rows of a batch, so a
+process's rows draw what they draw in one process: the weights are those of one process
+up to float rounding, and the setting is not part of the resume key. Two 1-thread
+processes made 1.1x the steps of one 2-thread process on 2 AMD EPYC cores
+(docs/performance.md).
+
 Feeding a GPU: Parquet row groups are decoded ``prefetch`` groups ahead in a background
 thread; on CUDA the float16 batches go through a ring of pinned host buffers with
 non-blocking copies (:mod:`cnnps.models.device_feed`) and are converted on the device,
@@ -122,7 +133,7 @@ class Params:
     channels_last: bool = True  # NHWC activations: ~1.4x faster training on CPU (oneDNN)
     fused_adam: bool = True  # torch's fused Adam kernel (same algorithm, one pass per tensor)
     compile: bool = False  # torch.compile the model (inductor); falls back to eager with a warning
-    # dropout masks on a CPU: "counter" = drawn from a stream keyed by (seed, rank, step, layer),
+    # dropout masks on a CPU: "counter" = drawn from a stream keyed by (seed, rank, step, layer, 16-row block),
     # ~4x cheaper than torch's and resume-exact with no RNG state (cnnps.models.network.counter_dropout);
     # "torch" = torch's generator, as before. CUDA and compiled models always use torch's.
     dropout_masks: Literal["counter", "torch"] = "counter"
@@ -142,6 +153,12 @@ class Params:
     # per-pixel batches made this many steps ahead in a background thread (on CUDA on a stream of its
     # own; cnnps.models.maps_ahead); 0 = in the step's thread. The maps do not change.
     pixelwise_ahead: Annotated[int, Range(ge=0, le=8)] = 1
+    # processes that share each CPU step, the batch split between them by rows, each with
+    # threads / step_processes torch threads (cnnps.models.step_processes): eager fp32 steps with
+    # counter masks in one training process (not under torchrun, not on CUDA). 0 = auto: one
+    # process per thread of `threads` (one per core), at most one per 16 rows of a batch, where
+    # that applies, else 1. The weights do not change.
+    step_processes: Annotated[int, Range(ge=0, le=64)] = 0
     num_workers: int = 0  # DataLoader worker processes; 0 = load in the main process
     prefetch: int = 2  # row groups decoded ahead in a background thread (0 = none); batches do not change
     progress: bool = True
@@ -180,6 +197,9 @@ class Params:
                 raise ConfigError(f"train.pixelwise_effects: unknown effect {k!r}; effects: {', '.join(effects)}")
             if not 0.0 <= float(v) <= 1.0:
                 raise ConfigError(f"train.pixelwise_effects.{k} must be a number in [0, 1], got {v!r}")
+        if self.step_processes > 1 and (self.compile or self.precision != "fp32" or self.dropout_masks != "counter"):
+            raise ConfigError("train.step_processes > 1 needs eager float32 steps with counter dropout masks "
+                              "(compile: false, precision: fp32, dropout_masks: counter)")
         if self.pixelwise >= 1.0 and not self.max_steps:
             raise ConfigError("train.pixelwise: 1 (per-pixel maps only) needs train.max_steps: there are no epochs")
 
@@ -189,7 +209,7 @@ class Params:
         d = asdict(self)
         for k in ("epochs", "max_steps", "val_every", "val_max_rows", "checkpoint_every", "keep_checkpoints",
                   "log_every", "threads", "num_workers", "prefetch", "progress", "shards", "init",
-                  "keep_freed_memory", "pixelwise_ahead"):
+                  "keep_freed_memory", "pixelwise_ahead", "step_processes"):
             d.pop(k)
         d["lr_milestones"] = list(self.lr_milestones)
         return d

@@ -19,7 +19,8 @@ API = ("predict", "predict_folder", "load_capture", "calibrate", "integrate", "r
 # every module whose docstrings hold examples; each example runs here
 EXAMPLE_MODULES = ("cnnps.api", "cnnps.api.prediction", "cnnps.api.surfaces", "cnnps.api.calibration",
                    "cnnps.api.rendering", "cnnps.infra.options", "cnnps.ps.least_squares", "cnnps.ps.camera",
-                   "cnnps.ps.near_lights", "cnnps.ps.point_light_calibration", "cnnps.io.raw")
+                   "cnnps.ps.near_lights", "cnnps.ps.point_light_calibration", "cnnps.io.raw",
+                   "cnnps.models.step_processes")
 
 
 def test_import_cnnps_is_light_and_offers_the_api():

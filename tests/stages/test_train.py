@@ -8,6 +8,7 @@ import shutil
 import pytest
 import torch
 
+from cnnps.infra.errors import ConfigError
 from cnnps.models import training
 from cnnps.models.optimiser import lr_at, make_model, train_step
 from cnnps.stages import extract, train
@@ -342,3 +343,46 @@ def test_until_ends_the_run_early_and_normally(dataset, tmp_path):
     assert wu["step"] == 3
     for k in wu["model"]:
         assert torch.equal(wu["model"][k], wr["model"][k]), k
+
+
+def test_step_processes_share_each_step_and_resume_exactly(dataset, tmp_path):
+    """train.step_processes: 2 processes sharing each step train the weights of one
+    process up to float rounding (the setting is not in the run key); a run killed
+    after step 6 and resumed from its checkpoint at step 4 ends with the uninterrupted
+    run's weights, and no helper process outlives a run."""
+    import multiprocessing
+
+    params = dict(max_steps=8, checkpoint_every=4, val_every=4, val_max_rows=100, **BASE)
+    one = train.run(train.Params(**params), fresh_copy(dataset, tmp_path / "one"))
+    two = train.run(train.Params(step_processes=2, **params), fresh_copy(dataset, tmp_path / "two"))
+    assert (one["step_processes"], two["step_processes"]) == (1, 2)  # auto, on 1 thread: 1
+    assert not multiprocessing.active_children()
+    b = fresh_copy(dataset, tmp_path / "b")
+    with pytest.raises(KeyboardInterrupt):
+        train.run(train.Params(step_processes=2, **params), b, _stop_after_step=6)
+    assert not multiprocessing.active_children()
+    resumed = train.run(train.Params(step_processes=2, **params), b)
+    w1, w2, wb = _weights(tmp_path / "one"), _weights(tmp_path / "two"), _weights(b)
+    assert w1["step"] == w2["step"] == wb["step"] == 8
+    for k in w1["model"]:
+        torch.testing.assert_close(w2["model"][k], w1["model"][k], rtol=1e-3, atol=1e-4, msg=k)
+        torch.testing.assert_close(wb["model"][k], w2["model"][k], rtol=1e-5, atol=1e-6, msg=k)
+    assert two["train_loss"] == pytest.approx(one["train_loss"], rel=1e-4)
+    assert resumed["val_mean_deg"] == pytest.approx(two["val_mean_deg"], abs=1e-4)
+    # the validation at step 4 ran (on all threads) while the helper waited
+    assert [r[0] for r in w2["history"]["val"]] == [r[0] for r in w1["history"]["val"]] == [4]
+    assert w2["history"]["val"][0][1] == pytest.approx(w1["history"]["val"][0][1], abs=0.05)
+    with pytest.raises(ConfigError, match="step_processes"):
+        train.Params(step_processes=2, precision="bf16")
+
+
+def test_step_processes_take_mixed_batches(dataset, tmp_path):
+    """Batches with per-pixel rows made a step ahead are split between the step processes
+    as shard batches are: the weights of one process, up to float rounding."""
+    params = dict(pixelwise=0.25, max_steps=3, val_every=0, val_max_rows=100, **BASE)
+    one = train.run(train.Params(step_processes=1, **params), fresh_copy(dataset, tmp_path / "one"))
+    two = train.run(train.Params(step_processes=2, **params), fresh_copy(dataset, tmp_path / "two"))
+    assert (one["step_processes"], two["step_processes"]) == (1, 2)
+    w1, w2 = _weights(tmp_path / "one"), _weights(tmp_path / "two")
+    for k in w1["model"]:
+        torch.testing.assert_close(w2["model"][k], w1["model"][k], rtol=1e-3, atol=1e-4, msg=k)

@@ -1,0 +1,114 @@
+"""Processes sharing a CPU training step: the batch split by rows gives the one-process step."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from cnnps.infra.errors import CnnpsError
+from cnnps.models.network import counter_dropout
+from cnnps.models.optimiser import make_model, train_step
+from cnnps.models.step_processes import StepProcesses, row_shares
+from cnnps.models.train_layers import MASK_BLOCK_ROWS, counter_keep
+from cnnps.stages.train import Params
+
+CPU = torch.device("cpu")
+
+
+@pytest.mark.parametrize("rows,processes", [(128, 2), (128, 3), (40, 2), (16, 2), (33, 4), (7, 1)])
+def test_row_shares_are_whole_blocks_covering_the_batch_in_order(rows, processes):
+    shares = row_shares(rows, processes)
+    assert len(shares) == processes
+    assert [s[0] for s in shares] == list(np.cumsum([0] + [s[1] for s in shares[:-1]]))
+    assert sum(s[1] for s in shares) == rows
+    for first, n in shares:
+        assert first % MASK_BLOCK_ROWS == 0 or n == 0
+        assert n % MASK_BLOCK_ROWS == 0 or first + n == rows
+    counts = [n for _, n in shares]
+    assert counts[0] == min(counts)  # the main process, which also feeds the others, takes the least
+    assert max(counts) - min(counts) <= MASK_BLOCK_ROWS
+
+
+def test_row_shares_examples():
+    assert row_shares(128, 2) == [(0, 64), (64, 64)]
+    assert row_shares(40, 2) == [(0, 16), (16, 24)]
+    assert row_shares(16, 2) == [(0, 0), (0, 16)]
+
+
+@pytest.mark.parametrize("row0,rows", [(16, 24), (20, 17), (0, 5), (37, 3)])
+def test_the_masks_of_rows_of_a_batch_are_the_whole_batchs_there(row0, rows):
+    """A part of a batch (rows row0.. of it) draws the masks the whole batch draws for
+    those rows, aligned to the mask blocks or not."""
+    shape = (40, 4, 4, 3)
+    whole, scale = counter_keep(shape, 0.2, (3, 0, 9, 1))
+    part, scale_part = counter_keep((rows, 4, 4, 3), 0.2, (3, 0, 9, 1), row0)
+    per_row = 4 * 4 * 3
+    assert scale == scale_part
+    assert torch.equal(part, whole[row0 * per_row:(row0 + rows) * per_row])
+    # the rows of different blocks are drawn from different streams: not a repeat
+    assert not torch.equal(whole[:MASK_BLOCK_ROWS * per_row], whole[MASK_BLOCK_ROWS * per_row:2 * MASK_BLOCK_ROWS * per_row])
+
+
+def test_counter_dropout_of_a_part_is_the_whole_batchs():
+    x = torch.rand(40, 3, 4, 4).contiguous(memory_format=torch.channels_last)
+    whole = counter_dropout(x, 0.2, (1, 0, 5, 2))
+    part = counter_dropout(x[16:], 0.2, (1, 0, 5, 2), row0=16)
+    assert torch.equal(part, whole[16:])
+
+
+def _batch(n, w, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    maps = torch.rand(n, 1, w, w, generator=g) * (torch.rand(n, 1, w, w, generator=g) < 0.3)
+    normals = F.normalize(torch.randn(n, 3, generator=g), dim=1)
+    return maps, normals
+
+
+def test_two_processes_train_as_one():
+    """Four Adam steps with the batch split between two processes end with the weights
+    and losses of four one-process steps, up to float rounding (gradients summed in
+    another order); the steps moved the weights far more than that."""
+    p = Params(batch_size=48, threads=1)
+    w = 16
+    one, opt_one = make_model(w, p, CPU)
+    two, opt_two = make_model(w, p, CPU)
+    start = {k: v.clone() for k, v in one.state_dict().items()}
+    torch.set_num_threads(1)
+    losses = []
+    with StepProcesses(two, 2, max_rows=48, w=w, threads=1) as procs:
+        for step in range(4):
+            maps, normals = _batch(48, w, seed=step)
+            one.set_mask_key((p.seed, 0, step))
+            a = train_step(one, opt_one, maps, normals, CPU, "fp32", True)
+            b = procs.step(opt_two, maps, normals, (p.seed, 0, step))
+            losses.append((float(a), float(b)))
+    for a, b in losses:
+        assert b == pytest.approx(a, rel=1e-5)
+    moved = 0.0
+    for (k, v1), v2 in zip(one.state_dict().items(), two.state_dict().values()):
+        torch.testing.assert_close(v2, v1, rtol=1e-3, atol=1e-4, msg=k)
+        moved = max(moved, float((v1 - start[k]).abs().max()))
+    assert moved > 1e-3  # Adam moved some weight by ~4 lr: the comparison can fail
+
+
+def test_a_step_process_that_dies_ends_the_step_with_an_error():
+    p = Params(batch_size=32, threads=1)
+    model, opt = make_model(16, p, CPU)
+    maps, normals = _batch(32, 16)
+    with StepProcesses(model, 2, max_rows=32, w=16, threads=1) as procs:
+        procs.step(opt, maps, normals, (0, 0, 0))
+        helper = procs._workers[0]["proc"]
+        helper.kill()
+        helper.join(10)
+        with pytest.raises(CnnpsError, match=r"step process .* exited"):
+            procs.step(opt, maps, normals, (0, 0, 1))
+
+
+def test_auto_is_one_process_per_thread_and_at_most_one_per_mask_block():
+    from cnnps.models.step_processes import auto_processes
+
+    assert auto_processes(2, 128) == 2
+    assert auto_processes(1, 128) == 1
+    assert auto_processes(16, 40) == 3  # 40 rows: 3 blocks
+    assert auto_processes(4, 8) == 1
