@@ -66,9 +66,10 @@ def _batch(n, w, seed=0):
 
 
 def test_two_processes_train_as_one():
-    """Four Adam steps with the batch split between two processes end with the weights
-    and losses of four one-process steps, up to float rounding (gradients summed in
-    another order); the steps moved the weights far more than that."""
+    """With the batch split between two processes, a step's gradients are the one-process
+    step's up to float rounding (checked tightly at the first step, where the weights
+    are equal), and four Adam steps end with its weights and losses (Adam scales each
+    step to ~lr, so the weights are compared to a fraction of the four steps' move)."""
     p = Params(batch_size=48, threads=1)
     w = 16
     one, opt_one = make_model(w, p, CPU)
@@ -83,13 +84,17 @@ def test_two_processes_train_as_one():
             a = train_step(one, opt_one, maps, normals, CPU, "fp32", True)
             b = procs.step(opt_two, maps, normals, (p.seed, 0, step))
             losses.append((float(a), float(b)))
+            if step == 0:
+                for (name, g1), g2 in zip(one.named_parameters(), two.parameters()):
+                    scale = float(g1.grad.abs().max())
+                    torch.testing.assert_close(g2.grad, g1.grad, rtol=1e-4, atol=1e-5 * scale, msg=name)
     for a, b in losses:
         assert b == pytest.approx(a, rel=1e-5)
     moved = 0.0
     for (k, v1), v2 in zip(one.state_dict().items(), two.state_dict().values()):
-        torch.testing.assert_close(v2, v1, rtol=1e-3, atol=1e-4, msg=k)
+        torch.testing.assert_close(v2, v1, rtol=1e-3, atol=1e-3, msg=k)
         moved = max(moved, float((v1 - start[k]).abs().max()))
-    assert moved > 1e-3  # Adam moved some weight by ~4 lr: the comparison can fail
+    assert moved > 3e-3  # Adam moved some weight by ~4 lr
 
 
 def test_a_step_process_that_dies_ends_the_step_with_an_error():

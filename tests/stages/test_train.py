@@ -365,7 +365,7 @@ def test_step_processes_share_each_step_and_resume_exactly(dataset, tmp_path):
     w1, w2, wb = _weights(tmp_path / "one"), _weights(tmp_path / "two"), _weights(b)
     assert w1["step"] == w2["step"] == wb["step"] == 8
     for k in w1["model"]:
-        torch.testing.assert_close(w2["model"][k], w1["model"][k], rtol=1e-3, atol=1e-4, msg=k)
+        torch.testing.assert_close(w2["model"][k], w1["model"][k], rtol=1e-3, atol=1e-3, msg=k)
         torch.testing.assert_close(wb["model"][k], w2["model"][k], rtol=1e-5, atol=1e-6, msg=k)
     assert two["train_loss"] == pytest.approx(one["train_loss"], rel=1e-4)
     assert resumed["val_mean_deg"] == pytest.approx(two["val_mean_deg"], abs=1e-4)
@@ -385,4 +385,4 @@ def test_step_processes_take_mixed_batches(dataset, tmp_path):
     assert (one["step_processes"], two["step_processes"]) == (1, 2)
     w1, w2 = _weights(tmp_path / "one"), _weights(tmp_path / "two")
     for k in w1["model"]:
-        torch.testing.assert_close(w2["model"][k], w1["model"][k], rtol=1e-3, atol=1e-4, msg=k)
+        torch.testing.assert_close(w2["model"][k], w1["model"][k], rtol=1e-3, atol=1e-3, msg=k)
