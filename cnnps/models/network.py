@@ -129,8 +129,9 @@ def counter_dropout(t: torch.Tensor, p: float, key: tuple[int, ...], row0: int =
     on 2 cores; ``benchmarks/bench_train.py``). The layout follows ``t``'s memory order
     (channels_last included), so the multiply streams.
 
-    Example: ``counter_dropout(x, 0.2, (seed, 0, step, layer))`` equals the rows 16 on
-    of the same call on a batch whose rows from 16 on are ``x``, with ``row0=16``.
+    Example: for a batch ``b`` and a key ``k`` (say (seed, 0, step, layer)),
+    ``counter_dropout(b[16:], 0.2, k, row0=16)`` equals ``counter_dropout(b, 0.2, k)[16:]``
+    (``tests/models/test_step_processes.py``).
     """
     if t.dim() == 4 and not t.is_contiguous() and t.is_contiguous(memory_format=torch.channels_last):
         B, C, H, W = t.shape
