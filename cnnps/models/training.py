@@ -481,7 +481,7 @@ class Trainer:
         eligible = (self.device.type == "cpu" and not self.info.enabled and not p.compile and p.precision == "fp32"
                     and getattr(p, "dropout_masks", "torch") == "counter")
         if n == 0:  # auto
-            n = auto_processes(self.all_threads, p.batch_size) if eligible else 1
+            n = auto_processes(self.all_threads, p.batch_size, self.total_steps - self.step) if eligible else 1
         self.step_processes = max(1, n)
         if n < 2:
             return

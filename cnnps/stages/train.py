@@ -69,7 +69,8 @@ mask draws), so they are part of the resume key. ``threads: 1`` is faster than 2
 when another job keeps a core busy.
 
 Processes sharing each step (``step_processes``; 0, the default, means one per thread
-where it applies: eager float32 steps with counter masks on a CPU, one training process).
+where it applies: eager float32 steps with counter masks on a CPU, one training process,
+200 steps or more to go).
 The run's process computes its rows of every batch and ``step_processes - 1`` helper
 processes, started for the run, the rest, each on ``threads / step_processes`` threads
 (:mod:`cnnps.models.step_processes`); it adds their gradients and steps Adam on weights
@@ -157,7 +158,7 @@ class Params:
     # threads / step_processes torch threads (cnnps.models.step_processes): eager fp32 steps with
     # counter masks in one training process (not under torchrun, not on CUDA). 0 = auto: one
     # process per thread of `threads` (one per core), at most one per 16 rows of a batch, where
-    # that applies, else 1. The weights do not change.
+    # that applies and the run has 200 steps or more to go, else 1. The weights do not change.
     step_processes: Annotated[int, Range(ge=0, le=64)] = 0
     num_workers: int = 0  # DataLoader worker processes; 0 = load in the main process
     prefetch: int = 2  # row groups decoded ahead in a background thread (0 = none); batches do not change

@@ -110,10 +110,11 @@ def test_a_step_process_that_dies_ends_the_step_with_an_error():
             procs.step(opt, maps, normals, (0, 0, 1))
 
 
-def test_auto_is_one_process_per_thread_and_at_most_one_per_mask_block():
+def test_auto_is_one_process_per_thread_at_most_one_per_mask_block_for_long_runs():
     from cnnps.models.step_processes import auto_processes
 
-    assert auto_processes(2, 128) == 2
-    assert auto_processes(1, 128) == 1
-    assert auto_processes(16, 40) == 3  # 40 rows: 3 blocks
-    assert auto_processes(4, 8) == 1
+    assert auto_processes(2, 128, 1000) == 2
+    assert auto_processes(1, 128, 1000) == 1
+    assert auto_processes(16, 40, 1000) == 3  # 40 rows: 3 blocks
+    assert auto_processes(4, 8, 1000) == 1
+    assert auto_processes(2, 128, 50) == 1  # a short run: not worth a helper's start
