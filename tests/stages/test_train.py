@@ -391,10 +391,13 @@ def test_step_processes_take_mixed_batches(dataset, tmp_path):
         torch.testing.assert_close(w2["model"][k], w1["model"][k], rtol=1e-3, atol=1e-3, msg=k)
 
 
-def test_auto_step_processes_start_for_long_runs_only(dataset, tmp_path):
-    """step_processes: 0 (auto) on 2 threads: two processes for a run of 200 steps, one for
-    a run too short to pay for a helper's start."""
-    params = dict(BASE, threads=2, epochs=1000, val_every=0, val_max_rows=100, checkpoint_every=1000)
-    short = train.run(train.Params(**dict(params, max_steps=20)), fresh_copy(dataset, tmp_path / "s"))
-    long = train.run(train.Params(**dict(params, max_steps=200)), fresh_copy(dataset, tmp_path / "l"))
+def test_auto_step_processes_start_for_long_runs_only(dataset, tmp_path, monkeypatch):
+    """step_processes: 0 (auto) on 2 threads: two processes for a run of AUTO_MIN_STEPS
+    steps (lowered here to 12), one for a shorter run."""
+    from cnnps.models import step_processes
+
+    monkeypatch.setattr(step_processes, "AUTO_MIN_STEPS", 12)
+    params = dict(BASE, threads=2, epochs=1000, val_every=0, val_max_rows=100)
+    short = train.run(train.Params(**dict(params, max_steps=11)), fresh_copy(dataset, tmp_path / "s"))
+    long = train.run(train.Params(**dict(params, max_steps=12)), fresh_copy(dataset, tmp_path / "l"))
     assert (short["step_processes"], long["step_processes"]) == (1, 2)
