@@ -75,7 +75,8 @@ def test_two_processes_train_as_one():
     one, opt_one = make_model(w, p, CPU)
     two, opt_two = make_model(w, p, CPU)
     start = {k: v.clone() for k, v in one.state_dict().items()}
-    torch.set_num_threads(1)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as the training process runs with one helper on 2 threads
     losses = []
     with StepProcesses(two, 2, max_rows=48, w=w, threads=1) as procs:
         for step in range(4):
@@ -88,6 +89,7 @@ def test_two_processes_train_as_one():
                 for (name, g1), g2 in zip(one.named_parameters(), two.parameters()):
                     scale = float(g1.grad.abs().max())
                     torch.testing.assert_close(g2.grad, g1.grad, rtol=1e-4, atol=1e-5 * scale, msg=name)
+    torch.set_num_threads(threads)
     for a, b in losses:
         assert b == pytest.approx(a, rel=1e-5)
     moved = 0.0
