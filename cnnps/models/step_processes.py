@@ -107,6 +107,18 @@ HEAD_LEN = KEY + MAX_KEY + 1
 STEP, STOP = 1, 0
 
 
+def _rows_backward(model, maps, normals, key, row0: int, batch: int, channels_last: bool) -> torch.Tensor:
+    """Forward and backward of a batch's rows ``row0..`` (``maps``, ``normals``) with their
+    masks of ``key``, the loss scaled by their share of the ``batch`` rows, so the shares'
+    gradients add up to the batch's; the scaled loss (detached)."""
+    if channels_last:
+        maps = maps.contiguous(memory_format=torch.channels_last)
+    model.set_mask_key(key, row0)
+    loss = F.mse_loss(model(maps), normals) * (len(maps) / batch)
+    loss.backward()
+    return loss.detach()
+
+
 def _helper(model, maps, normals, head, grads, go, done, threads, channels_last, keep_heap) -> None:
     """A helper process's loop: take ``go``; with ``head[CMD] == STEP``, the gradients of
     the rows in ``maps`` / ``normals`` (``head``: their first row in the batch, their
@@ -134,17 +146,12 @@ def _helper(model, maps, normals, head, grads, go, done, threads, channels_last,
             return
         row0, rows, batch, klen = (int(v) for v in head[ROW0:KEY])
         key = tuple(int(v) for v in head[KEY:KEY + klen])
-        x, y = maps[:rows], normals[:rows]
-        if channels_last:
-            x = x.contiguous(memory_format=torch.channels_last)
-        model.set_mask_key(key, row0)
         for p in params:
             p.grad = None
-        loss = F.mse_loss(model(x), y) * (rows / batch)
-        loss.backward()
+        loss = _rows_backward(model, maps[:rows], normals[:rows], key, row0, batch, channels_last)
         for v, p in zip(views, params):
             v.copy_(p.grad)
-        loss_out[0] = float(loss.detach())
+        loss_out[0] = float(loss)
         done.release()
 
 
@@ -159,8 +166,9 @@ class StepProcesses:
 
         if processes < 2:
             raise ValueError("StepProcesses needs 2 or more processes")
-        self.model, self.processes, self.threads, self.channels_last = model, processes, threads, channels_last
-        self.main_seconds = self.wait_seconds = 0.0  # this process's share of the steps; its wait for the others
+        self.model, self.processes, self.channels_last = model, processes, channels_last
+        # seconds this process spent on its own rows, and waiting for the helpers' (metrics.json)
+        self.own_seconds = self.wait_seconds = 0.0
         self._workers = []
         nparam = sum(p.numel() for p in model.parameters())
         try:
@@ -213,19 +221,13 @@ class StepProcesses:
         t_main = time.perf_counter()
         opt.zero_grad(set_to_none=True)
         if rows:
-            x = maps[:rows]
-            if self.channels_last:
-                x = x.contiguous(memory_format=torch.channels_last)
-            self.model.set_mask_key(key, 0)
-            loss = F.mse_loss(self.model(x), normals[:rows]) * (rows / batch)
-            loss.backward()
-            loss = loss.detach()
+            loss = _rows_backward(self.model, maps[:rows], normals[:rows], key, 0, batch, self.channels_last)
         else:  # fewer mask blocks than processes: the others took them all
             loss = torch.zeros(())
             for q in self.model.parameters():
                 q.grad = torch.zeros_like(q)
         t0 = time.perf_counter()
-        self.main_seconds += t0 - t_main
+        self.own_seconds += t0 - t_main
         for wk in busy:
             proc = wk["proc"]
             _wait(wk["done"], proc.is_alive,

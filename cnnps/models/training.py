@@ -255,6 +255,7 @@ class Trainer:
         self.clock: StepClock | None = None  # where the step loop's time went (run_steps)
         self.procs = None  # the processes sharing each step (step_processes > 1), while run_steps runs
         self.step_processes = 1  # how many processes shared the last run_steps' steps
+        self.step_process_seconds = None  # the training process's time on its rows and waiting, then
 
     def _build_model(self, init_state: dict | None) -> None:
         """``raw`` (the CNN-PS) and ``opt`` (Adam); ``model``, what a step runs: ``raw``,
@@ -449,7 +450,6 @@ class Trainer:
         p = self.params
         ahead = int(getattr(p, "pixelwise_ahead", 0))
         made = None  # the per-pixel rows of a mixed batch, step by step
-        threads = torch.get_num_threads()
         self._start_step_processes()
         if self.stream is None:  # per-pixel maps only, made on the training device
             ds = loader = GeneratedBatches(self._step_maps, self.total_steps, self.device, ahead)
@@ -464,9 +464,11 @@ class Trainer:
             if made is not None:
                 made.close()
             if self.procs is not None:
+                self.step_process_seconds = {"own_rows": round(self.procs.own_seconds, 3),
+                                             "waiting_for_helpers": round(self.procs.wait_seconds, 3)}
                 self.procs.close()
                 self.procs = None
-                torch.set_num_threads(threads)
+                torch.set_num_threads(self.all_threads)
 
     def _start_step_processes(self) -> None:
         """With ``step_processes`` N > 1 (0: :func:`cnnps.models.step_processes.auto_processes`
@@ -593,6 +595,7 @@ class Trainer:
             "precision": p.precision,
             "processes": info.world_size,
             "step_processes": self.step_processes,  # this run's processes sharing each step (1: none)
+            "step_process_seconds": self.step_process_seconds,  # with helpers: own rows / waiting for theirs
         }
         if self.main:
             save_checkpoint(

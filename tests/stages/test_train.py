@@ -359,6 +359,7 @@ def test_step_processes_share_each_step_and_resume_exactly(dataset, tmp_path):
     one = train.run(train.Params(**params), fresh_copy(dataset, tmp_path / "one"))
     two = train.run(train.Params(step_processes=2, **params), fresh_copy(dataset, tmp_path / "two"))
     assert (one["step_processes"], two["step_processes"]) == (1, 2)  # auto, on 1 thread: 1
+    assert one["step_process_seconds"] is None and two["step_process_seconds"]["own_rows"] > 0
     assert not helpers()
     b = fresh_copy(dataset, tmp_path / "b")
     with pytest.raises(KeyboardInterrupt):
