@@ -31,7 +31,8 @@ Results: ``benchmarks/results/stage/<device kind>.json`` with the CPU model (and
 it had before the fast CPU step (:data:`BEFORE`: torch's dropout masks, torch's layers,
 glibc's allocator as it comes) and with today's defaults, each run in its own process,
 alternately, ``ROUNDS`` times; it writes ``<device kind>-vs-before.json`` with the
-medians and the ratio of each round. ``--ahead ROUNDS --share S`` does the same for a
+medians and the ratio of each round. ``--bf16`` adds today's defaults in bf16 autocast, in
+one process and in ``--step-processes``: ``<device kind>-vs-before-bf16.json``. ``--ahead ROUNDS --share S`` does the same for a
 stage whose batches are ``S`` per-pixel maps (:data:`PIXELWISE`'s effects), made in the
 step's thread against made a step ahead (``pixelwise_ahead`` 0 and 1):
 ``<device kind>-pixelwise-S-ahead.json``.
@@ -220,6 +221,11 @@ def main() -> None:
     ap.add_argument("--step-processes", type=int, default=2,
                     help="train.step_processes of --processes and of --vs-before's third setting (today's "
                          "defaults with that many step processes; the second: with one)")
+    ap.add_argument("--bf16", action="store_true",
+                    help="--vs-before also runs today's defaults in bf16 autocast (train.precision: bf16), in one "
+                         "process and in --step-processes")
+    ap.add_argument("--only", default="", help="--vs-before: the comma-separated settings to run, 'before' first "
+                                                 "(names as in the results: now_1_process, now_2_processes, ...)")
     ap.add_argument("--one-stage", help=argparse.SUPPRESS)  # a child: the JSON of its train settings
     args = ap.parse_args()
 
@@ -243,6 +249,16 @@ def main() -> None:
         if args.vs_before:
             settings = {"before": BEFORE, "now_1_process": {"step_processes": 1},
                         f"now_{args.step_processes}_processes": {"step_processes": args.step_processes}}
+            if args.bf16:
+                settings["now_bf16_1_process"] = {"precision": "bf16", "step_processes": 1}
+                settings[f"now_bf16_{args.step_processes}_processes"] = {"precision": "bf16",
+                                                                         "step_processes": args.step_processes}
+            if args.only:
+                keep = args.only.split(",")
+                unknown = sorted(set(keep) - set(settings))
+                if unknown or "before" not in keep:
+                    sys.exit(f"bench_stage: --only takes 'before' and any of {', '.join(list(settings)[1:])}")
+                settings = {k: v for k, v in settings.items() if k in keep}
         elif args.processes:
             settings = {"one_process": {"step_processes": 1},
                         f"{args.step_processes}_processes": {"step_processes": args.step_processes}}
@@ -255,7 +271,7 @@ def main() -> None:
         from benchmarks.bench_train import roofline
 
         res["roofline"] = roofline(32, res["median_samples_per_s"])  # this machine's GEMM peak, measured now
-        name = ("vs-before" if args.vs_before else f"{args.step_processes}-step-processes" if args.processes
+        name = (("vs-before-bf16" if args.bf16 else "vs-before") if args.vs_before else f"{args.step_processes}-step-processes" if args.processes
                 else f"pixelwise-{args.share:g}-ahead")
         out = args.out or REPO / "benchmarks" / "results" / "stage" / f"cpu-{cpu_kind(info)}-{name}.json"
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -54,6 +54,9 @@ VARIANTS = [
     dict(name="bf16 bs256 channels_last fused Adam", batch_size=256, precision="bf16"),
     dict(name="compiled fp32 bs128 channels_last fused Adam", batch_size=128, compile=True),
     dict(name="fp32 bs128 defaults, 1 thread", batch_size=128, threads=1),
+    dict(name="fp32 bs64 defaults, 1 thread", batch_size=64, threads=1),
+    dict(name="bf16 bs128 defaults, 1 thread", batch_size=128, precision="bf16", threads=1),
+    dict(name="bf16 bs64 defaults, 1 thread", batch_size=64, precision="bf16", threads=1),
 ]
 
 

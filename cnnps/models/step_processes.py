@@ -20,9 +20,9 @@ gradients of their share of the rows:
 
 The result is the single-process step's, up to float rounding (the sum of the shares'
 gradients is the whole batch's gradient; ``tests/models/test_step_processes.py`` compares
-the weights after several steps). It needs eager float32 steps with counter dropout masks
-(``dropout_masks: counter``, ``precision: fp32``, no ``compile``), on a CPU, in one
-process (not under torchrun).
+the weights after several steps; in bf16 autocast, up to bf16 rounding). It needs eager
+steps with counter dropout masks (``dropout_masks: counter``, no ``compile``), in float32
+or bf16 autocast (``precision``), on a CPU, in one process (not under torchrun).
 
 A helper that dies ends the step with an error naming it; helpers end when the main
 process closes them or exits, and on their own when it is killed (they watch it).
@@ -41,6 +41,7 @@ import torch
 import torch.nn.functional as F
 
 from cnnps.infra.errors import CnnpsError, ConfigError
+from cnnps.models.optimiser import autocast
 from cnnps.models.train_layers import MASK_BLOCK_ROWS
 
 WAIT_POLL_S = 0.5  # how often a waiting process checks that the other side is alive
@@ -107,19 +108,27 @@ HEAD_LEN = KEY + MAX_KEY + 1
 STEP, STOP = 1, 0
 
 
-def _rows_backward(model, maps, normals, key, row0: int, batch: int, channels_last: bool) -> torch.Tensor:
+CPU = torch.device("cpu")
+
+
+def _rows_backward(model, maps, normals, key, row0: int, batch: int, channels_last: bool,
+                   precision: str = "fp32") -> torch.Tensor:
     """Forward and backward of a batch's rows ``row0..`` (``maps``, ``normals``) with their
-    masks of ``key``, the loss scaled by their share of the ``batch`` rows, so the shares'
-    gradients add up to the batch's; the scaled loss (detached)."""
+    masks of ``key``, the forward in ``precision`` (fp32, or bf16 autocast as
+    :func:`cnnps.models.optimiser.train_step` runs it), the loss scaled by their share of
+    the ``batch`` rows, so the shares' gradients add up to the batch's; the scaled loss
+    (detached)."""
     if channels_last:
         maps = maps.contiguous(memory_format=torch.channels_last)
     model.set_mask_key(key, row0)
-    loss = F.mse_loss(model(maps), normals) * (len(maps) / batch)
+    with autocast(CPU, precision):
+        pred = model(maps)
+    loss = F.mse_loss(pred.float(), normals) * (len(maps) / batch)
     loss.backward()
     return loss.detach()
 
 
-def _helper(model, maps, normals, head, grads, go, done, threads, channels_last, keep_heap) -> None:
+def _helper(model, maps, normals, head, grads, go, done, threads, channels_last, keep_heap, precision) -> None:
     """A helper process's loop: take ``go``; with ``head[CMD] == STEP``, the gradients of
     the rows in ``maps`` / ``normals`` (``head``: their first row in the batch, their
     count, the batch's rows, the mask key) into ``grads`` and its scaled loss into
@@ -148,7 +157,7 @@ def _helper(model, maps, normals, head, grads, go, done, threads, channels_last,
         key = tuple(int(v) for v in head[KEY:KEY + klen])
         for p in params:
             p.grad = None
-        loss = _rows_backward(model, maps[:rows], normals[:rows], key, row0, batch, channels_last)
+        loss = _rows_backward(model, maps[:rows], normals[:rows], key, row0, batch, channels_last, precision)
         for v, p in zip(views, params):
             v.copy_(p.grad)
         loss_out[0] = float(loss)
@@ -157,16 +166,19 @@ def _helper(model, maps, normals, head, grads, go, done, threads, channels_last,
 
 class StepProcesses:
     """``processes`` processes sharing each training step of ``model`` (on a CPU; see the
-    module docstring). ``max_rows``: the largest batch a step will get. Use as a context
-    manager, or call :meth:`close`."""
+    module docstring). ``max_rows``: the largest batch a step will get; ``precision``:
+    ``fp32`` or ``bf16`` (autocast). Use as a context manager, or call :meth:`close`."""
 
     def __init__(self, model: torch.nn.Module, processes: int, *, max_rows: int, w: int, threads: int = 1,
-                 channels_last: bool = True, keep_freed_memory: bool = True):
+                 channels_last: bool = True, keep_freed_memory: bool = True, precision: str = "fp32"):
         import torch.multiprocessing as multiprocessing  # torch's pickling of shared tensors
 
         if processes < 2:
             raise ValueError("StepProcesses needs 2 or more processes")
+        if precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision must be fp32 or bf16, got {precision!r}")
         self.model, self.processes, self.channels_last = model, processes, channels_last
+        self.precision = precision
         # seconds this process spent on its own rows, and waiting for the helpers' (metrics.json)
         self.own_seconds = self.wait_seconds = 0.0
         self._workers = []
@@ -187,7 +199,7 @@ class StepProcesses:
                 go, done = ctx.Semaphore(0), ctx.Semaphore(0)
                 proc = ctx.Process(target=_helper, name=f"cnnps-step-{i}", daemon=True,
                                    args=(model, bufs["maps"], bufs["normals"], bufs["head"], bufs["grads"],
-                                         go, done, threads, channels_last, keep_freed_memory))
+                                         go, done, threads, channels_last, keep_freed_memory, precision))
                 proc.start()
                 self._workers.append(dict(bufs, proc=proc, go=go, done=done,
                                           views=_grad_views(model, bufs["grads"])))
@@ -221,7 +233,8 @@ class StepProcesses:
         t_main = time.perf_counter()
         opt.zero_grad(set_to_none=True)
         if rows:
-            loss = _rows_backward(self.model, maps[:rows], normals[:rows], key, 0, batch, self.channels_last)
+            loss = _rows_backward(self.model, maps[:rows], normals[:rows], key, 0, batch, self.channels_last,
+                                  self.precision)
         else:  # fewer mask blocks than processes: the others took them all
             loss = torch.zeros(())
             for q in self.model.parameters():

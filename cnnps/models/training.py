@@ -480,7 +480,7 @@ class Trainer:
         p = self.params
         n = int(getattr(p, "step_processes", 1))
         self.all_threads = torch.get_num_threads()
-        eligible = (self.device.type == "cpu" and not self.info.enabled and not p.compile and p.precision == "fp32"
+        eligible = (self.device.type == "cpu" and not self.info.enabled and not p.compile
                     and getattr(p, "dropout_masks", "torch") == "counter")
         if n == 0:  # auto
             n = auto_processes(self.all_threads, p.batch_size, self.total_steps - self.step) if eligible else 1
@@ -488,12 +488,13 @@ class Trainer:
         if n < 2:
             return
         if not eligible:
-            raise ConfigError("train.step_processes > 1 is for eager float32 training on a CPU in one process "
-                              "(not on CUDA, not under torchrun, not compiled, not bf16: there use 1)")
+            raise ConfigError("train.step_processes > 1 is for eager training with counter dropout masks on a CPU "
+                              "in one process (not on CUDA, not under torchrun, not compiled: there use 1)")
         per = max(1, self.all_threads // n)
         self.procs = StepProcesses(self.raw, n, max_rows=self.params.batch_size, w=self.data.w, threads=per,
                                    channels_last=self.params.channels_last,
-                                   keep_freed_memory=getattr(self.params, "keep_freed_memory", True))
+                                   keep_freed_memory=getattr(self.params, "keep_freed_memory", True),
+                                   precision=p.precision)
         torch.set_num_threads(per)
 
     def _validate_all_threads(self) -> dict:

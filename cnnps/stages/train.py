@@ -61,15 +61,18 @@ with those masks the layers run as :mod:`cnnps.models.train_layers` (``cpu_layer
 fused``: fewer passes over memory, the same results up to float rounding); and glibc
 keeps freed memory for the next step instead of page-faulting it back in
 (``keep_freed_memory``, :mod:`cnnps.models.allocator`; docs/performance.md).
-``precision: bf16`` (slower on CPUs without AMX) and ``compile: true``
-(torch.compile; slower than eager here, ~40 s to compile; falls back to eager with a
-warning when compilation fails) are opt-in. None of these changes the model or the loss;
+``precision: bf16`` (autocast) is opt-in: on a CPU with AVX-512 BF16 it trained 1.5x
+faster than float32 (2 AMD EPYC cores; on an Intel Xeon without AMX it was slower, and
+without AVX-512 BF16 it is emulated and far slower: measure it first with
+benchmarks/bench_stage.py, docs/performance.md), and it rounds more than float32 does.
+``compile: true`` (torch.compile; slower than eager here, ~40 s to compile; falls back to
+eager with a warning when compilation fails) is opt-in too. None of these changes the model or the loss;
 they change float rounding (and, for channels_last or compile, which elements a dropout
 mask draws), so they are part of the resume key. ``threads: 1`` is faster than 2 threads
 when another job keeps a core busy.
 
 Processes sharing each step (``step_processes``; 0, the default, means one per thread
-where it applies: eager float32 steps with counter masks on a CPU, one training process,
+where it applies: eager steps (float32 or bf16 autocast) with counter masks on a CPU, one training process,
 200 steps or more to go).
 The run's process computes its rows of every batch and ``step_processes - 1`` helper
 processes, started for the run, the rest, each on ``threads / step_processes`` threads
@@ -129,7 +132,7 @@ class Params:
     keep_checkpoints: int = 2
     log_every: int = 50  # steps between loss points in plots/loss.csv
     device: str = "auto"  # auto | cpu | cuda
-    precision: str = "fp32"  # fp32 | bf16 (autocast)
+    precision: str = "fp32"  # fp32 | bf16 (autocast: faster only where the CPU or GPU has bf16 units)
     threads: int = 0  # torch CPU threads; 0 = one per core
     channels_last: bool = True  # NHWC activations: ~1.4x faster training on CPU (oneDNN)
     fused_adam: bool = True  # torch's fused Adam kernel (same algorithm, one pass per tensor)
@@ -155,7 +158,7 @@ class Params:
     # own; cnnps.models.maps_ahead); 0 = in the step's thread. The maps do not change.
     pixelwise_ahead: Annotated[int, Range(ge=0, le=8)] = 1
     # processes that share each CPU step, the batch split between them by rows, each with
-    # threads / step_processes torch threads (cnnps.models.step_processes): eager fp32 steps with
+    # threads / step_processes torch threads (cnnps.models.step_processes): eager steps (fp32 or bf16) with
     # counter masks in one training process (not under torchrun, not on CUDA). 0 = auto: one
     # process per thread of `threads` (one per core), at most one per 16 rows of a batch, where
     # that applies and the run has 200 steps or more to go, else 1. The weights do not change.
@@ -198,9 +201,9 @@ class Params:
                 raise ConfigError(f"train.pixelwise_effects: unknown effect {k!r}; effects: {', '.join(effects)}")
             if not 0.0 <= float(v) <= 1.0:
                 raise ConfigError(f"train.pixelwise_effects.{k} must be a number in [0, 1], got {v!r}")
-        if self.step_processes > 1 and (self.compile or self.precision != "fp32" or self.dropout_masks != "counter"):
-            raise ConfigError("train.step_processes > 1 needs eager float32 steps with counter dropout masks "
-                              "(compile: false, precision: fp32, dropout_masks: counter)")
+        if self.step_processes > 1 and (self.compile or self.dropout_masks != "counter"):
+            raise ConfigError("train.step_processes > 1 needs eager steps with counter dropout masks "
+                              "(compile: false, dropout_masks: counter)")
         if self.pixelwise >= 1.0 and not self.max_steps:
             raise ConfigError("train.pixelwise: 1 (per-pixel maps only) needs train.max_steps: there are no epochs")
 

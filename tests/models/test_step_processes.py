@@ -99,6 +99,39 @@ def test_two_processes_train_as_one():
     assert moved > 3e-3  # Adam moved some weight by ~4 lr
 
 
+def _first_step_grads(model, opt, maps, normals, precision, procs=None) -> list[torch.Tensor]:
+    key = (0, 0, 0)
+    if procs is None:
+        model.set_mask_key(key)
+        train_step(model, opt, maps, normals, CPU, precision, True)
+    else:
+        procs.step(opt, maps, normals, key)
+    return [q.grad.clone() for q in model.parameters()]
+
+
+def test_two_processes_in_bf16_autocast_compute_the_one_process_bf16_gradients():
+    """In bf16 autocast every process runs its rows in bf16: the two-process gradients are
+    the one-process bf16 ones to well within what bf16 changes against float32 (so a
+    helper running its rows in float32 fails)."""
+    p = Params(batch_size=48, threads=1)
+    w = 16
+    maps, normals = _batch(48, w, seed=3)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        fp32 = _first_step_grads(*make_model(w, p, CPU), maps, normals, "fp32")
+        bf16 = _first_step_grads(*make_model(w, p, CPU), maps, normals, "bf16")
+        two, opt = make_model(w, p, CPU)
+        with StepProcesses(two, 2, max_rows=48, w=w, threads=1, precision="bf16") as procs:
+            shared = _first_step_grads(two, opt, maps, normals, "bf16", procs)
+    finally:
+        torch.set_num_threads(threads)
+    a, b, c = (torch.cat([g.flatten() for g in gs]) for gs in (fp32, bf16, shared))
+    bf16_vs_fp32 = float((b - a).norm())
+    assert bf16_vs_fp32 > 1e-3 * float(a.norm())  # autocast changed the gradients
+    assert float((c - b).norm()) < 0.2 * bf16_vs_fp32
+
+
 def test_a_step_process_that_dies_ends_the_step_with_an_error():
     p = Params(batch_size=32, threads=1)
     model, opt = make_model(16, p, CPU)

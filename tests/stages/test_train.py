@@ -377,7 +377,7 @@ def test_step_processes_share_each_step_and_resume_exactly(dataset, tmp_path):
     assert [r[0] for r in w2["history"]["val"]] == [r[0] for r in w1["history"]["val"]] == [4]
     assert w2["history"]["val"][0][1] == pytest.approx(w1["history"]["val"][0][1], abs=0.05)
     with pytest.raises(ConfigError, match="step_processes"):
-        train.Params(step_processes=2, precision="bf16")
+        train.Params(step_processes=2, compile=True)
 
 
 def test_step_processes_take_mixed_batches(dataset, tmp_path):
