@@ -80,8 +80,8 @@ processes, started for the run, the rest, each on ``threads / step_processes`` t
 kept in shared memory. The dropout masks are drawn per block of 16 rows of a batch, so a
 process's rows draw what they draw in one process: the weights are those of one process
 up to float rounding, and the setting is not part of the resume key. Two 1-thread
-processes made 1.1x the steps of one 2-thread process on 2 AMD EPYC cores
-(docs/performance.md).
+processes made 1.1x the steps of one 2-thread process on 2 AMD EPYC cores, with AVX2 and
+with AVX-512 alike (docs/performance.md).
 
 Feeding a GPU: Parquet row groups are decoded ``prefetch`` groups ahead in a background
 thread; on CUDA the float16 batches go through a ring of pinned host buffers with
