@@ -45,6 +45,7 @@ from cnnps.models.optimiser import autocast
 from cnnps.models.train_layers import MASK_BLOCK_ROWS
 
 WAIT_POLL_S = 0.5  # how often a waiting process checks that the other side is alive
+CPU = torch.device("cpu")
 
 
 def row_shares(rows: int, processes: int) -> list[tuple[int, int]]:
@@ -106,9 +107,6 @@ CMD, ROW0, ROWS, BATCH, KEY_LEN, KEY = 0, 1, 2, 3, 4, 5  # KEY: up to MAX_KEY in
 MAX_KEY = 8
 HEAD_LEN = KEY + MAX_KEY + 1
 STEP, STOP = 1, 0
-
-
-CPU = torch.device("cpu")
 
 
 def _rows_backward(model, maps, normals, key, row0: int, batch: int, channels_last: bool,

@@ -450,7 +450,6 @@ class Trainer:
         p = self.params
         ahead = int(getattr(p, "pixelwise_ahead", 0))
         made = None  # the per-pixel rows of a mixed batch, step by step
-        self._start_step_processes()
         if self.stream is None:  # per-pixel maps only, made on the training device
             ds = loader = GeneratedBatches(self._step_maps, self.total_steps, self.device, ahead)
         else:
@@ -459,6 +458,7 @@ class Trainer:
             if self.generated:
                 made = made_ahead(self._step_maps, itertools.count(self.step), self.device, ahead)
         try:
+            self._start_step_processes()  # inside: a failure here still closes what was started
             self._loop(ds, loader, made, stop_after_step, until)
         finally:
             if made is not None:
