@@ -31,7 +31,8 @@ Results: ``benchmarks/results/stage/<device kind>.json`` with the CPU model (and
 it had before the fast CPU step (:data:`BEFORE`: torch's dropout masks, torch's layers,
 glibc's allocator as it comes) and with today's defaults, each run in its own process,
 alternately, ``ROUNDS`` times; it writes ``<device kind>-vs-before.json`` with the
-medians and the ratio of each round. ``--bf16`` adds today's defaults in bf16 autocast, in
+medians and the ratio of each round. ``--counter32`` adds today's defaults with the 32-bit
+counter masks (``dropout_masks: counter``, the default before ``counter16``). ``--bf16`` adds today's defaults in bf16 autocast, in
 one process and in ``--step-processes``: ``<device kind>-vs-before-bf16.json``. ``--ahead ROUNDS --share S`` does the same for a
 stage whose batches are ``S`` per-pixel maps (:data:`PIXELWISE`'s effects), made in the
 step's thread against made a step ahead (``pixelwise_ahead`` 0 and 1):
@@ -94,7 +95,7 @@ def loader_rate(files, w: int, batch: int, device: torch.device, seconds: float)
             "what": "ShardStream float16 batches" if device.type == "cuda" else "ShardDataset float32 tensors"}
 
 
-def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: float, masks: str = "counter") -> dict:
+def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: float, masks: str = "counter16") -> dict:
     from cnnps.models.optimiser import make_model, train_step
     from cnnps.stages.train import Params
 
@@ -112,7 +113,7 @@ def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: flo
 
     def step(i):
         s = (i % nb) * batch
-        model.set_mask_key((p.seed, 0, i) if masks == "counter" else None)  # as the stage's eager steps
+        model.set_mask_key((p.seed, 0, i) if masks != "torch" else None)  # as the stage's eager steps
         return train_step(model, opt, maps[s:s + batch], normals[s:s + batch], device, p.precision, p.channels_last)
 
     for i in range(3):  # warm-up
@@ -136,7 +137,7 @@ def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: flo
 BEFORE = dict(dropout_masks="torch", cpu_layers="reference", keep_freed_memory=False, step_processes=1)
 
 
-def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path, masks: str = "counter",
+def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path, masks: str = "counter16",
                **settings) -> dict:
     from cnnps.stages import train
 
@@ -224,6 +225,8 @@ def main() -> None:
     ap.add_argument("--bf16", action="store_true",
                     help="--vs-before also runs today's defaults in bf16 autocast (train.precision: bf16), in one "
                          "process and in --step-processes")
+    ap.add_argument("--counter32", action="store_true",
+                    help="--vs-before: also today's defaults with dropout_masks: counter (32-bit masks)")
     ap.add_argument("--only", default="", help="--vs-before: the comma-separated settings to run, 'before' first "
                                                  "(names as in the results: now_1_process, now_2_processes, ...)")
     ap.add_argument("--one-stage", help=argparse.SUPPRESS)  # a child: the JSON of its train settings
@@ -249,6 +252,9 @@ def main() -> None:
         if args.vs_before:
             settings = {"before": BEFORE, "now_1_process": {"step_processes": 1},
                         f"now_{args.step_processes}_processes": {"step_processes": args.step_processes}}
+            if args.counter32:  # today's defaults with the 32-bit counter masks drawn before counter16
+                settings[f"now_{args.step_processes}_processes_counter32"] = {"step_processes": args.step_processes,
+                                                                              "dropout_masks": "counter"}
             if args.bf16:
                 settings["now_bf16_1_process"] = {"precision": "bf16", "step_processes": 1}
                 settings[f"now_bf16_{args.step_processes}_processes"] = {"precision": "bf16",

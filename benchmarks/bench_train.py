@@ -96,7 +96,7 @@ class Runner:
         x = torch.from_numpy(self.maps[idx].astype(np.float32)).unsqueeze(1)
         y = torch.from_numpy(self.normals[idx])
         self.load_s += time.perf_counter() - t0
-        counter = self.p.dropout_masks == "counter" and self.model is self.raw  # as the stage does
+        counter = self.p.dropout_masks != "torch" and self.model is self.raw  # as the stage does
         self.raw.set_mask_key((self.p.seed, 0, self.steps) if counter else None)
         self.steps += 1
         return train_step(self.model, self.opt, x, y, self.dev, self.p.precision, self.p.channels_last)

@@ -34,6 +34,8 @@ ARCH_VERSION = 1
 DEFAULT_W = 32
 DEFAULT_DROPOUT = 0.2
 GROWTH = 16  # channels added by each dense-block convolution
+# train.dropout_masks values that draw counter-based masks (counter_dropout), and their bits per element
+COUNTER_MASK_BITS = {"counter16": 16, "counter": 32}
 
 
 class CNNPS(nn.Module):
@@ -63,6 +65,7 @@ class CNNPS(nn.Module):
         # eager float32 CPU training with counter masks runs cnnps.models.train_layers
         # (same results up to float rounding); False keeps the layers above
         self.fused_cpu_layers = True
+        self.mask_bits = 32  # random bits per element of a counter mask (COUNTER_MASK_BITS)
         for mod in self.modules():  # he_normal, as the Keras model
             if isinstance(mod, (nn.Conv2d, nn.Linear)):
                 nn.init.kaiming_normal_(mod.weight, nonlinearity="relu")
@@ -80,7 +83,8 @@ class CNNPS(nn.Module):
     def _drop(self, t: torch.Tensor, site: int) -> torch.Tensor:
         if self._mask_key is None or not self.training or t.device.type != "cpu" or self.dropout_p == 0.0:
             return self.drop(t)
-        return counter_dropout(t, self.dropout_p, self._mask_key + (site,), self._mask_row0)
+        return counter_dropout(t, self.dropout_p, self._mask_key + (site,), self._mask_row0,
+                               getattr(self, "mask_bits", 32))
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 1, w, w) -> (B, 80, w/2, w/2), the output of the last 1x1 convolution.
@@ -114,14 +118,17 @@ class CNNPS(nn.Module):
         return F.normalize(x.float(), dim=1)
 
 
-def counter_dropout(t: torch.Tensor, p: float, key: tuple[int, ...], row0: int = 0) -> torch.Tensor:
+def counter_dropout(t: torch.Tensor, p: float, key: tuple[int, ...], row0: int = 0,
+                    bits: int = 32) -> torch.Tensor:
     """Dropout of ``t`` (training; its first dimension the batch rows ``row0`` on of a
     batch) with its mask drawn from a counter-based stream: NumPy's SFC64 seeded with
     ``key`` (a SeedSequence of the integers, e.g. seed, rank, step and layer) and the row
-    block, 32 random bits per element (:func:`cnnps.models.train_layers.counter_keep`).
+    block, ``bits`` (32 or 16) random bits per element
+    (:func:`cnnps.models.train_layers.counter_keep`).
 
-    An element is kept when its bits, read as int32, are >= -2^31 + round(p 2^32): the
-    drop rate is p to within 2^-33, and kept elements are scaled by 1 / (1 - that rate),
+    An element is kept when its bits, read as a signed integer, are >= -2^(bits-1) +
+    round(p 2^bits): the drop rate is p to within 2^-(bits+1) (2^-33 with 32 bits, 2^-17
+    with 16), and kept elements are scaled by 1 / (1 - that rate),
     as :class:`torch.nn.Dropout` does. The masks follow from ``key`` alone: a run resumed
     at step k draws what the uninterrupted run drew, with no generator state to save, and
     a batch split between processes draws what it draws whole. Drawing them is ~4x
@@ -135,10 +142,10 @@ def counter_dropout(t: torch.Tensor, p: float, key: tuple[int, ...], row0: int =
     """
     if t.dim() == 4 and not t.is_contiguous() and t.is_contiguous(memory_format=torch.channels_last):
         B, C, H, W = t.shape
-        keep, scale = counter_keep((B, H, W, C), p, key, row0)
+        keep, scale = counter_keep((B, H, W, C), p, key, row0, bits)
         keep = keep.view(B, H, W, C).permute(0, 3, 1, 2)
     else:
-        keep, scale = counter_keep(tuple(t.shape), p, key, row0)
+        keep, scale = counter_keep(tuple(t.shape), p, key, row0, bits)
         keep = keep.view(t.shape)
     return t * torch.mul(keep, scale).to(t.dtype)
 

@@ -17,7 +17,7 @@ from contextlib import nullcontext
 import torch
 import torch.nn.functional as F
 
-from cnnps.models.network import CNNPS
+from cnnps.models.network import CNNPS, COUNTER_MASK_BITS
 
 
 def lr_at(params, step: int) -> float:
@@ -45,6 +45,7 @@ def make_model(w: int, params, device: torch.device) -> tuple[CNNPS, torch.optim
     torch.manual_seed(params.seed)
     model = CNNPS(w=w, dropout=params.dropout).to(device)
     model.fused_cpu_layers = getattr(params, "cpu_layers", "fused") == "fused"
+    model.mask_bits = COUNTER_MASK_BITS.get(getattr(params, "dropout_masks", "counter"), 32)
     if params.channels_last:
         model = model.to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(model.parameters(), lr=params.lr, weight_decay=params.weight_decay,

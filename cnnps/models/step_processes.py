@@ -15,8 +15,10 @@ gradients of their share of the rows:
    dropout masks those rows have in the whole batch (the masks are drawn per block of
    :data:`cnnps.models.train_layers.MASK_BLOCK_ROWS` rows, and the shares are whole
    blocks);
-3. the main process adds the helpers' gradients to its own and steps Adam. The weights
-   live in shared memory, so the helpers see the update without a copy.
+3. the main process runs the caller's ``meanwhile`` (the training loop reads its next
+   batch there, while the helpers finish their rows), adds the helpers' gradients to its
+   own and steps Adam. The weights live in shared memory, so the helpers see the update
+   without a copy.
 
 The result is the single-process step's, up to float rounding (the sum of the shares'
 gradients is the whole batch's gradient; ``tests/models/test_step_processes.py`` compares
@@ -36,6 +38,7 @@ Example::
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -210,9 +213,13 @@ class StepProcesses:
             raise
 
     def step(self, opt: torch.optim.Optimizer, maps: torch.Tensor, normals: torch.Tensor,
-             key: tuple[int, ...]) -> torch.Tensor:
+             key: tuple[int, ...], meanwhile: Callable[[], object] | None = None) -> torch.Tensor:
         """One Adam step on the batch (maps (B, 1, w, w), unit normals (B, 3), float32 on
-        the CPU) with the counter masks of ``key``; the batch's MSE loss (detached)."""
+        the CPU) with the counter masks of ``key``; the batch's MSE loss (detached).
+
+        ``meanwhile``: called once this process's rows are done, while the helpers finish
+        theirs (the training loop reads its next batch there, so neither side waits for
+        the other for it); it must not touch the model or the optimiser."""
         batch = len(maps)
         shares = row_shares(batch, self.processes)
         if len(key) > MAX_KEY:
@@ -239,6 +246,9 @@ class StepProcesses:
                 q.grad = torch.zeros_like(q)
         t0 = time.perf_counter()
         self.own_seconds += t0 - t_main
+        if meanwhile is not None:
+            meanwhile()
+            t0 = time.perf_counter()
         for wk in busy:
             proc = wk["proc"]
             _wait(wk["done"], proc.is_alive,

@@ -10,6 +10,7 @@ model file (:mod:`cnnps.models.checkpoint`), which holds the weights only.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import torch
@@ -45,7 +46,9 @@ def read_training_state(path: Path) -> dict:
 
 
 def load_training_state(ckpt_dir: Path, run_key: str) -> dict | None:
-    """The newest readable checkpoint of this run key; others are deleted."""
+    """The newest readable checkpoint of this run key; others are deleted, each with one
+    line on stderr naming it (a checkpoint of other settings, data or code version: say a
+    changed default such as ``train.dropout_masks``; the run starts from its beginning)."""
     for path in reversed(list_checkpoints(ckpt_dir)):
         try:
             state = read_training_state(path)
@@ -54,7 +57,9 @@ def load_training_state(ckpt_dir: Path, run_key: str) -> dict | None:
             continue
         if state.get("run_key") == run_key and state.get("format") == CKPT_FORMAT:
             return state
-        path.unlink(missing_ok=True)  # from another configuration or data
+        print(f"train: {path}: a checkpoint of other settings or data (its run key differs): removed",
+              file=sys.stderr)
+        path.unlink(missing_ok=True)
     return None
 
 

@@ -46,6 +46,7 @@ from cnnps.io.shards import (
     verify_shards,
 )
 from cnnps.models.allocator import keep_freed_memory
+from cnnps.models.batch_lookahead import Lookahead
 from cnnps.models.checkpoint import (
     load_checkpoint,
     read_checkpoint,
@@ -66,6 +67,7 @@ from cnnps.models.distributed import (
     set_threads,
 )
 from cnnps.models.maps_ahead import made_ahead
+from cnnps.models.network import COUNTER_MASK_BITS
 from cnnps.models.optimiser import compile_model, lr_at, make_model, set_lr, train_step
 from cnnps.models.shard_dataset import ShardDataset
 from cnnps.models.step_clock import StepClock
@@ -384,13 +386,15 @@ class Trainer:
             generator=torch.Generator().manual_seed(self.params.seed),
         )
 
-    def _train_step(self, step_model, maps, normals):
+    def _train_step(self, step_model, maps, normals, meanwhile=None):
         """(loss, the model to step next): a compiled model's first step compiles; when
         that fails, this step is redone eagerly (RNG restored) and training stays eager.
-        With step processes, they share the step (:mod:`cnnps.models.step_processes`)."""
+        With step processes, they share the step (:mod:`cnnps.models.step_processes`) and
+        ``meanwhile`` runs while the helpers finish their rows."""
         p = self.params
         if self.procs is not None:
-            return self.procs.step(self.opt, maps, normals, (p.seed, self.info.rank, self.step)), step_model
+            key = (p.seed, self.info.rank, self.step)
+            return self.procs.step(self.opt, maps, normals, key, meanwhile=meanwhile), step_model
         if step_model is self.model:
             self._mask_key(eager=True)
             return train_step(self.model, self.opt, maps, normals, self.device, p.precision, p.channels_last), step_model
@@ -408,11 +412,12 @@ class Trainer:
             return loss, self.model
 
     def _mask_key(self, eager: bool) -> None:
-        """Eager steps with ``dropout_masks: counter`` draw their masks from the stream keyed
-        by (seed, rank, step) (:func:`cnnps.models.network.counter_dropout`); a compiled
-        model keeps torch's generator."""
+        """Eager steps with counter masks (``dropout_masks: counter16`` or ``counter``)
+        draw their masks from the stream keyed by (seed, rank, step)
+        (:func:`cnnps.models.network.counter_dropout`); a compiled model keeps torch's
+        generator."""
         p = self.params
-        counter = eager and getattr(p, "dropout_masks", "torch") == "counter"
+        counter = eager and getattr(p, "dropout_masks", "torch") in COUNTER_MASK_BITS
         net = getattr(self.model, "module", self.model)  # DistributedDataParallel wraps the network
         net.set_mask_key((p.seed, self.info.rank, self.step) if counter else None)
 
@@ -481,7 +486,7 @@ class Trainer:
         n = int(getattr(p, "step_processes", 1))
         self.all_threads = torch.get_num_threads()
         eligible = (self.device.type == "cpu" and not self.info.enabled and not p.compile
-                    and getattr(p, "dropout_masks", "torch") == "counter")
+                    and getattr(p, "dropout_masks", "torch") in COUNTER_MASK_BITS)
         if n == 0:  # auto
             n = auto_processes(self.all_threads, p.batch_size, self.total_steps - self.step) if eligible else 1
         self.step_processes = max(1, n)
@@ -523,37 +528,43 @@ class Trainer:
             ds.set_epoch(epoch)
             ds.set_skip(skip)
             batches = loader if self.stream is None else fed(loader, self.device)  # generated: on the device
-            for maps, normals in clock.waiting(batches):
-                if made is not None:
-                    with clock.part("pixelwise"):
-                        maps, normals = self._mix(maps, normals, next(made))
-                loss, step_model = self._train_step(step_model, maps, normals)
-                self.step += 1
-                step = self.step
-                if step in p.lr_milestones:
-                    set_lr(self.opt, lr_at(p, step))
-                if until is not None and until(step):
-                    self.total_steps = step  # ends here: the loss, the checkpoint and the loop below see the end
-                loss_acc += loss.float()
-                loss_n += 1
-                bar.update(p.batch_size)
-                if step % p.log_every == 0 or step == self.total_steps:
-                    self.history["loss"].append([step, self._mean_loss(loss_acc, loss_n)])
-                    bar.set_postfix(loss=f"{self.history['loss'][-1][1]:.4f}")
-                    loss_acc, loss_n = torch.zeros((), device=self.device), 0
-                if p.val_every and step % p.val_every == 0 and step != self.total_steps and self.main:
-                    with clock.part("validation"):
-                        v = self._validate_all_threads()
-                    if v:
-                        self.history["val"].append([step, v["val_mean_deg"], v["val_median_deg"]])
-                if step % p.checkpoint_every == 0 or step == self.total_steps:
-                    with clock.part("checkpoints"):
-                        self.checkpoint()
-                if stop_after_step is not None and step >= stop_after_step:
-                    bar.close()
-                    raise KeyboardInterrupt(f"stopped after step {step} (test)")
-                if step >= self.total_steps or step % self.steps_per_epoch == 0:
-                    break  # the end, or this epoch's steps (ranks may hold a few more batches)
+            feed = Lookahead(clock.waiting(batches))
+            try:
+                for maps, normals in feed:
+                    if made is not None:
+                        with clock.part("pixelwise"):
+                            maps, normals = self._mix(maps, normals, next(made))
+                    nxt = self.step + 1  # read the next batch early unless this step ends the epoch or the run
+                    ahead = nxt % self.steps_per_epoch and nxt < self.total_steps and nxt != stop_after_step
+                    loss, step_model = self._train_step(step_model, maps, normals, feed.pull if ahead else None)
+                    self.step += 1
+                    step = self.step
+                    if step in p.lr_milestones:
+                        set_lr(self.opt, lr_at(p, step))
+                    if until is not None and until(step):
+                        self.total_steps = step  # ends here: the loss, the checkpoint and the loop below see the end
+                    loss_acc += loss.float()
+                    loss_n += 1
+                    bar.update(p.batch_size)
+                    if step % p.log_every == 0 or step == self.total_steps:
+                        self.history["loss"].append([step, self._mean_loss(loss_acc, loss_n)])
+                        bar.set_postfix(loss=f"{self.history['loss'][-1][1]:.4f}")
+                        loss_acc, loss_n = torch.zeros((), device=self.device), 0
+                    if p.val_every and step % p.val_every == 0 and step != self.total_steps and self.main:
+                        with clock.part("validation"):
+                            v = self._validate_all_threads()
+                        if v:
+                            self.history["val"].append([step, v["val_mean_deg"], v["val_median_deg"]])
+                    if step % p.checkpoint_every == 0 or step == self.total_steps:
+                        with clock.part("checkpoints"):
+                            self.checkpoint()
+                    if stop_after_step is not None and step >= stop_after_step:
+                        bar.close()
+                        raise KeyboardInterrupt(f"stopped after step {step} (test)")
+                    if step >= self.total_steps or step % self.steps_per_epoch == 0:
+                        break  # the end, or this epoch's steps (ranks may hold a few more batches)
+            finally:
+                feed.close()  # a batch read ahead at the end is dropped
         bar.close()
         clock.sync()
         self.seconds = time.perf_counter() - t0

@@ -56,7 +56,8 @@ are channels_last (``channels_last``, ~1.3x), Adam uses torch's fused kernel
 ``OMP_WAIT_POLICY=PASSIVE`` before torch loads unless the environment sets a policy
 (with another busy process on a 2-core machine, spinning OpenMP threads made training
 2.7x slower); dropout masks are drawn from a counter-based stream keyed by the step
-(``dropout_masks: counter``; torch's ``bernoulli_`` took a third of a step on 2 cores);
+(``dropout_masks: counter16``, 16 random bits an element; ``counter`` draws 32; torch's
+``bernoulli_`` took a third of a step on 2 cores);
 with those masks the layers run as :mod:`cnnps.models.train_layers` (``cpu_layers:
 fused``: fewer passes over memory, the same results up to float rounding); and glibc
 keeps freed memory for the next step instead of page-faulting it back in
@@ -137,10 +138,12 @@ class Params:
     channels_last: bool = True  # NHWC activations: ~1.4x faster training on CPU (oneDNN)
     fused_adam: bool = True  # torch's fused Adam kernel (same algorithm, one pass per tensor)
     compile: bool = False  # torch.compile the model (inductor); falls back to eager with a warning
-    # dropout masks on a CPU: "counter" = drawn from a stream keyed by (seed, rank, step, layer, 16-row block),
-    # ~4x cheaper than torch's and resume-exact with no RNG state (cnnps.models.network.counter_dropout);
-    # "torch" = torch's generator, as before. CUDA and compiled models always use torch's.
-    dropout_masks: Literal["counter", "torch"] = "counter"
+    # dropout masks on a CPU: "counter16" = drawn from a stream keyed by (seed, rank, step, layer, 16-row block),
+    # 16 bits an element (the drop rate to 2^-17), ~4x cheaper than torch's and resume-exact with no RNG
+    # state (cnnps.models.network.counter_dropout); "counter" = the same with 32 bits an element (rate to
+    # 2^-33; ~2 ms more a 64-row step, and what runs before counter16 drew); "torch" = torch's generator.
+    # CUDA and compiled models always use torch's.
+    dropout_masks: Literal["counter16", "counter", "torch"] = "counter16"
     # eager float32 CPU steps with counter masks: "fused" = the layers of cnnps.models.train_layers
     # (fewer passes over memory, the same results up to float rounding); "reference" = torch's layers
     cpu_layers: Literal["fused", "reference"] = "fused"
@@ -201,9 +204,9 @@ class Params:
                 raise ConfigError(f"train.pixelwise_effects: unknown effect {k!r}; effects: {', '.join(effects)}")
             if not 0.0 <= float(v) <= 1.0:
                 raise ConfigError(f"train.pixelwise_effects.{k} must be a number in [0, 1], got {v!r}")
-        if self.step_processes > 1 and (self.compile or self.dropout_masks != "counter"):
+        if self.step_processes > 1 and (self.compile or self.dropout_masks == "torch"):
             raise ConfigError("train.step_processes > 1 needs eager steps with counter dropout masks "
-                              "(compile: false, dropout_masks: counter)")
+                              "(compile: false, dropout_masks: counter16 or counter)")
         if self.pixelwise >= 1.0 and not self.max_steps:
             raise ConfigError("train.pixelwise: 1 (per-pixel maps only) needs train.max_steps: there are no epochs")
 

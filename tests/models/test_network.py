@@ -166,26 +166,60 @@ def test_fast_cpu_model_matches_original(monkeypatch, use_mkldnn, w):
         assert (fast(x) - out_nchw).abs().max() < 1e-6
 
 
-def test_counter_dropout_masks_follow_their_key_and_rate():
-    """Dropout from the counter-based stream: the drop rate and scale of nn.Dropout, the
-    same mask for the same key (what makes a resumed run exact), another for another key,
-    and laid out in the tensor's memory order (channels_last)."""
+@pytest.mark.parametrize("bits,rate", [(32, 0.2), (16, 13107 / 65536)])
+def test_counter_dropout_masks_follow_their_key_and_rate(bits, rate):
+    """Dropout from the counter-based stream: the drop rate and scale of nn.Dropout (the
+    rate p rounded to 2^-bits: 0.2 is 13107 / 65536 with 16 bits), the same mask for the
+    same key (what makes a resumed run exact), another for another key, and laid out in
+    the tensor's memory order (channels_last)."""
     from cnnps.models.network import counter_dropout
 
     x = torch.ones(64, 16, 32, 32).contiguous(memory_format=torch.channels_last)
-    y = counter_dropout(x, 0.2, (0, 0, 7, 1))
+    y = counter_dropout(x, 0.2, (0, 0, 7, 1), bits=bits)
     kept = y != 0
     n = kept.numel()
     assert abs(1 - kept.float().mean().item() - 0.2) < 7 * (0.2 * 0.8 / n) ** 0.5  # seeded: no flake
-    assert torch.all(y[kept] == 1 / 0.8)  # scale 1 / (1 - p), p exact to 2^-33
+    assert torch.all(y[kept] == torch.tensor(1 / (1 - rate), dtype=torch.float32))  # scale 1 / (1 - rate)
+    assert abs(rate - 0.2) <= 2.0 ** -(bits + 1)
     assert y.is_contiguous(memory_format=torch.channels_last)
-    assert torch.equal(y, counter_dropout(x, 0.2, (0, 0, 7, 1)))
-    assert not torch.equal(kept, counter_dropout(x, 0.2, (0, 0, 8, 1)) != 0)
-    assert not torch.equal(kept, counter_dropout(x, 0.2, (0, 0, 7, 2)) != 0)
+    assert torch.equal(y, counter_dropout(x, 0.2, (0, 0, 7, 1), bits=bits))
+    assert not torch.equal(kept, counter_dropout(x, 0.2, (0, 0, 8, 1), bits=bits) != 0)
+    assert not torch.equal(kept, counter_dropout(x, 0.2, (0, 0, 7, 2), bits=bits) != 0)
     # the bits are laid out in memory order: a contiguous (NCHW) copy of the input draws the
     # same bits in its own order, so as many elements are kept, at other places
-    plain = counter_dropout(x.contiguous(), 0.2, (0, 0, 7, 1))
+    plain = counter_dropout(x.contiguous(), 0.2, (0, 0, 7, 1), bits=bits)
     assert plain.is_contiguous() and (plain != 0).float().mean().item() == kept.float().mean().item()
+
+
+def test_16_bit_counter_masks_are_the_32_bit_streams_halves():
+    """Both widths read the same SFC64 stream: the 16-bit masks of n elements are drawn
+    from the first n / 4 64-bit outputs, a prefix of what 32 bits read (independently
+    computed here with NumPy), and they differ from the 32-bit masks."""
+    import numpy as np
+
+    from cnnps.models.train_layers import counter_keep
+
+    key, n = (2, 0, 5, 3), 16 * 40  # one block of 16 rows, 40 elements a row
+    keep16, scale16 = counter_keep((16, 40), 0.2, key, bits=16)
+    keep32, _ = counter_keep((16, 40), 0.2, key, bits=32)
+    raw = np.random.SFC64(list(key) + [0]).random_raw(n // 2)
+    expect16 = raw[:n // 4].view(np.int16) >= -(2**15) + 13107
+    expect32 = raw.view(np.int32) >= -(2**31) + round(0.2 * 2**32)
+    assert np.array_equal(keep16.numpy(), expect16) and np.array_equal(keep32.numpy(), expect32)
+    assert not torch.equal(keep16, keep32)
+    assert scale16 == 65536 / (65536 - 13107)
+    with pytest.raises(ValueError, match="bits"):
+        counter_keep((16, 40), 0.2, key, bits=8)
+
+
+def test_the_train_stages_masks_set_the_models_mask_bits():
+    from cnnps.models.optimiser import make_model
+    from cnnps.stages.train import Params
+
+    assert Params().dropout_masks == "counter16"
+    for masks, bits in (("counter16", 16), ("counter", 32), ("torch", 32)):
+        model, _ = make_model(8, Params(dropout_masks=masks), torch.device("cpu"))
+        assert model.mask_bits == bits
 
 
 def test_counter_masks_apply_only_while_training_on_a_cpu_with_a_key():

@@ -44,11 +44,13 @@ def _model(w: int = 32, seed: int = 0) -> CNNPS:
     return model
 
 
-@pytest.mark.parametrize("w", [16, 32])
-def test_fused_gradients_match_a_float64_reference(w):
+@pytest.mark.parametrize("w,bits", [(16, 32), (32, 32), (32, 16)])
+def test_fused_gradients_match_a_float64_reference(w, bits):
     """Same masks, same loss: every parameter's gradient within float32 rounding of the
-    float64 reference (torch's layers), as torch's own float32 layers are."""
+    float64 reference (torch's layers), as torch's own float32 layers are; with 32- and
+    16-bit counter masks."""
     model = _model(w)
+    model.mask_bits = bits
     x, normals = _batch(24, w)
     assert model._fused_training(x)
     out, grads = _grads(model, x, normals)
@@ -86,10 +88,11 @@ def test_fused_layers_only_where_they_apply():
         assert not model._fused_training(x)
 
 
-def test_keep_mask_is_counter_dropouts_mask():
+@pytest.mark.parametrize("bits", [32, 16])
+def test_keep_mask_is_counter_dropouts_mask(bits):
     x = torch.ones(8, 16, 8, 8).contiguous(memory_format=torch.channels_last)
-    dropped = counter_dropout(x, 0.2, KEY + (1,))
-    keep, scale = train_layers.keep_mask((8, 8, 8, 16), 0.2, KEY + (1,))
+    dropped = counter_dropout(x, 0.2, KEY + (1,), bits=bits)
+    keep, scale = train_layers.keep_mask((8, 8, 8, 16), 0.2, KEY + (1,), bits=bits)
     assert keep.dtype == torch.float32 and set(keep.unique().tolist()) == {0.0, 1.0}
     assert torch.equal(keep.permute(0, 3, 1, 2) * scale, dropped)
 

@@ -151,7 +151,7 @@ def test_lr_milestones_reach_the_optimiser(dataset, tmp_path):
     assert _weights(d2)["optim"]["param_groups"][0]["lr"] == pytest.approx(1e-3)
 
 
-def test_init_starts_from_given_weights(dataset, tmp_path):
+def test_init_starts_from_given_weights(dataset, tmp_path, capsys):
     from cnnps.infra.errors import InputError
     from cnnps.models.checkpoint import load_checkpoint, read_checkpoint
 
@@ -168,8 +168,11 @@ def test_init_starts_from_given_weights(dataset, tmp_path):
     # a checkpoint of a run from scratch is not resumed into a run with init (other run key)
     c = fresh_copy(dataset, tmp_path / "c")
     train.run(train.Params(max_steps=1, lr=1e-9, val_every=0, **BASE), c)
+    capsys.readouterr()
     mc = train.run(train.Params(max_steps=1, lr=1e-9, val_every=0, init=str(a / "train/model.pt"), **BASE), c)
     assert mc["val_mean_deg"] == pytest.approx(ma["val_mean_deg"], abs=0.05)
+    # the removed checkpoint is named, not dropped in silence
+    assert "step-00000001.pt: a checkpoint of other settings or data (its run key differs): removed" in capsys.readouterr().err
     with pytest.raises(InputError, match="missing.pt"):
         train.run(train.Params(max_steps=1, init=str(tmp_path / "missing.pt"), **BASE), c)
 
