@@ -34,8 +34,6 @@ ARCH_VERSION = 1
 DEFAULT_W = 32
 DEFAULT_DROPOUT = 0.2
 GROWTH = 16  # channels added by each dense-block convolution
-# train.dropout_masks values that draw counter-based masks (counter_dropout), and their bits per element
-COUNTER_MASK_BITS = {"counter16": 16, "counter": 32}
 
 
 class CNNPS(nn.Module):
@@ -65,7 +63,7 @@ class CNNPS(nn.Module):
         # eager float32 CPU training with counter masks runs cnnps.models.train_layers
         # (same results up to float rounding); False keeps the layers above
         self.fused_cpu_layers = True
-        self.mask_bits = 32  # random bits per element of a counter mask (COUNTER_MASK_BITS)
+        self.mask_bits = 32  # random bits per element of a counter mask (train_layers.COUNTER_MASK_BITS)
         for mod in self.modules():  # he_normal, as the Keras model
             if isinstance(mod, (nn.Conv2d, nn.Linear)):
                 nn.init.kaiming_normal_(mod.weight, nonlinearity="relu")
@@ -83,8 +81,7 @@ class CNNPS(nn.Module):
     def _drop(self, t: torch.Tensor, site: int) -> torch.Tensor:
         if self._mask_key is None or not self.training or t.device.type != "cpu" or self.dropout_p == 0.0:
             return self.drop(t)
-        return counter_dropout(t, self.dropout_p, self._mask_key + (site,), self._mask_row0,
-                               getattr(self, "mask_bits", 32))
+        return counter_dropout(t, self.dropout_p, self._mask_key + (site,), self._mask_row0, self.mask_bits)
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 1, w, w) -> (B, 80, w/2, w/2), the output of the last 1x1 convolution.

@@ -17,7 +17,8 @@ from contextlib import nullcontext
 import torch
 import torch.nn.functional as F
 
-from cnnps.models.network import CNNPS, COUNTER_MASK_BITS
+from cnnps.models.network import CNNPS
+from cnnps.models.train_layers import COUNTER_MASK_BITS
 
 
 def lr_at(params, step: int) -> float:

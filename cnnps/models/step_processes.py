@@ -23,7 +23,7 @@ gradients of their share of the rows:
 The result is the single-process step's, up to float rounding (the sum of the shares'
 gradients is the whole batch's gradient; ``tests/models/test_step_processes.py`` compares
 the weights after several steps; in bf16 autocast, up to bf16 rounding). It needs eager
-steps with counter dropout masks (``dropout_masks: counter``, no ``compile``), in float32
+steps with counter dropout masks (``dropout_masks: counter16`` or ``counter``, no ``compile``), in float32
 or bf16 autocast (``precision``), on a CPU, in one process (not under torchrun).
 
 A helper that dies ends the step with an error naming it; helpers end when the main

@@ -35,7 +35,8 @@ import torch
 import torch.nn.functional as F
 
 MASK_BLOCK_ROWS = 16  # rows of a batch that share one counter stream (see counter_keep)
-MASK_BITS = (32, 16)  # random bits per mask element that counter_keep can draw
+# train.dropout_masks values that draw counter-based masks (counter_keep), and their random bits per element
+COUNTER_MASK_BITS = {"counter16": 16, "counter": 32}
 
 
 def counter_keep(shape: tuple[int, ...], p: float, key: tuple[int, ...], row0: int = 0,
@@ -53,8 +54,8 @@ def counter_keep(shape: tuple[int, ...], p: float, key: tuple[int, ...], row0: i
     2^-(bits+1) (16 bits: 0.2 is 13107 / 65536, 0.19999695), and the scale is 1 / (1 -
     that rate). 16 bits draw half the random numbers (~2 ms less a step of 64 rows on one
     AMD EPYC core)."""
-    if bits not in MASK_BITS:
-        raise ValueError(f"mask bits must be one of {MASK_BITS}, got {bits!r}")
+    if bits not in COUNTER_MASK_BITS.values():
+        raise ValueError(f"mask bits must be one of {sorted(COUNTER_MASK_BITS.values())}, got {bits!r}")
     rows, per_row = int(shape[0]), int(np.prod(shape[1:], dtype=np.int64))
     threshold = -(2 ** (bits - 1)) + int(round(p * 2**bits))
     scale = 1.0 / (1.0 - (threshold + 2 ** (bits - 1)) / 2**bits)
@@ -177,7 +178,7 @@ def features(model, x: torch.Tensor, key: tuple[int, ...], row0: int = 0) -> tor
     ((seed, rank, step): layer i draws from ``key + (i,)``) for a batch's rows from ``row0``
     on, ``model.mask_bits`` bits an element. x: (B, 1, w, w) float32 on a CPU. Returns
     (B, 80 * (w/2)^2)."""
-    p, bits = model.dropout_p, getattr(model, "mask_bits", 32)
+    p, bits = model.dropout_p, model.mask_bits
     B, _, w, _ = x.shape
     h, g = w // 2, model.conv0.out_channels
 

@@ -67,10 +67,10 @@ from cnnps.models.distributed import (
     set_threads,
 )
 from cnnps.models.maps_ahead import made_ahead
-from cnnps.models.network import COUNTER_MASK_BITS
 from cnnps.models.optimiser import compile_model, lr_at, make_model, set_lr, train_step
 from cnnps.models.shard_dataset import ShardDataset
 from cnnps.models.step_clock import StepClock
+from cnnps.models.train_layers import COUNTER_MASK_BITS
 from cnnps.models.train_state import (
     CKPT_FORMAT,
     checkpoint_path,
