@@ -182,7 +182,8 @@ def _torch_device(device: str) -> str:
 def _cnn_predictor(model_path, device, precision, batch_size):
     """(MapPredictor, checkpoint meta, how the precision was chosen): the network prepared
     once for every tile. ``precision="auto"``: the probe's (cached) pick for this machine
-    and model (:func:`cnnps.models.precision_probe.choose_precision`)."""
+    and model (:func:`cnnps.models.precision_probe.choose_precision`), run at the batch size
+    the probe found fastest for it unless ``batch_size`` is given."""
     from cnnps.models.checkpoint import load_checkpoint
     from cnnps.models.inference import MapPredictor
 
@@ -200,6 +201,8 @@ def _cnn_predictor(model_path, device, precision, batch_size):
                "under_load": choice.under_load, "probe_seconds": choice.probe_seconds, "key": choice.key}
         precision = choice.precision
         how["threads"] = choice.threads
+        if batch_size is None and choice.batch_size:
+            batch_size = how["batch_size"] = choice.batch_size  # the pick's fastest batch
     else:
         how = {"requested": precision, "reason": f"--precision {precision} given"}
         if torch_device == "cpu":

@@ -7,9 +7,10 @@ averages (``cnnps.ps.rotation.average_rotated_predictions``). Only one chunk's m
 at a time, so memory stays bounded for any image size.
 
 Speed (see ``benchmarks/bench_inference.py``): a CNNPS model is never run as trained.
-On CPU in fp32 it runs as ``cnnps.models.network.FastCNNPS`` (linear layers folded: ~20 % fewer
+On CPU it runs as ``cnnps.models.network.FastCNNPS`` (linear layers folded: ~20 % fewer
 operations; no dropout; no concatenations; ReLU and partial sums fused into oneDNN
-convolutions), elsewhere (bf16 autocast, CUDA) as ``FoldedCNNPS``; always channels_last,
+convolutions), in fp32 or with its own bf16 weights (precision="bf16"; no autocast); on
+CUDA as ``FoldedCNNPS`` (bf16: under autocast); always channels_last,
 under ``torch.inference_mode``, CPU batches small enough to stay in the caches
 (``DEFAULT_BATCH_CPU`` = 256 maps). Outputs equal the trained network's up to float32
 rounding. Any other ``nn.Module`` mapping (B, 1, w, w) maps to (B, 3) normals is run as
@@ -67,17 +68,20 @@ class MapPredictor:
             raise CnnpsError(f"batch size must be >= 1, got {batch_size}")
         self.batch_size = int(batch_size)
         self.w = int(getattr(model, "w", 32))
+        # autocast: bf16 anywhere but in FastCNNPS, which holds its own bf16 weights
+        self.autocast = self.precision == "bf16"
         if fold and isinstance(model, CNNPS):
-            if self.device.type == "cpu" and self.precision == "fp32":
-                net = fast_cpu_model(model)  # folded, concatenation-free, fused oneDNN kernels
+            if self.device.type == "cpu":  # folded, concatenation-free, fused oneDNN kernels
+                net = fast_cpu_model(model, torch.bfloat16 if self.precision == "bf16" else torch.float32)
+                self.autocast = False
             else:
-                net = fold_for_inference(model)  # bf16 autocast / CUDA: plain folded network
+                net = fold_for_inference(model)  # CUDA: the plain folded network (bf16: autocast)
         else:
             net = copy.deepcopy(model)
         self.net = net.to(self.device).eval().to(memory_format=torch.channels_last)
 
     def _forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.precision == "bf16":
+        if self.autocast:
             with torch.autocast(self.device.type, dtype=torch.bfloat16):
                 y = self.net(x)
         else:
@@ -120,7 +124,8 @@ def predict_normals(
     lights: (m, 3) unit light directions (camera frame: x right, y up, z to the camera),
     or (P, m, 3) each pixel's own (point lights near the object; never sparse-filled).
     rotations: K test-time rotations (K = 1: none; the paper uses 10).
-    device: 'auto' | 'cpu' | 'cuda[:N]'. precision: 'fp32' | 'bf16' (autocast).
+    device: 'auto' | 'cpu' | 'cuda[:N]'. precision: 'fp32' | 'bf16' (CPU: bf16 weights and
+    activations, :class:`~cnnps.models.network.FastCNNPS`; CUDA: autocast).
     batch_size: maps per network call (default ``DEFAULT_BATCH_CPU`` = 256 on CPU,
     ``DEFAULT_BATCH_CUDA`` = 4096 on CUDA).
     sparse_fill: 'auto' | 'on' | 'off': virtual Lambertian observations for sparse captures

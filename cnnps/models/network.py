@@ -25,7 +25,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cnnps.models.train_layers import counter_keep, mkldnn_pointwise_available
+from cnnps.models.train_layers import (
+    counter_keep,
+    mkldnn_bf16_available,
+    mkldnn_pointwise_available,
+)
 from cnnps.models.train_layers import features as fused_features
 
 # Bump whenever the layer layout or the state-dict names change: old checkpoints then
@@ -234,13 +238,31 @@ class FastCNNPS(nn.Module):
     Uses ``torch.ops.mkldnn._convolution_pointwise`` (the fused kernels torch.compile
     emits) when available on CPU, else the same algebra with plain ``F.conv2d``.
     Outputs equal the original network's up to float32 rounding (~1e-6).
+
+    ``dtype=torch.bfloat16`` is the same network for CPUs with bf16 matrix units (AMX,
+    AVX-512 BF16): weights are stored in bf16 (convolution weights channels_last, the
+    dense weights as the (K, N) matrices oneDNN's bf16 GEMM reads), the input is cast
+    once, every convolution, pooling and dense product runs on bf16 tensors with fp32
+    accumulation inside oneDNN, and only the last dense layer (128 -> 3) and the
+    normalisation run in fp32. No autocast, so nothing is converted between layers.
+    Where oneDNN has no bf16 kernels (AVX2-only CPUs,
+    :func:`cnnps.models.train_layers.mkldnn_bf16_available`) the same algebra runs on
+    torch's reference kernels: correct, but far slower than fp32.
+
+    Example::
+
+        fast = FastCNNPS(model, dtype=torch.bfloat16)
+        normals = fast(maps.contiguous(memory_format=torch.channels_last))  # (B, 3) float32
     """
 
-    def __init__(self, model: CNNPS):
+    def __init__(self, model: CNNPS, dtype: torch.dtype = torch.float32):
         super().__init__()
+        if dtype not in (torch.float32, torch.bfloat16):
+            raise ValueError(f"FastCNNPS runs in float32 or bfloat16, not {dtype}")
         folded = model if isinstance(model, FoldedCNNPS) else fold_for_inference(model)
         g = GROWTH
         self.w = folded.w
+        self.dtype = dtype
         sd = {k: v.detach().float().clone() for k, v in folded.state_dict().items()}
         h = (self.w // 2) ** 2
 
@@ -265,11 +287,16 @@ class FastCNNPS(nn.Module):
         for name, (lo, hi) in (("fc1_z0", (0, 3 * g)), ("fc1_z1", (3 * g, 4 * g)), ("fc1_z2", (4 * g, 5 * g))):
             buffers[name] = a[:, lo:hi, :].permute(2, 1, 0).reshape(h * (hi - lo), 128).contiguous()
         for name, tensor in buffers.items():
+            if name not in ("fc2_wt", "fc2_b"):  # the 128 -> 3 layer and the norm stay fp32
+                tensor = tensor.to(dtype)
+                if tensor.dim() == 4:
+                    tensor = tensor.contiguous(memory_format=torch.channels_last)
             self.register_buffer(name, tensor)
         self.eval()
 
     def _conv(self, x, w, b, pad, relu, add=None):
-        if x.device.type == "cpu" and x.dtype == torch.float32 and mkldnn_pointwise_available():
+        if x.device.type == "cpu" and mkldnn_pointwise_available() and (
+                x.dtype == torch.float32 or (x.dtype == torch.bfloat16 and mkldnn_bf16_available())):
             p, one = [pad, pad], [1, 1]
             if add is None:
                 return torch.ops.mkldnn._convolution_pointwise(x, w, b, p, one, one, 1, "relu" if relu else "none", [], "")
@@ -285,7 +312,7 @@ class FastCNNPS(nn.Module):
         return t.permute(0, 2, 3, 1).reshape(t.shape[0], -1)  # a view for channels_last
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = x.contiguous(memory_format=torch.channels_last)
+        x = x.to(self.dtype).contiguous(memory_format=torch.channels_last)
         r0 = self._conv(x, self.c0_w, self.c0_b, 1, True)
         y1 = self._conv(r0, self.c11_w, self.c11_b, 1, True)
         y2 = self._conv(y1, self.c12b_w, None, 1, True, add=self._conv(r0, self.c12a_w, self.c12_b, 1, False))
@@ -296,11 +323,12 @@ class FastCNNPS(nn.Module):
         z2 = self._conv(z1, self.c22b_w, None, 1, True, add=self._conv(z0, self.c22a_w, self.c22_b, 1, False))
         h = torch.addmm(self.fc1_b, self._flat(z0), self.fc1_z0)
         h = h.addmm_(self._flat(z1), self.fc1_z1).addmm_(self._flat(z2), self.fc1_z2).relu_()
-        return F.normalize(torch.addmm(self.fc2_b, h, self.fc2_wt).float(), dim=1)
+        return F.normalize(torch.addmm(self.fc2_b, h.float(), self.fc2_wt), dim=1)
 
 
-def fast_cpu_model(model: CNNPS) -> FastCNNPS:
-    """An eval-only copy of ``model`` tuned for CPU inference (same outputs)."""
+def fast_cpu_model(model: CNNPS, dtype: torch.dtype = torch.float32) -> FastCNNPS:
+    """An eval-only copy of ``model`` tuned for CPU inference in ``dtype`` (float32: the
+    same outputs up to float rounding; bfloat16: see :class:`FastCNNPS`)."""
     if not isinstance(model, (CNNPS, FoldedCNNPS)):
         raise TypeError(f"expected a CNNPS model, got {type(model).__name__}")
-    return FastCNNPS(model)
+    return FastCNNPS(model, dtype=dtype)

@@ -1,61 +1,72 @@
 """``--precision auto``: time the exact-enough inference paths on this machine, keep the fastest.
 
-Which CPU path is fastest depends on the CPU, not on the code: on a 2-core Intel Xeon
-(AVX-512, no AMX) fast fp32 ran at 6,531 maps/s and bf16 autocast at 3,962; on a 2-core
-AMD EPYC with AVX-512 BF16 bf16 ran at 7,711 and fast fp32 at 3,806; on an AVX2-only AMD
-EPYC bf16 has no hardware support at all. So the default is measured, once per machine:
+Which CPU path is fastest depends on the CPU, not on the code: bf16 runs on matrix units
+(Intel AMX, AVX-512 BF16) at several times fp32's rate, on AVX-512 without BF16 through
+conversions, and on AVX2 alone only on torch's slow reference kernels. So the default is
+measured, once per machine:
 
-1. **Candidates** (:data:`CANDIDATES`): ``fp32`` (on a CPU the folded, fused
-   :class:`~cnnps.models.network.FastCNNPS`) and ``bf16`` (autocast). Each runs the model
-   to be used over a fixed, seeded set of :data:`PROBE_MAPS` observation maps
-   (:func:`probe_maps`: Lambertian plus a specular lobe, attached and cast shadows, 96
-   lights, normals known), after one warm-up batch; its rate is the best of
-   :data:`PROBE_REPEATS` timed passes. A candidate that a 64-map estimate shows to be
-   at under half the best rate so far, or slower than :data:`PROBE_BUDGET_S` per pass, is
-   stopped there (it cannot be the pick).
-2. **Exact enough**: a candidate qualifies when the mean angular error of its normals
+1. **Candidates** (:data:`CANDIDATES`): ``fp32`` and ``bf16``, on a CPU both the folded,
+   fused :class:`~cnnps.models.network.FastCNNPS` (bf16: its own bf16 weights). bf16 is
+   tried only where oneDNN has bf16 kernels
+   (:func:`cnnps.models.train_layers.mkldnn_bf16_available`); elsewhere the reason says
+   it was skipped. Each runs the model to be used on a fixed, seeded set of
+   :data:`PROBE_MAPS` observation maps (:func:`probe_maps`: Lambertian plus a specular
+   lobe, attached and cast shadows, 96 lights, normals known).
+2. **A fair trial** (:func:`_time_candidate`): a candidate is timed at each batch size of
+   :data:`BATCH_SIZES` (CPU; one batch size when the caller fixed it, and on a GPU), and
+   its rate is that of its best batch size. At each batch size one untimed warm-up call
+   of exactly that shape comes first: oneDNN creates (and for bf16 on AMX, JIT-compiles)
+   its kernels per input shape on the first call, which can take longer than the
+   calls after it, so a pass that includes it would judge the kernel creation, not the
+   path. Then :data:`TIMED_CALLS` timed calls of that shape; the median decides. A
+   candidate is stopped (it cannot be the pick) when its warm-up alone takes longer than
+   :data:`PROBE_BUDGET_S`, or when its first timed call runs at under half of the best
+   rate so far. Its normals for the accuracy check come from one untimed pass over all
+   maps at its best batch size.
+3. **Exact enough**: a candidate qualifies when the mean angular error of its normals
    against the known ones is within :data:`TOLERANCE_DEG` (0.05°) of fp32's on the same
    maps, the measure the benchmarks report; the mean angle between its normals and fp32's
    is recorded beside it. fp32 always qualifies.
-3. **The pick** is the fastest that qualifies; it wins over fp32 only by more than
-   :data:`MIN_GAIN` (5 %), so timing noise does not flip a tie.
+4. **The pick** is the fastest that qualifies; it wins over fp32 only by more than
+   :data:`MIN_GAIN` (5 %), so timing noise does not flip a tie. The run then uses the
+   pick's batch size (:attr:`Choice.batch_size`) unless the caller gave one.
 
-4. **Threads** (CPU): the probe runs with one intra-op thread per CPU the process may use
+5. **Threads** (CPU): the probe runs with one intra-op thread per CPU the process may use
    (affinity), then times the pick again with half as many (:func:`thread_candidates`;
    where two hardware threads share a core, one per core can be faster); fewer threads
    win only by more than :data:`MIN_GAIN`, and torch is left at the winner (also when the
    answer comes from the cache). Inter-op threads are not tuned: the network is one chain
    of operators, with nothing to run side by side.
 
-5. **Load**: timings taken while other work shares the CPUs decide wrongly (a probe
+6. **Load**: timings taken while other work shares the CPUs decide wrongly (a probe
    measured beside another job once found 1 thread faster than 2, 1,957 against 1,153
    maps/s, where the quiet machine gives 2 threads 2,987, and the cached pick halved every
-   later run's speed). Every timed pass records the process's CPU time beside its wall
+   later run's speed). Every timed call records the process's CPU time beside its wall
    time (:class:`TimedPass`); :func:`judge_load` calls the probe *under load* when, at
    some thread count, the threads got less than :data:`LOAD_SHARE` of their CPUs' time
    (CPU seconds / (wall seconds x threads): a quiet machine gives about 1, since the
    intra-op threads keep their CPUs busy through a pass, and a job sharing the CPUs takes
-   its part of them away), or when two passes of the same candidate disagree by more than
-   :data:`PASS_SPREAD` (a load that came or went). A probe under load is used for this run
-   only: not cached, and its reason says why. The CPU share is used rather than
-   ``os.getloadavg()``: the load average counts the whole host (in a container, other
-   tenants' CPUs too), lags by a minute and counts this process's own threads; the CPU
-   share measures what the timed passes themselves got. It cannot see a job on a
-   hyperthread sibling (the threads keep their CPU time but run slower): a run that is then
-   far slower than the probe is the second guard (:func:`report_rate`).
+   its part of them away), or when two timed calls of the same candidate and shape
+   disagree by more than :data:`PASS_SPREAD` (a load that came or went; warm-up calls are
+   not compared, since their kernel creation is expected to be slow). A probe under load
+   is used for this run only: not cached, and its reason says why. The CPU share is used
+   rather than ``os.getloadavg()``: the load average counts the whole host (in a
+   container, other tenants' CPUs too), lags by a minute and counts this process's own
+   threads; the CPU share measures what the timed calls themselves got. It cannot see a
+   job on a hyperthread sibling (the threads keep their CPU time but run slower): a run
+   that is then far slower than the probe is the second guard (:func:`report_rate`).
 
-The probe takes about a second (384 maps; a candidate that is clearly slower is stopped
-after 64). Its
-answer is cached per (CPU model and flags, logical CPUs, torch version, device, model
-SHA-256) in ``$CNNPS_CACHE_DIR`` or ``$XDG_CACHE_HOME/cnnps`` (default
-``~/.cache/cnnps``), file ``precision.json``, written atomically; a cache that cannot be
-read or written is ignored (the probe just runs again). A cached answer is used for
-:data:`CACHE_MAX_AGE_S` (30 days) after its probe, then probed again (a machine's load,
-firmware and neighbours change); :func:`report_rate`, called after a run with the rate the
-run reached, drops the answer when that rate is under :data:`SLOW_RUN_FACTOR` (half) of
-the probe's, so the next run probes again. ``--precision fp32|bf16`` never probes.
-:class:`Choice` says which path runs and why (and, when cached, how old it is);
-``cnnps predict -v`` prints it and ``prediction.json`` records it.
+The probe takes about a second. Its answer is cached per (CPU model and flags, logical
+CPUs, torch version, device, model SHA-256) in ``$CNNPS_CACHE_DIR`` or
+``$XDG_CACHE_HOME/cnnps`` (default ``~/.cache/cnnps``), file ``precision.json``, written
+atomically; a cache that cannot be read or written is ignored (the probe just runs
+again). A cached answer is used for :data:`CACHE_MAX_AGE_S` (30 days) after its probe,
+then probed again (a machine's load, firmware and neighbours change); :func:`report_rate`,
+called after a run with the rate the run reached, drops the answer when that rate is
+under :data:`SLOW_RUN_FACTOR` (half) of the probe's, so the next run probes again.
+``--precision fp32|bf16`` never probes. :class:`Choice` says which path runs and why (and,
+when cached, how old it is); ``cnnps predict -v`` prints it and ``prediction.json``
+records it.
 """
 
 from __future__ import annotations
@@ -80,14 +91,16 @@ CANDIDATES = ("fp32", "bf16")
 TOLERANCE_DEG = 0.05
 MIN_GAIN = 0.05
 PROBE_MAPS = 384
-WARM_MAPS = 64
-PROBE_REPEATS = 2
-PROBE_BUDGET_S = 0.5  # per timed pass of one candidate
+BATCH_SIZES = (64, 256)  # CPU batch sizes each candidate is timed at; its best one is kept
+TIMED_CALLS = 3  # timed calls per batch size, after its warm-up call; the median decides
+PROBE_BUDGET_S = 0.5  # a candidate whose warm-up call alone takes longer is stopped
 PROBE_SEED = 20261123
 CACHE_FILE = "precision.json"
-CACHE_VERSION = 2  # 2: entries carry ``probed_at``; version-1 entries (maybe probed under load) are dropped
+# 3: bf16 timed at its own best batch size after warm-ups of every timed shape, entries carry
+# ``batch_size``; earlier entries (bf16 judged on its kernel creation) are probed again
+CACHE_VERSION = 3
 LOAD_SHARE = 0.75  # threads that got less of their CPUs' time than this during the timed passes ran under load
-PASS_SPREAD = 1.3  # two passes of the same candidate farther apart than this (slower / faster): load changed
+PASS_SPREAD = 1.3  # two timed calls of the same candidate and shape farther apart than this: load changed
 CACHE_MAX_AGE_S = 30 * 24 * 3600.0  # a cached answer is probed again after 30 days
 SLOW_RUN_FACTOR = 0.5  # a run under half the probe's rate drops the cached answer (report_rate)
 
@@ -99,8 +112,9 @@ now = time.time  # when an answer was probed (cache ages)
 
 @dataclass(frozen=True)
 class TimedPass:
-    """One timed call of a candidate over ``maps`` maps: its wall time and the process's
-    CPU time over the same interval, with ``threads`` intra-op threads (None: on a GPU)."""
+    """One timed call of a candidate on a batch of ``maps`` maps: its wall time and the
+    process's CPU time over the same interval, with ``threads`` intra-op threads (None: on a
+    GPU)."""
 
     candidate: str
     threads: int | None
@@ -150,6 +164,8 @@ class Choice:
     error_change_deg: dict = field(default_factory=dict)  # candidate -> mean error minus fp32's
     deviation_deg: dict = field(default_factory=dict)  # candidate -> mean angle to fp32's normals
     probe_seconds: float = 0.0
+    batch_size: int | None = None  # maps per network call at which the pick ran fastest
+    batch_rates: dict = field(default_factory=dict)  # candidate -> {batch size: maps/s}
     threads: int | None = None  # torch intra-op threads to run with (CPU; None: leave as is)
     thread_rates: dict = field(default_factory=dict)  # threads -> maps/s of the pick
     probed_at: float | None = None  # when the probe ran (seconds since the epoch)
@@ -216,58 +232,113 @@ def _mean_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(angular_error_deg(a, b).mean())
 
 
-def _time_candidate(predictor, maps: np.ndarray, floor: float | None,
-                    stoppable: bool = True, passes: list | None = None) -> tuple[float, np.ndarray | None]:
-    """(maps/s, normals) of one candidate: a small warm-up call, a timed estimate on
-    :data:`WARM_MAPS` maps, then the best of :data:`PROBE_REPEATS` passes over all maps.
-    Stopped after the estimate, with normals None, when it shows the candidate would take
-    more than :data:`PROBE_BUDGET_S` or runs at under half of ``floor`` (the fastest rate so
-    far): it cannot be the pick. The reference (fp32, ``stoppable=False``) always runs to
-    the end, however slow the machine: the others are judged against its normals. Each
-    timed call is appended to ``passes`` (:class:`TimedPass`) when given."""
-    threads = torch.get_num_threads() if getattr(predictor, "device", torch.device("cpu")).type == "cpu" else None
+def bf16_available(device: torch.device) -> bool:
+    """Whether bf16 is worth a trial on ``device``: a GPU, or a CPU where oneDNN has bf16
+    kernels (on AVX2 alone bf16 runs on reference kernels at a small fraction of fp32's
+    rate: nothing to measure)."""
+    if device.type != "cpu":
+        return True
+    from cnnps.models.train_layers import mkldnn_bf16_available
 
-    def timed(batch: np.ndarray) -> tuple[float, np.ndarray]:
-        w0, c0 = wall_clock(), cpu_clock()
-        out = predictor(batch)
-        wall, cpu = wall_clock() - w0, cpu_clock() - c0
-        if passes is not None:
-            passes.append(TimedPass(predictor.precision, threads, len(batch), wall, cpu))
-        return max(wall, 1e-9), out
+    return mkldnn_bf16_available()
 
-    predictor(maps[:16])  # first call: kernels chosen, caches filled
-    warm = maps[:WARM_MAPS]
-    estimate = len(warm) / timed(warm)[0]
-    if stoppable and (len(maps) / estimate > PROBE_BUDGET_S or (floor is not None and estimate < 0.5 * floor)):
-        return estimate, None
-    best, out = None, None
-    for _ in range(PROBE_REPEATS):
-        dt, out = timed(maps)
-        best = dt if best is None else min(best, dt)
-    return len(maps) / best, out
+
+def make_predictor(model: nn.Module, device: torch.device, precision: str, batch_size: int):
+    """The :class:`~cnnps.models.inference.MapPredictor` the probe times (a seam for tests)."""
+    from cnnps.models.inference import MapPredictor
+
+    return MapPredictor(model, device=device, precision=precision, batch_size=batch_size)
+
+
+def batch_candidates(device: torch.device, batch_size: int | None) -> tuple[int, ...]:
+    """The batch sizes a candidate is timed at: ``batch_size`` when given, on a CPU
+    :data:`BATCH_SIZES`, on a GPU its default (a GPU run's batch is not tuned here)."""
+    if batch_size is not None:
+        return (int(batch_size),)
+    if device.type == "cpu":
+        return BATCH_SIZES
+    from cnnps.models.inference import DEFAULT_BATCH_CUDA
+
+    return (DEFAULT_BATCH_CUDA,)
+
+
+@dataclass
+class Trial:
+    """What :func:`_time_candidate` measured of one candidate: ``rate`` (maps/s at its best
+    batch size; an estimate when stopped), ``batch_size``, ``batch_rates`` ({batch: maps/s}),
+    ``normals`` (its normals of every probe map; None when it was stopped) and ``why`` it
+    was stopped ("" when it ran to the end)."""
+
+    rate: float
+    batch_size: int
+    batch_rates: dict
+    normals: np.ndarray | None
+    why: str = ""
+
+
+def _time_candidate(model: nn.Module, device: torch.device, precision: str, maps: np.ndarray,
+                    batches: tuple[int, ...], floor: float | None, stoppable: bool = True,
+                    passes: list | None = None, with_normals: bool = True) -> Trial:
+    """Time one candidate fairly (module docstring, step 2): per batch size one warm-up call
+    of that exact shape, then :data:`TIMED_CALLS` timed calls, the median deciding; then an
+    untimed pass over all ``maps`` at the best batch size for its normals. ``floor``: the
+    fastest rate so far; ``stoppable``: False for the reference (fp32 always runs to the end,
+    however slow the machine: the others are judged against its normals). Each timed call is
+    appended to ``passes`` (:class:`TimedPass`) when given; ``with_normals=False`` skips
+    the pass for the normals (a trial for its rate alone)."""
+    threads = torch.get_num_threads() if device.type == "cpu" else None
+    rates: dict[int, float] = {}
+    for b in batches:
+        predictor = make_predictor(model, device, precision, b)
+        batch = maps[:b] if len(maps) >= b else np.resize(maps, (b,) + maps.shape[1:])
+        w0 = wall_clock()
+        predictor(batch)  # kernels created for this shape, caches filled
+        warm = wall_clock() - w0
+        if stoppable and warm > PROBE_BUDGET_S:
+            return Trial(b / max(warm, 1e-9), b, {**rates, b: round(b / max(warm, 1e-9), 1)}, None,
+                         f"warm-up {warm:.2f} s over the {PROBE_BUDGET_S:.2f} s budget")
+        walls = []
+        for i in range(TIMED_CALLS):
+            w0, c0 = wall_clock(), cpu_clock()
+            predictor(batch)
+            wall, cpu = max(wall_clock() - w0, 1e-9), cpu_clock() - c0
+            walls.append(wall)
+            if passes is not None:
+                passes.append(TimedPass(precision, threads, b, wall, cpu))
+            if i == 0 and stoppable and floor is not None and b / wall < 0.5 * floor:
+                return Trial(b / wall, b, {**rates, b: round(b / wall, 1)}, None, "under half the best rate")
+        rates[b] = b / float(np.median(walls))
+    best = max(rates, key=rates.get)
+    normals = make_predictor(model, device, precision, best)(maps) if with_normals else None
+    return Trial(rates[best], best, {b: round(r, 1) for b, r in rates.items()}, normals)
 
 
 def probe(model: nn.Module, device: torch.device, batch_size: int | None = None) -> Choice:
     """Time and check every candidate (see the module docstring); no cache."""
-    from cnnps.models.inference import MapPredictor
-
     t_start, probed_at = time.perf_counter(), now()
     passes: list[TimedPass] = []
     maps, truth = probe_maps(w=int(getattr(model, "w", 32)))
     threads = thread_candidates() if device.type == "cpu" else []
     if threads:
         torch.set_num_threads(threads[0])
-    rates, outs = {}, {}
+    batches = batch_candidates(device, batch_size)
+    trials: dict[str, Trial] = {}
+    rates, skipped = {}, {}
     for c in CANDIDATES:
+        if c == "bf16" and not bf16_available(device):
+            rates[c] = None
+            skipped[c] = "no bf16 kernels on this CPU"
+            continue
         try:
-            predictor = MapPredictor(model, device=device, precision=c, batch_size=batch_size)
-            floor = max((r for r in rates.values() if isinstance(r, float)), default=None)
-            rates[c], outs[c] = _time_candidate(predictor, maps, floor, stoppable=c != "fp32", passes=passes)
+            floor = max((t.rate for t in trials.values() if t.normals is not None), default=None)
+            trials[c] = _time_candidate(model, device, c, maps, batches, floor, stoppable=c != "fp32", passes=passes)
+            rates[c] = trials[c].rate
         except RuntimeError as exc:  # e.g. a device or build without bf16 kernels
             if c == "fp32":
                 raise  # the reference path itself fails: nothing to choose from
-            rates[c], outs[c] = None, None
+            rates[c] = None
             rates[f"{c}_error"] = str(exc).splitlines()[0][:200]
+    outs = {c: t.normals for c, t in trials.items()}
     base_err = _mean_angle_deg(outs["fp32"], truth)
     change, deviation = {}, {}
     for c in CANDIDATES:
@@ -283,15 +354,19 @@ def probe(model: nn.Module, device: torch.device, batch_size: int | None = None)
     parts = []
     for c in CANDIDATES:
         r = rates.get(c)
-        if r is None:
+        if c in skipped:
+            parts.append(f"{c} skipped ({skipped[c]})")
+        elif r is None:
             parts.append(f"{c} failed")
         elif outs.get(c) is None:
-            parts.append(f"{c} ~{r:,.0f} maps/s (stopped after the warm-up)")
+            parts.append(f"{c} ~{r:,.0f} maps/s (stopped: {trials[c].why})")
         else:
+            at = f" at batch {trials[c].batch_size}" if len(batches) > 1 else ""
             tail = "" if c == "fp32" else f", mean error {change[c]:+.3f} deg vs fp32"
-            parts.append(f"{c} {r:,.0f} maps/s{tail}")
+            parts.append(f"{c} {r:,.0f} maps/s{at}{tail}")
     why = ("fastest within %.2f deg of fp32" % TOLERANCE_DEG) if best != "fp32" else "no faster path within %.2f deg of fp32" % TOLERANCE_DEG
-    pick_threads, thread_rates = _choose_threads(model, device, best, batch_size, maps, rates[best], threads, passes)
+    pick_batch = trials[best].batch_size
+    pick_threads, thread_rates = _choose_threads(model, device, best, pick_batch, maps, rates[best], threads, passes)
     if len(thread_rates) > 1:
         why += "; " + ", ".join(f"{n} threads {r:,.0f}" for n, r in thread_rates.items()) + f": {pick_threads} threads"
     load = judge_load(passes)
@@ -304,6 +379,8 @@ def probe(model: nn.Module, device: torch.device, batch_size: int | None = None)
         error_change_deg=change,
         deviation_deg=deviation,
         probe_seconds=round(time.perf_counter() - t_start, 3),
+        batch_size=pick_batch,
+        batch_rates={c: {str(b): r for b, r in t.batch_rates.items()} for c, t in trials.items()},
         threads=pick_threads,
         thread_rates={str(k): round(v, 1) for k, v in thread_rates.items()},
         probed_at=round(probed_at, 3),
@@ -314,18 +391,16 @@ def probe(model: nn.Module, device: torch.device, batch_size: int | None = None)
 
 def _choose_threads(model, device, precision, batch_size, maps, rate_all, threads,
                     passes: list | None = None) -> tuple[int | None, dict]:
-    """(threads, {threads: maps/s}): the picked path timed at each candidate thread count
-    (the first, all CPUs, was timed with the precisions); fewer threads win only by more
-    than :data:`MIN_GAIN`. torch is left at the pick."""
-    from cnnps.models.inference import MapPredictor
-
+    """(threads, {threads: maps/s}): the picked path timed at its batch size at each
+    candidate thread count (the first, all CPUs, was timed with the precisions); fewer
+    threads win only by more than :data:`MIN_GAIN`. torch is left at the pick."""
     if not threads:
         return None, {}
     rates = {threads[0]: float(rate_all)}
-    predictor = MapPredictor(model, device=device, precision=precision, batch_size=batch_size)
     for n in threads[1:]:
         torch.set_num_threads(n)
-        rates[n] = _time_candidate(predictor, maps, None, stoppable=False, passes=passes)[0]
+        rates[n] = _time_candidate(model, device, precision, maps, (batch_size,), None, stoppable=False,
+                                   passes=passes, with_normals=False).rate
     pick = threads[0]
     for n in threads[1:]:
         if rates[n] > rates[pick] * (1 + MIN_GAIN):

@@ -82,6 +82,16 @@ def mkldnn_pointwise_available() -> bool:
         return False
 
 
+@functools.lru_cache(maxsize=1)
+def mkldnn_bf16_available() -> bool:
+    """Whether oneDNN has bf16 kernels on this CPU (AMX, AVX-512 BF16, AVX-512 BW/VL/DQ or
+    AVX-NE-CONVERT); without them (AVX2 only) bf16 runs on torch's slow reference kernels."""
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
 def keep_mask(shape: tuple[int, ...], p: float, key: tuple[int, ...], row0: int = 0,
               bits: int = 32) -> tuple[torch.Tensor, float]:
     """The keep mask of :func:`cnnps.models.network.counter_dropout` for a tensor of memory

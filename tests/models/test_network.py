@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -238,3 +239,38 @@ def test_counter_masks_apply_only_while_training_on_a_cpu_with_a_key():
     e = model(x)
     model.set_mask_key(None)
     assert torch.equal(e, model(x))  # no dropout at all in eval mode
+
+
+def test_bf16_fast_model_stays_within_the_probe_tolerance():
+    """The bf16 CPU path (FastCNNPS with bf16 weights, no autocast) against the fp32 one on
+    the probe's maps with the shipped weights: bf16 keeps 8 significant bits, so each
+    layer's output is off by ~0.4 % at most and the normal by a fraction of a degree; the
+    probe accepts it when its mean error is within TOLERANCE_DEG of fp32's. Runs on
+    oneDNN's bf16 kernels where the CPU has them, on torch's reference kernels elsewhere."""
+    from cnnps.models import network
+    from cnnps.models import precision_probe as pp
+    from cnnps.models.checkpoint import load_checkpoint
+    from cnnps.models.inference import MapPredictor
+    from cnnps.models.shipped import shipped_model_path
+    from cnnps.ps.metrics import angular_error_deg
+
+    model = load_checkpoint(shipped_model_path(), "cpu")[0]
+    maps, truth = pp.probe_maps(96)
+    fp32 = MapPredictor(model, device="cpu", precision="fp32")(maps)
+    bf16_predictor = MapPredictor(model, device="cpu", precision="bf16")
+    assert isinstance(bf16_predictor.net, network.FastCNNPS) and not bf16_predictor.autocast
+    assert bf16_predictor.net.fc1_z0.dtype == torch.bfloat16 and bf16_predictor.net.fc2_wt.dtype == torch.float32
+    bf16 = bf16_predictor(maps)
+    assert bf16.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(bf16, axis=1), 1.0, atol=1e-5)
+    deviation = angular_error_deg(bf16, fp32)
+    assert 0 < deviation.mean() < 0.2 and deviation.max() < 1.0  # measured 0.06 / 0.18 on 128 maps
+    change = angular_error_deg(bf16, truth).mean() - angular_error_deg(fp32, truth).mean()
+    assert abs(change) < pp.TOLERANCE_DEG
+
+
+def test_fast_model_refuses_other_dtypes():
+    from cnnps.models import network
+
+    with pytest.raises(ValueError, match="float32 or bfloat16"):
+        network.FastCNNPS(CNNPS(w=16), dtype=torch.float16)

@@ -205,6 +205,7 @@ def test_precision_auto_says_which_path_ran_and_why(tmp_path, capsys, monkeypatc
     first = json.loads((tmp_path / "a" / "prediction.json").read_text())
     assert first["precision"] in precision_probe.CANDIDATES
     assert first["precision_choice"]["requested"] == "auto" and not first["precision_choice"]["cached"]
+    assert first["precision_choice"]["batch_size"] in precision_probe.BATCH_SIZES  # the pick's fastest batch
     code, _, stderr = run_cli([*argv, "--out", str(tmp_path / "b"), "-v"], capsys)
     second = json.loads((tmp_path / "b" / "prediction.json").read_text())
     assert code == 0 and "(cached, measured " in stderr and " s ago)" in stderr, stderr
