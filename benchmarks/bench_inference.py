@@ -12,7 +12,8 @@ Measures network inferences per second (maps prebuilt) for
   * fast fp32: what ``predict_normals`` runs on CPU (``FastCNNPS``, channels_last, batch 256),
     with all threads and with one thread (that one also in thread CPU time, which other
     processes on a shared machine disturb much less than wall time);
-  * bf16: ``FoldedCNNPS`` under ``torch.autocast(bfloat16)`` (what precision="bf16" runs);
+  * fast bf16: ``FastCNNPS`` with bf16 weights (what precision="bf16" runs on a CPU), where
+    oneDNN has bf16 kernels (on AVX2 alone it runs on reference kernels and is skipped);
 and the wall time of ``predict_normals`` for a whole object (``--pixels``, 96 lights,
 observation maps included) at K = 1 (best of ``--repeat``) and K = 10 (one run).
 ``--precision auto``: the probe's choice on this machine for the shipped model
@@ -48,10 +49,11 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from benchmarks.machine import cpu_info  # noqa: E402
+from benchmarks.machine import cpu_info, gemm_peaks  # noqa: E402
 from cnnps.infra.atomic import write_text  # noqa: E402
 from cnnps.models.inference import MapPredictor, predict_normals  # noqa: E402
 from cnnps.models.network import CNNPS  # noqa: E402
+from cnnps.models.train_layers import mkldnn_bf16_available  # noqa: E402
 from cnnps.ps.obsmap import observation_maps  # noqa: E402
 
 
@@ -152,8 +154,9 @@ def ball_k10(ball: Path, repeat: int) -> dict:
 def roofline(model, fast_maps_per_s: float, naive_maps_per_s: float | None, repeat: int = 3) -> dict:
     """What the CPU could do at best: the network's floating-point operations per map (the
     folded network the fast path runs, counted by torch's FlopCounterMode: a multiply-add
-    is 2) against the best float32 GEMM rate of this machine's threads (2048^3 matmuls,
-    oneDNN/MKL), i.e. the rate a perfectly efficient network would reach."""
+    is 2) against the best GEMM rates of this machine's threads in float32 and bf16
+    (:func:`benchmarks.machine.gemm_peaks`), i.e. the rates a perfectly efficient network
+    would reach in each precision."""
     from torch.utils.flop_counter import FlopCounterMode
 
     from cnnps.models.network import fold_for_inference
@@ -166,14 +169,13 @@ def roofline(model, fast_maps_per_s: float, naive_maps_per_s: float | None, repe
         with FlopCounterMode(display=False) as fc_trained:
             model(x)
     flop_per_map = fc.get_total_flops() / len(x)
-    a = torch.rand(2048, 2048)
-    b = torch.rand(2048, 2048)
-    torch.mm(a, b)
-    best = min(_timed(lambda: torch.mm(a, b)) for _ in range(max(3, repeat)))
-    gemm = 2 * 2048**3 / best
+    peaks = gemm_peaks(repeat=max(3, repeat))
+    gemm = peaks["fp32"] * 1e9
     bound = gemm / flop_per_map
     out = {"flop_per_map_folded": round(flop_per_map), "flop_per_map_trained": round(fc_trained.get_total_flops() / len(x)),
-           "gemm_fp32_gflop_per_s": round(gemm / 1e9, 1), "maps_per_s_at_gemm_peak": round(bound),
+           "gemm_fp32_gflop_per_s": peaks["fp32"], "gemm_bf16_gflop_per_s": peaks["bf16"],
+           "bf16_kernels": peaks["bf16_kernels"], "maps_per_s_at_gemm_peak": round(bound),
+           "maps_per_s_at_bf16_gemm_peak": round(peaks["bf16"] * 1e9 / flop_per_map),
            "fast_fp32_share_of_gemm_peak": round(fast_maps_per_s / bound, 3)}
     if naive_maps_per_s:
         out["best_possible_speedup_vs_naive"] = round(bound / naive_maps_per_s, 2)
@@ -237,8 +239,11 @@ def main(argv=None) -> int:
             model(x_nchw[s:s + 256])
 
     fast = MapPredictor(model, device="cpu", precision="fp32")
-    bf16 = MapPredictor(model, device="cpu", precision="bf16")
-    runs = {"eager_fp32": eager, "fast_fp32": lambda: fast(maps), "bf16_autocast": lambda: bf16(maps)}
+    runs = {"eager_fp32": eager, "fast_fp32": lambda: fast(maps)}
+    bf16 = None
+    if mkldnn_bf16_available():
+        bf16 = MapPredictor(model, device="cpu", precision="bf16")
+        runs["fast_bf16"] = lambda: bf16(maps)
     wall = {k: [] for k in runs}
     for fn in runs.values():  # warm up (oneDNN primitive caches)
         fn()
@@ -272,7 +277,7 @@ def main(argv=None) -> int:
     with torch.inference_mode():
         ref = model(x_nchw).numpy()
     agreement = {}
-    for name, pred in (("fast_fp32", fast(maps)), ("bf16_autocast", bf16(maps))):
+    for name, pred in (("fast_fp32", fast(maps)),) + ((("fast_bf16", bf16(maps)),) if bf16 else ()):
         err = _angles(ref, pred)
         agreement[name] = {"mean_deg": float(err.mean()), "p99_deg": float(np.percentile(err, 99)),
                            "max_deg": float(err.max())}

@@ -99,7 +99,7 @@ def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: flo
     from cnnps.models.optimiser import make_model, train_step
     from cnnps.stages.train import Params
 
-    p = Params(batch_size=batch, dropout_masks=masks)
+    p = Params(batch_size=batch, dropout_masks=masks, precision="fp32")  # the bare fp32 step
     stream = ShardStream(files, w, 4096, seed=0, prefetch=0)
     it = stream.iter_epoch(0)
     maps, normals = next(it)

@@ -28,7 +28,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from benchmarks.machine import cpu_info  # noqa: E402
+from benchmarks.machine import cpu_info, gemm_peaks  # noqa: E402
 from cnnps.models.openmp import prefer_passive_openmp  # noqa: E402
 from cnnps.stages.train import Params  # noqa: E402
 
@@ -75,7 +75,7 @@ class Runner:
         v = dict(v)
         self.name = v.pop("name")
         self.threads = v.pop("threads", 0) or 2
-        self.p = Params(**v)
+        self.p = Params(**{"precision": "fp32", **v})  # a variant names its precision, else fp32
         self.dev = torch.device("cpu")
         torch.set_num_threads(self.threads)
         self.raw, self.opt = make_model(w, self.p, self.dev)
@@ -113,8 +113,8 @@ class Runner:
 def roofline(w: int, samples_per_s: dict[str, float]) -> dict:
     """The floating-point operations of one training sample (forward and backward of the
     network as trained, counted by torch's FlopCounterMode: a multiply-add is 2) against
-    the best float32 GEMM rate of this machine's 2 threads (2048^3 matmuls), measured now:
-    the share of that peak each variant reaches."""
+    the best GEMM rates of this machine's 2 threads (:func:`benchmarks.machine.gemm_peaks`),
+    measured now: the share of the peak of its own precision each variant reaches."""
     import torch.nn.functional as F
     from torch.utils.flop_counter import FlopCounterMode
 
@@ -126,17 +126,14 @@ def roofline(w: int, samples_per_s: dict[str, float]) -> dict:
     with FlopCounterMode(display=False) as fc:
         F.mse_loss(model(x), torch.zeros(64, 3)).backward()
     flop = fc.get_total_flops() / len(x)
-    a, b = torch.rand(2048, 2048), torch.rand(2048, 2048)
-    torch.mm(a, b)
-    best = float("inf")
-    for _ in range(5):
-        t0 = time.perf_counter()
-        torch.mm(a, b)
-        best = min(best, time.perf_counter() - t0)
-    gemm = 2 * 2048**3 / best
-    return {"flop_per_sample_train": round(flop), "gemm_fp32_gflop_per_s": round(gemm / 1e9, 1),
-            "samples_per_s_at_gemm_peak": round(gemm / flop),
-            "share_of_gemm_peak": {k: round(v * flop / gemm, 3) for k, v in samples_per_s.items()}}
+    peaks = gemm_peaks()
+    peak = {p: peaks[p] * 1e9 for p in ("fp32", "bf16")}
+    return {"flop_per_sample_train": round(flop), "gemm_fp32_gflop_per_s": peaks["fp32"],
+            "gemm_bf16_gflop_per_s": peaks["bf16"], "bf16_kernels": peaks["bf16_kernels"],
+            "samples_per_s_at_gemm_peak": round(peak["fp32"] / flop),
+            # each variant against the peak of the precision it ran in
+            "share_of_gemm_peak": {k: round(v * flop / peak["bf16" if k.startswith("bf16") else "fp32"], 3)
+                                   for k, v in samples_per_s.items()}}
 
 
 def accuracy(steps: int) -> list[dict]:

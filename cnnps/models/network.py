@@ -105,14 +105,20 @@ class CNNPS(nn.Module):
 
     def _fused_training(self, x: torch.Tensor) -> bool:
         """Whether this pass runs :func:`cnnps.models.train_layers.features`: training on a
-        CPU, float32 channels_last input, counter masks, no autocast."""
+        CPU, float32 channels_last input, counter masks, and no autocast or bf16 autocast
+        (then the fused layers run in bf16)."""
         return (self.training and self.fused_cpu_layers and self._mask_key is not None and x.device.type == "cpu"
                 and x.dtype == torch.float32 and x.dim() == 4 and x.shape[1] == 1
-                and x.is_contiguous(memory_format=torch.channels_last) and not torch.is_autocast_enabled("cpu"))
+                and x.is_contiguous(memory_format=torch.channels_last)
+                and (not torch.is_autocast_enabled("cpu") or torch.get_autocast_dtype("cpu") == torch.bfloat16))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self._fused_training(x):
-            x = fused_features(self, x, self._mask_key, self._mask_row0)
+            if torch.is_autocast_enabled("cpu"):  # bf16: the fused layers in bf16, autocast for the dense ones
+                with torch.autocast("cpu", enabled=False):
+                    x = fused_features(self, x, self._mask_key, self._mask_row0, torch.bfloat16)
+            else:
+                x = fused_features(self, x, self._mask_key, self._mask_row0)
         else:
             x = self.features(x).flatten(1)
         x = self.fc2(F.relu(self.fc1(x)))

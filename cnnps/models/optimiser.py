@@ -34,9 +34,12 @@ def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
 
 
 def autocast(device: torch.device, precision: str):
-    """bf16 autocast on ``device`` for ``precision == "bf16"``, else nothing."""
+    """bf16 autocast on ``device`` for ``precision == "bf16"``, nothing for "fp32" (a run's
+    ``auto`` is resolved before a step: :mod:`cnnps.models.train_precision`)."""
     if precision == "bf16":
         return torch.autocast(device.type, dtype=torch.bfloat16)
+    if precision != "fp32":
+        raise ValueError(f"a step runs in fp32 or bf16, not {precision!r}")
     return nullcontext()
 
 

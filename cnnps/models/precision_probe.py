@@ -233,9 +233,11 @@ def _mean_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def bf16_available(device: torch.device) -> bool:
-    """Whether bf16 is worth a trial on ``device``: a GPU, or a CPU where oneDNN has bf16
-    kernels (on AVX2 alone bf16 runs on reference kernels at a small fraction of fp32's
+    """Whether bf16 is worth a trial on ``device``: a GPU with bf16 (CUDA: Ampere or later),
+    or a CPU where oneDNN has bf16 kernels (on AVX2 alone bf16 runs on reference kernels at a small fraction of fp32's
     rate: nothing to measure)."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
     if device.type != "cpu":
         return True
     from cnnps.models.train_layers import mkldnn_bf16_available

@@ -24,6 +24,14 @@ with a float64 reference); only the order of the arithmetic changes:
 
 All activations are NHWC (channels_last). The masks are those of
 :func:`cnnps.models.network.counter_dropout` for the same key and layer.
+
+**bf16** (``features(..., dtype=torch.bfloat16)``, what a bf16 step runs under autocast):
+the same layers with bf16 activations, weights cast to bf16 once a pass (their gradients
+flow back to the float32 weights, which Adam steps), so oneDNN's bf16 kernels (AMX,
+AVX-512 BF16) run every convolution and GEMM, forward and backward, with fp32
+accumulation inside; masks are applied as bf16 0/1 (exact) and the dropout scale 1.25 is
+exact in bf16. Where oneDNN has no bf16 kernels (:func:`mkldnn_bf16_available`) the
+convolutions fall back to torch's reference kernels: correct, and far slower.
 """
 
 from __future__ import annotations
@@ -103,7 +111,7 @@ def keep_mask(shape: tuple[int, ...], p: float, key: tuple[int, ...], row0: int 
 
 
 def _conv3x3_relu(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    if mkldnn_pointwise_available():
+    if mkldnn_pointwise_available() and (x.dtype == torch.float32 or mkldnn_bf16_available()):
         return torch.ops.mkldnn._convolution_pointwise(x, w, b, [1, 1], [1, 1], [1, 1], 1, "relu", [], "")
     return F.relu(F.conv2d(x, w, b, padding=1))
 
@@ -113,8 +121,8 @@ def bias_grad(gz: torch.Tensor) -> torch.Tensor:
     of the (B*H*W, C) matrix a channels_last ``gz`` is: a third to a half of what oneDNN
     took for it inside ``convolution_backward`` (~10 ms a step on 2 EPYC cores)."""
     if gz.is_contiguous(memory_format=torch.channels_last):
-        return gz.permute(0, 2, 3, 1).reshape(-1, gz.shape[1]).sum(0)
-    return gz.sum((0, 2, 3))
+        return gz.permute(0, 2, 3, 1).reshape(-1, gz.shape[1]).sum(0, dtype=torch.float32).to(gz.dtype)
+    return gz.sum((0, 2, 3), dtype=torch.float32).to(gz.dtype)
 
 
 class ConvReluDrop(torch.autograd.Function):
@@ -183,22 +191,29 @@ def mix_channels_flat(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torc
     return y.view(B, Co * H * W)
 
 
-def features(model, x: torch.Tensor, key: tuple[int, ...], row0: int = 0) -> torch.Tensor:
+def features(model, x: torch.Tensor, key: tuple[int, ...], row0: int = 0,
+             dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """``model.features(x).flatten(1)`` in training with the counter masks of ``key``
     ((seed, rank, step): layer i draws from ``key + (i,)``) for a batch's rows from ``row0``
-    on, ``model.mask_bits`` bits an element. x: (B, 1, w, w) float32 on a CPU. Returns
-    (B, 80 * (w/2)^2)."""
+    on, ``model.mask_bits`` bits an element. x: (B, 1, w, w) float32 on a CPU. ``dtype``:
+    float32, or bfloat16 (activations and the weights' copies in bf16; see the module
+    docstring). Returns (B, 80 * (w/2)^2) in ``dtype``."""
     p, bits = model.dropout_p, model.mask_bits
     B, _, w, _ = x.shape
     h, g = w // 2, model.conv0.out_channels
+    x = x.to(dtype)
 
     def keep(layer, side, channels):
-        return keep_mask((B, side, side, channels), p, key + (layer,), row0, bits)
+        mask, scale = keep_mask((B, side, side, channels), p, key + (layer,), row0, bits)
+        return mask.to(dtype), scale
 
-    r = first_conv_relu(x, model.conv0.weight, model.conv0.bias)
-    r = torch.cat([r, ConvReluDrop.apply(r, model.block1_conv1.weight, model.block1_conv1.bias, *keep(0, w, g))], 1)
-    r = torch.cat([r, ConvReluDrop.apply(r, model.block1_conv2.weight, model.block1_conv2.bias, *keep(1, w, g))], 1)
-    r = TransitionDropPoolRelu.apply(r, model.trans_conv.weight, model.trans_conv.bias, *keep(2, w, 3 * g))
-    r = torch.cat([r, ConvReluDrop.apply(r, model.block2_conv1.weight, model.block2_conv1.bias, *keep(3, h, g))], 1)
-    r = torch.cat([r, ConvReluDrop.apply(r, model.block2_conv2.weight, model.block2_conv2.bias, *keep(4, h, g))], 1)
-    return mix_channels_flat(r, model.final_conv.weight, model.final_conv.bias)
+    def params(conv):
+        return conv.weight.to(dtype), conv.bias.to(dtype)
+
+    r = first_conv_relu(x, *params(model.conv0))
+    r = torch.cat([r, ConvReluDrop.apply(r, *params(model.block1_conv1), *keep(0, w, g))], 1)
+    r = torch.cat([r, ConvReluDrop.apply(r, *params(model.block1_conv2), *keep(1, w, g))], 1)
+    r = TransitionDropPoolRelu.apply(r, *params(model.trans_conv), *keep(2, w, 3 * g))
+    r = torch.cat([r, ConvReluDrop.apply(r, *params(model.block2_conv1), *keep(3, h, g))], 1)
+    r = torch.cat([r, ConvReluDrop.apply(r, *params(model.block2_conv2), *keep(4, h, g))], 1)
+    return mix_channels_flat(r, *params(model.final_conv))

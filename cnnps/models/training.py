@@ -232,6 +232,7 @@ def train(params, data: TrainingData, out_dir: Path, run_key: str, info: DistInf
     trainer = Trainer(params, data, out_dir, run_key, info, device, init_state, init_sha)
     trainer.make_pixelwise = make_pixelwise
     trainer.resume()
+    trainer.choose_precision()
     trainer.load_validation()
     trainer.run_steps(stop_after_step, until)
     return trainer.finish()
@@ -258,6 +259,12 @@ class Trainer:
         self.procs = None  # the processes sharing each step (step_processes > 1), while run_steps runs
         self.step_processes = 1  # how many processes shared the last run_steps' steps
         self.step_process_seconds = None  # the training process's time on its rows and waiting, then
+        # the precision the steps run in (choose_precision: train.precision, or the pick of "auto"),
+        # how it was chosen, and the run's segments [first step, precision] (kept in the checkpoints)
+        self.precision = params.precision if params.precision != "auto" else "fp32"
+        self.precision_choice: dict | None = None
+        self.segments: list = []
+        self.resumed_precision: str | None = None
 
     def _build_model(self, init_state: dict | None) -> None:
         """``raw`` (the CNN-PS) and ``opt`` (Adam); ``model``, what a step runs: ``raw``,
@@ -327,10 +334,39 @@ class Trainer:
                 cpu_rng, cuda_rng = state["torch_rng"], state.get("cuda_rng")
             set_rng_states(cpu_rng, cuda_rng, self.device)
             self.step, self.history = int(state["step"]), state["history"]
+            # checkpoints older than the record stepped in their run's precision (auto was fp32 then)
+            self.resumed_precision = state.get("precision", self.precision)
+            self.segments = [list(seg) for seg in state.get("precision_segments", [[0, self.resumed_precision]])]
             if info.enabled and self.main and state.get("world_size", 1) != info.world_size:
                 tqdm.write(f"train: resuming a checkpoint of {state.get('world_size', 1)} process(es) with "
                            f"{info.world_size}: the data order differs from here on")
         self.model.train()
+
+    def choose_precision(self) -> None:
+        """The precision of this call's steps: ``train.precision``, or with ``auto`` the pick
+        of :func:`cnnps.models.train_precision.choose_train_precision` (rank 0 probes, every
+        rank takes its answer). A resume in another precision than its checkpoint's says so
+        in one line and goes on; each change starts a segment."""
+        p = self.params
+        if p.precision == "auto" and self.step < self.total_steps:
+            choice = None
+            if self.main:
+                from cnnps.models.train_precision import choose_train_precision
+
+                choice = choose_train_precision(self.raw, p, self.device,
+                                                p.batch_size // self.info.world_size).as_dict()
+            choice = broadcast(choice, self.info)
+            self.precision, self.precision_choice = choice["precision"], choice
+            if self.main and p.progress:
+                tqdm.write(f"train: precision {self.precision} ({choice['reason']})", file=sys.stderr)
+        elif p.precision != "auto":
+            self.precision = p.precision
+        if self.resumed_precision and self.resumed_precision != self.precision and self.main:
+            tqdm.write(f"train: resuming at step {self.step} in {self.precision}; the checkpoint stepped in "
+                       f"{self.resumed_precision}" + (f" ({self.precision_choice['reason']})"
+                                                      if self.precision_choice else ""), file=sys.stderr)
+        if not self.segments or self.segments[-1][1] != self.precision:
+            self.segments.append([self.step, self.precision])
 
     # -- validation and checkpoints ----------------------------------------------------
 
@@ -347,7 +383,8 @@ class Trainer:
             self.val_maps, self.val_normals = maps[:, 0].numpy().astype(np.float16), normals.numpy()
 
     def validate(self) -> dict:
-        return val_errors(self.raw, self.val_maps, self.val_normals, self.device, self.params.precision)
+        # in fp32 whatever the steps ran in: one yardstick for every segment and every run
+        return val_errors(self.raw, self.val_maps, self.val_normals, self.device, "fp32")
 
     def checkpoint(self) -> None:
         """Save the training state (rank 0 writes; every rank's RNG state is in it, so
@@ -369,6 +406,8 @@ class Trainer:
                 "world_size": self.info.world_size,
                 "rank_rng": rank_rng,
                 "history": self.history,
+                "precision": self.precision,
+                "precision_segments": self.segments,
             },
             self.params.keep_checkpoints,
         )
@@ -397,18 +436,18 @@ class Trainer:
             return self.procs.step(self.opt, maps, normals, key, meanwhile=meanwhile), step_model
         if step_model is self.model:
             self._mask_key(eager=True)
-            return train_step(self.model, self.opt, maps, normals, self.device, p.precision, p.channels_last), step_model
+            return train_step(self.model, self.opt, maps, normals, self.device, self.precision, p.channels_last), step_model
         rng = rng_states(self.device)
         self._mask_key(eager=False)
         try:
-            return train_step(step_model, self.opt, maps, normals, self.device, p.precision, p.channels_last), step_model
+            return train_step(step_model, self.opt, maps, normals, self.device, self.precision, p.channels_last), step_model
         except Exception as exc:  # noqa: BLE001 - any compiler failure: train eagerly
             tqdm.write(f"train: torch.compile failed ({type(exc).__name__}: {str(exc)[:200]}); "
                        "training eagerly", file=sys.stderr)
             set_rng_states(*rng, self.device)
             self.opt.zero_grad(set_to_none=True)
             self._mask_key(eager=True)
-            loss = train_step(self.model, self.opt, maps, normals, self.device, p.precision, p.channels_last)
+            loss = train_step(self.model, self.opt, maps, normals, self.device, self.precision, p.channels_last)
             return loss, self.model
 
     def _mask_key(self, eager: bool) -> None:
@@ -499,7 +538,7 @@ class Trainer:
         self.procs = StepProcesses(self.raw, n, max_rows=self.params.batch_size, w=self.data.w, threads=per,
                                    channels_last=self.params.channels_last,
                                    keep_freed_memory=getattr(self.params, "keep_freed_memory", True),
-                                   precision=p.precision)
+                                   precision=self.precision)
         torch.set_num_threads(per)
 
     def _validate_all_threads(self) -> dict:
@@ -604,7 +643,10 @@ class Trainer:
             "samples_per_s": round(ran * p.batch_size / self.seconds, 1) if ran > 0 and self.seconds > 0 else None,
             "seconds": self.clock.summary(self.seconds) if self.clock is not None else None,
             "device": str(self.device),
-            "precision": p.precision,
+            "precision": self.precision,  # what this call's steps ran in
+            "precision_requested": p.precision,
+            "precision_choice": self.precision_choice,  # auto: the probe's rates and reason
+            "precision_segments": self.segments,  # [first step, precision] of every segment of the run
             "processes": info.world_size,
             "step_processes": self.step_processes,  # this run's processes sharing each step (1: none)
             "step_process_seconds": self.step_process_seconds,  # with helpers: own rows / waiting for theirs

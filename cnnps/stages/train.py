@@ -62,14 +62,17 @@ with those masks the layers run as :mod:`cnnps.models.train_layers` (``cpu_layer
 fused``: fewer passes over memory, the same results up to float rounding); and glibc
 keeps freed memory for the next step instead of page-faulting it back in
 (``keep_freed_memory``, :mod:`cnnps.models.allocator`; docs/performance.md).
-``precision: bf16`` (autocast) is opt-in: on a CPU with AVX-512 BF16 it trained 1.5x
-faster than float32 (2 AMD EPYC cores; on an Intel Xeon without AMX it was slower, and
-without AVX-512 BF16 it is emulated and far slower: measure it first with
-benchmarks/bench_stage.py, docs/performance.md), and it rounds more than float32 does.
+``precision: auto`` (the default) times a few steps in fp32 and in bf16 (autocast) at the
+run's start and steps in bf16 where it is clearly faster and its loss agrees
+(:mod:`cnnps.models.train_precision`; bf16 is not even tried where the CPU has no bf16
+kernels); ``fp32`` and ``bf16`` fix it. ``metrics.json`` records the choice and the
+precision of each segment of a resumed run; validation always runs in fp32.
 ``compile: true`` (torch.compile; slower than eager here, ~40 s to compile; falls back to
-eager with a warning when compilation fails) is opt-in too. None of these changes the model or the loss;
+eager with a warning when compilation fails) is opt-in. None of these changes the model or the loss;
 they change float rounding (and, for channels_last or compile, which elements a dropout
-mask draws), so they are part of the resume key. ``threads: 1`` is faster than 2 threads
+mask draws), so they are part of the resume key, except that ``auto`` enters it as fp32
+(an auto run and an fp32 run resume each other's checkpoints; a resume in another
+precision than the checkpoint's says so in one line and goes on). ``threads: 1`` is faster than 2 threads
 when another job keeps a core busy.
 
 Processes sharing each step (``step_processes``; 0, the default, means one per thread
@@ -133,7 +136,9 @@ class Params:
     keep_checkpoints: int = 2
     log_every: int = 50  # steps between loss points in plots/loss.csv
     device: str = "auto"  # auto | cpu | cuda
-    precision: str = "fp32"  # fp32 | bf16 (autocast: faster only where the CPU or GPU has bf16 units)
+    # auto = the faster of fp32 and bf16 on this machine, timed at the run's start
+    # (cnnps.models.train_precision; bf16 only where the CPU or GPU has bf16 units); fp32 | bf16 (autocast)
+    precision: Literal["auto", "fp32", "bf16"] = "auto"
     threads: int = 0  # torch CPU threads; 0 = one per core
     channels_last: bool = True  # NHWC activations: ~1.4x faster training on CPU (oneDNN)
     fused_adam: bool = True  # torch's fused Adam kernel (same algorithm, one pass per tensor)
@@ -219,6 +224,8 @@ class Params:
                   "keep_freed_memory", "pixelwise_ahead", "step_processes"):
             d.pop(k)
         d["lr_milestones"] = list(self.lr_milestones)
+        if d["precision"] == "auto":  # auto resumes fp32 runs and they resume it; each checkpoint says what ran
+            d["precision"] = "fp32"
         return d
 
 

@@ -405,3 +405,31 @@ def test_auto_step_processes_start_for_long_runs_only(dataset, tmp_path, monkeyp
     short = train.run(train.Params(**dict(params, max_steps=11)), fresh_copy(dataset, tmp_path / "s"))
     long = train.run(train.Params(**dict(params, max_steps=12)), fresh_copy(dataset, tmp_path / "l"))
     assert (short["step_processes"], long["step_processes"]) == (1, 2)
+
+
+def test_auto_precision_is_recorded_and_a_resume_in_another_precision_says_so(dataset, tmp_path, monkeypatch,
+                                                                              capsys):
+    from cnnps.models import train_precision
+
+    params = train.Params(max_steps=12, checkpoint_every=5, val_every=0, **BASE)
+    assert params.precision == "auto"
+    d = fresh_copy(dataset, tmp_path / "d")
+    picks = iter(["fp32", "bf16"])  # the first machine picks fp32, the one that resumes bf16
+    monkeypatch.setattr(train_precision, "choose_train_precision", lambda model, p, device, rows: (
+        train_precision.TrainChoice(next(picks), "probe (test)")))
+    with pytest.raises(KeyboardInterrupt):
+        train.run(params, d, _stop_after_step=7)
+    assert capsys.readouterr().err.count("train: resuming") == 0
+    state = torch.load(d / "train/checkpoints/step-00000005.pt", weights_only=True)
+    assert state["precision"] == "fp32" and state["precision_segments"] == [[0, "fp32"]]
+    metrics = train.run(params, d)
+    err = capsys.readouterr().err
+    assert err.count("train: resuming at step 5 in bf16; the checkpoint stepped in fp32 (probe (test))") == 1, err
+    assert metrics["precision"] == "bf16" and metrics["precision_requested"] == "auto"
+    assert metrics["precision_choice"]["reason"] == "probe (test)"
+    assert metrics["precision_segments"] == [[0, "fp32"], [5, "bf16"]]
+    saved = json.loads((d / "train/metrics.json").read_text())
+    assert saved["precision_segments"] == [[0, "fp32"], [5, "bf16"]]
+    # auto shares the fp32 run key: an explicit fp32 run resumes these checkpoints
+    assert train.run_key(params, "m") == train.run_key(train.Params(**{**params.__dict__, "precision": "fp32"}), "m")
+    assert train.run_key(params, "m") != train.run_key(train.Params(**{**params.__dict__, "precision": "bf16"}), "m")
