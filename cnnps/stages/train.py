@@ -198,8 +198,8 @@ class Params:
             raise ConfigError(f"train.dropout must be in [0, 1), got {self.dropout}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ConfigError(f"train.device must be auto, cpu or cuda, got {self.device!r}")
-        if self.precision not in ("fp32", "bf16"):
-            raise ConfigError(f"train.precision must be fp32 or bf16, got {self.precision!r}")
+        if self.precision not in ("auto", "fp32", "bf16"):
+            raise ConfigError(f"train.precision must be auto, fp32 or bf16, got {self.precision!r}")
         if self.shards is not None and (not isinstance(self.shards, str) or not self.shards.strip()):
             raise ConfigError(f"train.shards must be a folder path or URL, got {self.shards!r}")
         check_fields(self, "train.")  # the declared choices and ranges (dropout_masks, pixelwise, w)
