@@ -7,8 +7,7 @@ analytic height fields.
 Speed: a Gaussian bump on a tilted plane over an elliptical mask with two holes and a
 notch holding ``--megapixels`` million pixels; wall time of
 ``cnnps.ps.integrate.integrate`` (best and median of ``--repeat``) and of one whole
-``write_surface_outputs`` (integration + mesh + depth.npy/png + surface.ply; the
-one-off ~1.5 s import of trimesh excluded).
+``write_surface_outputs`` (integration + depth.npy/png + surface.ply).
 ``--discontinuities`` also times one robust (``discontinuities=True``) integration;
 ``--compare-direct`` also times a sparse direct solve (SuperLU, minimum-degree ordering)
 of the same system, for reference (slow and memory-hungry at 1 MP).
@@ -111,8 +110,6 @@ def main() -> None:
         t0 = time.perf_counter()
         res = integrate(n, mask)
         times.append(time.perf_counter() - t0)
-    import trimesh  # noqa: F401  (imported once per process; not part of the timing)
-
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         report = write_surface_outputs(Path(tmp), n, mask)

@@ -34,7 +34,8 @@ def integrate(
     Returns:
         :class:`cnnps.io.surface.Surface`: ``depth`` (H, W) float32 heights along +z in
         pixel units, NaN outside the mask, mean 0 per 4-connected component; ``mesh`` (a
-        ``trimesh.Trimesh`` with vertex normals); ``picture`` (shaded heights, uint8 RGB);
+        ``trimesh.Trimesh`` with vertex normals, built on first use from ``normals``,
+        which the result keeps without copying); ``picture`` (shaded heights, uint8 RGB);
         ``report``; ``write(folder)`` writes depth.npy, depth.png and surface.ply.
 
     Example (a plane tilted along x rises by 0.5 per pixel):

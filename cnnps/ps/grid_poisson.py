@@ -23,14 +23,17 @@ Jacobi (weight 2/3) smoothing, coarse corrections scaled by OVERCORRECTION (plai
 aggregation under-corrects; Braess 1995), SuperLU below COARSEST unknowns. This is the
 aggregation multigrid of the integrator's earlier sparse-matrix form, now matrix-free.
 
-Memory (float64 vectors, n mask pixels): per level 12 bytes a pixel of float32 weights,
-8 of int32 neighbours, 2 of flags, 8 of diagonal and 4 of the int32 aggregate map (the
-coarse levels add a third); CG's vectors 40 bytes; the V-cycle's three vectors. ``benchmarks/bench_integrate_memory.py``
-measures the whole integration.
+Memory (n mask pixels): per level 12 bytes a pixel of float32 weights, 8 of int32
+neighbours, 2 of flags, 4 of float32 diagonal and 4 of the int32 aggregate map, the coarse
+levels adding a third; conjugate gradients hold four float64 vectors (the diagonal, x, the
+residual, the search direction: 32 bytes) and one more while applying L or running the
+V-cycle, whose vectors are float32. L is applied in slices of CHUNK pixels, so it needs no
+temporary of the system's size.
 """
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +41,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 COARSEST = 2000  # unknowns solved directly at the bottom of the hierarchy
+CHUNK = 1 << 16  # pixels per slice of :meth:`MaskGraph.matvec`
 OVERCORRECTION = 1.8  # scale of each coarse-level correction (plain aggregation under-corrects)
 JACOBI = 2.0 / 3.0
 
@@ -117,18 +121,32 @@ class MaskGraph:
         return d
 
     def matvec(self, x: np.ndarray, diag: np.ndarray) -> np.ndarray:
-        """L x for (n,) float64 x (``diag`` = :meth:`diagonal`)."""
+        """L x for (n,) x (``diag`` = :meth:`diagonal`, float64 or float32; the result has
+        the dtype of ``diag * x``). Computed in slices of :data:`CHUNK` pixels; each entry
+        is diag x_i minus its right, left, lower and upper neighbour terms, in that order,
+        whatever the slicing."""
+        n = self.n
         y = diag * x
-        t = self.wr[:-1] * x[1:]
-        y[:-1] -= t
-        np.multiply(self.wr[:-1], x[:-1], out=t)
-        y[1:] -= t
-        t = np.take(x, self.below)
-        t *= self.wd
-        y -= t
-        np.take(x, self.above, out=t)
-        t *= self.wu
-        y -= t
+        t = np.empty(min(n, CHUNK), dtype=y.dtype)
+        wr, wd, wu = self.wr, self.wd, self.wu
+        for s in range(0, n, CHUNK):
+            e = min(s + CHUNK, n)
+            ys = y[s:e]
+            k = min(e, n - 1) - s  # the right neighbour: pixels s .. min(e, n - 1) - 1
+            if k > 0:
+                np.multiply(wr[s:s + k], x[s + 1:s + 1 + k], out=t[:k])
+                ys[:k] -= t[:k]
+            a = max(s, 1)  # the left neighbour: pixels max(s, 1) .. e - 1
+            if e > a:
+                np.multiply(wr[a - 1:e - 1], x[a - 1:e - 1], out=t[:e - a])
+                y[a:e] -= t[:e - a]
+            m = e - s
+            np.take(x, self.below[s:e], out=t[:m])
+            t[:m] *= wd[s:e]
+            ys -= t[:m]
+            np.take(x, self.above[s:e], out=t[:m])
+            t[:m] *= wu[s:e]
+            ys -= t[:m]
         return y
 
     def edge_differences(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -184,6 +202,23 @@ class MaskGraph:
         return sp.csc_matrix((vals, (rows, cols)), shape=(n, n))
 
 
+def _block_row_slices(fine: MaskGraph, coarse: MaskGraph) -> list[tuple[int, int, int, int]]:
+    """(fine start, fine stop, coarse start, coarse stop) of runs of whole 2-row bands of
+    about CHUNK fine pixels: the fine pixels of grid rows 2i .. 2j - 1 aggregate onto
+    exactly the coarse pixels of coarse rows i .. j - 1, both contiguous ranges."""
+    H = fine.shape[0]
+    Hc = coarse.shape[0]
+    fine_start = np.zeros(H + 1, dtype=np.int64)
+    np.cumsum(np.count_nonzero(fine.mask, axis=1), out=fine_start[1:])
+    coarse_start = np.zeros(Hc + 1, dtype=np.int64)
+    np.cumsum(np.count_nonzero(coarse.mask, axis=1), out=coarse_start[1:])
+    fs = fine_start[np.minimum(2 * np.arange(Hc + 1), H)]  # fine index of coarse row i's first pixel
+    first = np.unique(np.searchsorted(fs, np.arange(0, fine.n, CHUNK), side="right") - 1)
+    cut = np.append(first, Hc)
+    return [(int(fs[i]), int(fs[j]), int(coarse_start[i]), int(coarse_start[j]))
+            for i, j in itertools.pairwise(cut) if fs[j] > fs[i]]
+
+
 class _Multigrid:
     """One symmetric V-cycle over the levels of :meth:`MaskGraph.coarsen` (an SPD
     preconditioner for CG)."""
@@ -193,7 +228,8 @@ class _Multigrid:
         self.levels = []
         while graph.n > COARSEST:
             coarse, agg = graph.coarsen()
-            self.levels.append((graph, graph.diagonal().astype(np.float32), agg, coarse.n))
+            self.levels.append((graph, graph.diagonal().astype(np.float32), agg, coarse.n,
+                                _block_row_slices(graph, coarse)))
             graph = coarse
         self.bottom = spla.splu(graph.to_sparse(), permc_spec="MMD_AT_PLUS_A")
 
@@ -202,17 +238,25 @@ class _Multigrid:
         a preconditioner needs no more, and it halves the memory traffic)."""
         if k == len(self.levels):
             return self.bottom.solve(b.astype(np.float64)).astype(np.float32)
-        graph, diag, agg, nc = self.levels[k]
+        graph, diag, agg, nc, slices = self.levels[k]
         b = b.astype(np.float32, copy=False)
         x = b / diag
         x *= JACOBI
         for _ in range(self.sweeps - 1):
             self._smooth(x, b, graph, diag)
-        r = b - graph.matvec(x, diag)
-        c = self.cycle(np.bincount(agg, r, nc).astype(np.float32), k + 1)
+        r = graph.matvec(x, diag)
+        np.subtract(b, r, out=r)  # the residual b - L x
+        # restriction: each coarse pixel sums its block's residuals (in float64, in pixel
+        # order, as one bincount would), a band of block rows at a time
+        coarse = np.empty(nc, dtype=np.float32)
+        for s, e, cs, ce in slices:
+            coarse[cs:ce] = np.bincount(agg[s:e] - cs, r[s:e], ce - cs)
         del r
+        c = self.cycle(coarse, k + 1)
+        del coarse
         c *= OVERCORRECTION
-        x += c[agg]
+        for s, e, _, _ in slices:  # prolongation: each pixel gets its block's correction
+            x[s:e] += c[agg[s:e]]
         del c
         for _ in range(self.sweeps):
             self._smooth(x, b, graph, diag)
@@ -229,36 +273,50 @@ class _Multigrid:
 
 
 def solve(graph: MaskGraph, b: np.ndarray, x0: np.ndarray | None = None, rtol: float = 1e-8,
-          maxiter: int = 1000) -> tuple[np.ndarray, int, bool]:
+          maxiter: int = 1000, overwrite: bool = False) -> tuple[np.ndarray, int, bool]:
     """(x, iterations, converged) for L x = b (L: ``graph``'s weighted Laplacian plus pins,
     positive definite when every component has a pin): multigrid-preconditioned conjugate
-    gradients to ``||b - L x|| <= rtol ||b||``; a direct solve when n <= COARSEST."""
+    gradients to ``||b - L x|| <= rtol ||b||``; a direct solve when n <= COARSEST.
+
+    ``b``: (n,) float64; ``x0``: (n,) start (default 0). With ``overwrite``, ``b`` and a
+    float64 ``x0`` are used as workspace (their contents are lost, and x may be ``x0``
+    itself), which saves two vectors.
+    """
     if not np.any(b):
         return np.zeros(graph.n), 0, True
     if graph.n <= COARSEST:
         return spla.splu(graph.to_sparse(), permc_spec="MMD_AT_PLUS_A").solve(b), 0, True
     mg = _Multigrid(graph)
     diag = graph.diagonal()
-    x = np.zeros(graph.n) if x0 is None else np.array(x0, dtype=np.float64)
-    r = b - graph.matvec(x, diag)
+    if x0 is None:
+        x = np.zeros(graph.n)
+    else:
+        x = np.asarray(x0, dtype=np.float64) if overwrite else np.array(x0, dtype=np.float64)
     target = rtol * np.linalg.norm(b)
+    if overwrite:
+        r = b
+        r -= graph.matvec(x, diag)
+    else:
+        r = b - graph.matvec(x, diag)
+    del b
     if np.linalg.norm(r) <= target:
         return x, 0, True
-    z = mg.cycle(r).astype(np.float64)
-    p = z.copy()
-    rz = float(r @ z)
+    p = mg.cycle(r).astype(np.float64)
+    rz = float(r @ p)
     for it in range(1, maxiter + 1):
         q = graph.matvec(p, diag)
         alpha = rz / float(p @ q)
-        x += alpha * p
-        r -= alpha * q
+        q *= alpha
+        r -= q
+        np.multiply(p, alpha, out=q)
+        x += q
         del q
         if np.linalg.norm(r) <= target:
             return x, it, True
-        del z
         z = mg.cycle(r).astype(np.float64)
         rz_new = float(r @ z)
         p *= rz_new / rz
         p += z
+        del z
         rz = rz_new
     return x, maxiter, False

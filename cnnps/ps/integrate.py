@@ -30,8 +30,9 @@ Brooks, discretised on the mask as in Quéau, Durou & Aujol's survey:
   by 1.8, the over-correction that plain aggregation needs, after Braess; a direct solve
   (SuperLU) at the coarsest level), all matrix-free: :mod:`cnnps.ps.grid_poisson`. A
   1-megapixel mask takes a few seconds on one core (``benchmarks/bench_integrate.py``),
-  at about 134 bytes a pixel at peak (``benchmarks/bench_integrate_memory.py``), where a
-  sparse direct factorisation takes 15 s or more and gigabytes of fill-in.
+  and the whole ``cnnps integrate`` command about 120 bytes a mask pixel at peak
+  (``benchmarks/bench_integrate_memory.py``), where a sparse direct factorisation takes
+  15 s or more and gigabytes of fill-in.
 * Perspective (``intrinsics=K``). A pinhole camera sees the surface point
   X(u, v) = d(u, v) r(u, v) at pixel (u, v), where d > 0 is the depth (distance along the
   optical axis) and r = diag(1, -1, -1) K^-1 (u, v, 1) the pixel's ray in the capture frame
@@ -208,8 +209,8 @@ def gradients(normals: np.ndarray, mask: np.ndarray, nz_min: float = DEFAULT_NZ_
     """
     if not (0.0 < nz_min <= 1.0):
         raise ValueError(f"nz_min must be in (0, 1], got {nz_min}")
-    n = np.asarray(normals, dtype=np.float64)[mask]
-    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.asarray(normals)[mask].astype(np.float64)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
     nz = n[:, 2]
     clamped = nz < nz_min
     nzc = np.maximum(nz, nz_min)
@@ -229,8 +230,8 @@ def log_depth_gradients(normals: np.ndarray, mask: np.ndarray, K: np.ndarray, nz
         raise ValueError(f"nz_min must be in (0, 1], got {nz_min}")
     from cnnps.ps.camera import OPENCV_TO_CAPTURE, pixel_rays
 
-    n = np.asarray(normals, dtype=np.float64)[mask]
-    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.asarray(normals)[mask].astype(np.float64)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
     rows, cols = np.nonzero(mask)
     Kinv = OPENCV_TO_CAPTURE @ np.linalg.inv(K)  # the ray's derivatives: r_u, r_v = columns 0, 1
     ray = pixel_rays(K, rows, cols)
@@ -319,10 +320,9 @@ def integrate(
     del conf
 
     # one pin per 4-connected component (pixels with no neighbour are components too)
-    grid_labels, n_comp = ndimage.label(mask)  # 4-connectivity: the default cross
-    labels = grid_labels[mask] - 1
-    del grid_labels
+    labels, n_comp = _component_labels(mask)
     pins = np.unique(labels, return_index=True)[1]  # a unit penalty on each
+    del labels  # labelled again after the solves
 
     wh, wv = wh0, wv0
     z, iterations = None, []
@@ -339,13 +339,18 @@ def integrate(
             del wh, wv, wh0, wv0
         rhs = weighted.transpose_differences(weighted.wr * gh, weighted.wd * gv)
         del gh, gv
-        z, its, converged = solve(weighted, rhs, z, rtol, maxiter)
+        z, its, converged = solve(weighted, rhs, z, rtol, maxiter, overwrite=True)  # rhs, z: workspace
+        del rhs
         if not converged:  # not seen in practice (tens of steps); fall back on a direct solve
+            gh, gv = _targets(graph, p, q)
+            rhs = weighted.transpose_differences(weighted.wr * gh, weighted.wd * gv)
             z = spla.splu(weighted.to_sparse(), permc_spec="MMD_AT_PLUS_A").solve(rhs)
-        del rhs, weighted
+            del gh, gv, rhs
+        del weighted
         iterations.append(its)
 
     # mean 0 per component (orthographic), or the median depth ``distance`` (perspective)
+    labels = _component_labels(mask)[0]
     if intrinsics is None:
         shift = np.bincount(labels, z, n_comp) / np.bincount(labels, minlength=n_comp)
     else:
@@ -355,7 +360,7 @@ def integrate(
     gh, gv = _targets(graph, p, q)
     dh, dv = graph.edge_differences(z)
     equations = int(graph.right.sum()) + int(graph.down.sum())
-    sq = float(np.sum(np.where(graph.right, dh - gh, 0.0) ** 2) + np.sum(np.where(graph.down, dv - gv, 0.0) ** 2))
+    sq = _squared_sum(dh, gh, graph.right) + _squared_sum(dv, gv, graph.down)
     del gh, gv, dh, dv
     depth = np.full(mask.shape, np.nan, dtype=np.float32)
     depth[mask] = z if intrinsics is None else np.exp(z)
@@ -372,6 +377,23 @@ def integrate(
                  **({} if intrinsics is None else {"intrinsics": intrinsics.tolist(), "distance": float(distance)}),
                  **({"sigma": sigma, "reweights": int(reweights)} if discontinuities else {})},
     )
+
+
+def _component_labels(mask: np.ndarray) -> tuple[np.ndarray, int]:
+    """((P,) int32 label 0..k-1 of each mask pixel's 4-connected component, row-major; k)."""
+    grid_labels, n_comp = ndimage.label(mask)  # 4-connectivity: the default cross
+    labels = grid_labels[mask]
+    del grid_labels
+    labels -= 1
+    return labels, int(n_comp)
+
+
+def _squared_sum(d: np.ndarray, g: np.ndarray, edge: np.ndarray) -> float:
+    """sum over the edges of (d - g)^2; ``d`` (float64, per pixel) is overwritten."""
+    d -= g
+    d[~edge] = 0.0
+    np.square(d, out=d)
+    return float(np.sum(d))
 
 
 def _component_medians(labels: np.ndarray, z: np.ndarray, n_comp: int) -> np.ndarray:

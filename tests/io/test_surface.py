@@ -1,5 +1,5 @@
 """depth.npy / depth.png / surface.ply: contents, mesh layout and orientation, reload
-with trimesh, all-or-nothing writing."""
+with trimesh, the banded PLY writer against a one-piece reference, all-or-nothing writing."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from cnnps.infra.errors import InputError
 from cnnps.io.images import read_image
 from cnnps.io.surface import (
     OUTPUT_FILES,
+    build_surface,
     depth_picture,
     read_normals,
     surface_mesh,
@@ -86,6 +87,88 @@ def test_mesh_faces_on_small_masks():
     assert len(mesh.faces) == 3 and len(mesh.vertices) == 7
     assert np.all(mesh.face_normals[:, 2] > 0.999)
     assert np.allclose(mesh.vertices[:, 2], 1.0)
+
+
+def reference_ply(depth, normals, mask, K=None) -> bytes:
+    """surface.ply as the module docstring lays it out, built in one piece with numpy and
+    written by trimesh (independent of the banded writer)."""
+    import trimesh
+
+    from cnnps.ps.camera import pixel_rays
+
+    present = mask & np.isfinite(depth)
+    H, W = present.shape
+    index = np.full((H, W), -1, dtype=np.int64)
+    rows, cols = np.nonzero(present)
+    index[rows, cols] = np.arange(rows.size)
+    a, b, d, e = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
+    A, B, D, E = a >= 0, b >= 0, d >= 0, e >= 0
+    full = A & B & D & E
+    parts = [(full, (a, d, b)), (full, (b, d, e)), (~E & A & B & D, (a, d, b)), (~D & A & B & E, (a, e, b)),
+             (~B & A & D & E, (a, d, e)), (~A & B & D & E, (b, d, e))]
+    faces = np.concatenate([np.stack([i[sel], j[sel], k[sel]], 1) for sel, (i, j, k) in parts])
+    used = np.zeros(rows.size, dtype=bool)
+    used[faces.ravel()] = True
+    faces = (np.cumsum(used) - 1)[faces]
+    r, c = rows[used], cols[used]
+    z = depth[r, c].astype(np.float64)
+    if K is None:
+        vertices = np.stack([c - (W - 1) / 2.0, (H - 1) / 2.0 - r, z], axis=1)
+    else:
+        vertices = pixel_rays(K, r, c) * z[:, None]
+    n = normals[r, c].astype(np.float64)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, vertex_normals=n, process=False, validate=False)
+    return mesh.export(file_type="ply", encoding="binary", vertex_normal=True)
+
+
+@pytest.mark.parametrize("band_pixels", [60, 250, 1 << 16])
+@pytest.mark.parametrize("camera", ["orthographic", "pinhole"])
+def test_streamed_ply_is_the_reference_byte_for_byte(tmp_path, monkeypatch, band_pixels, camera):
+    """surface.ply, written a band of rows at a time (bands of one row, a few rows, the
+    whole map), is byte for byte the one-piece mesh written by trimesh: holes, an island
+    of one 2 x 2 block, lone pixels, one-pixel lines and diagonal borders (blocks of
+    three); Surface.mesh (built on demand) exports the same bytes."""
+    from cnnps.io import surface
+
+    normals, mask, _ = dome(37, 53, 30.0)
+    mask[1:3, 1:3] = True  # an island of one full block
+    mask[0, 50] = mask[5, 2] = True  # lone pixels
+    mask[34, 10:30] = True  # a one-pixel line
+    mask[30:33, 44] = mask[31, 45] = True  # blocks of three
+    normals[mask & (normals[..., 2] == 0)] = (0.1, -0.2, 0.97)
+    K = np.array([[60.0, 0.0, 26.0], [0.0, 60.0, 18.0], [0.0, 0.0, 1.0]]) if camera == "pinhole" else None
+    options = {} if K is None else {"intrinsics": K, "distance": 3.0}
+    monkeypatch.setattr(surface, "CHUNK_PIXELS", band_pixels)
+    surf = build_surface(normals, mask, **options)
+    report = surf.write(tmp_path)
+    expected = reference_ply(np.load(tmp_path / "depth.npy"), normals, mask, K)
+    assert (tmp_path / "surface.ply").read_bytes() == expected
+    assert surf.mesh.export(file_type="ply", encoding="binary", vertex_normal=True) == expected
+    assert (report["vertices"], report["faces"]) == (len(surf.mesh.vertices), len(surf.mesh.faces))
+
+
+def test_mask_without_a_2x2_block_writes_an_empty_mesh(tmp_path):
+    """One-pixel lines carry no triangle: surface.ply holds the header only."""
+    mask = np.zeros((6, 9), bool)
+    mask[2, 1:8] = True
+    mask[4:6, 6] = True
+    normals = np.zeros((6, 9, 3), np.float32)
+    normals[..., 2] = 1.0
+    report = write_surface_outputs(tmp_path, normals, mask)
+    assert (report["vertices"], report["faces"]) == (0, 0)
+    text = (tmp_path / "surface.ply").read_bytes().decode("ascii")
+    assert text.endswith("end_header\n") and "element vertex 0\n" in text and "element face 0\n" in text
+
+
+def test_depth_picture_does_not_depend_on_the_bands(monkeypatch):
+    from cnnps.io import surface
+
+    normals, mask, _ = dome(37, 53, 30.0)
+    depth = integrate_normals(normals, mask)
+    whole = depth_picture(depth, normals, mask)
+    monkeypatch.setattr(surface, "CHUNK_PIXELS", 70)
+    assert np.array_equal(depth_picture(depth, normals, mask), whole)
 
 
 def test_depth_picture_colours_heights():
