@@ -203,10 +203,12 @@ class Params:
         if self.shards is not None and (not isinstance(self.shards, str) or not self.shards.strip()):
             raise ConfigError(f"train.shards must be a folder path or URL, got {self.shards!r}")
         check_fields(self, "train.")  # the declared choices and ranges (dropout_masks, pixelwise, w)
-        effects = ("cast_shadow", "interreflection", "ambient", "intensity_error", "noise")
+        effects = ("cast_shadow", "interreflection", "ambient", "intensity_error", "noise", "saturation",
+                   "quantisation", "boundary_mix")  # cnnps.synth.pixelwise.EFFECT_NAMES
         for k, v in self.pixelwise_effects.items():
             if k not in effects:
-                raise ConfigError(f"train.pixelwise_effects: unknown effect {k!r}; effects: {', '.join(effects)}")
+                raise ConfigError(f"train.pixelwise_effects: unknown effect {k!r}; "
+                                  f"effects (cnnps.synth.pixelwise.Effects): {', '.join(effects)}")
             if not 0.0 <= float(v) <= 1.0:
                 raise ConfigError(f"train.pixelwise_effects.{k} must be a number in [0, 1], got {v!r}")
         if self.step_processes > 1 and (self.compile or self.dropout_masks == "torch"):

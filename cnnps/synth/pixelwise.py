@@ -8,7 +8,10 @@ Logothetis et al., ICCV 2021): no mesh and no renderer, one BSDF evaluation per
   normals (B, 3))`` float32: per pixel a normal (:func:`sample_normals`), a material
   (:func:`sample_materials`, the materials stage's ``materials.ranges``), a light subset
   by the extract rules (:func:`light_subsets`), radiance from :func:`shade`, the effects
-  of :class:`Effects`, and the map (:func:`observation_maps_torch`).
+  of :class:`Effects` (global light, noise, and the camera: exposure, clipping, black level,
+  quantisation, :func:`camera_response`; pixels mixing two surfaces), and the map
+  (:func:`observation_maps_torch`); ``rgb=True`` adds R, G, B maps
+  (:func:`observation_maps_rgb_torch`).
 - :func:`shade` ``(normals (P, 3), lights (m, 3), params)`` -> ``(P, m)`` grey values:
   Blender 5's Principled BSDF as :func:`cnnps.synth.bsdf.to_blender_inputs` sets it up,
   under a sun of irradiance 1 (a white Lambertian patch facing the light reads 1),
@@ -22,7 +25,7 @@ Frame: x right, y up, z toward the camera; orthographic view v = (0, 0, 1).
 Example::
 
     g = torch.Generator().manual_seed(0)
-    maps, normals = generate(256, generator=g, effects=Effects(cast_shadow=0.3, ambient=0.05))
+    maps, normals = generate(256, generator=g, effects=Effects(cast_shadow=0.3, ambient=0.05, quantisation=0.5))
 """
 
 from __future__ import annotations
@@ -474,23 +477,48 @@ def light_subsets(
 # --------------------------------------------------------------------------- effects
 
 
+EFFECT_NAMES = ("cast_shadow", "interreflection", "ambient", "intensity_error", "noise", "saturation",
+                "quantisation", "boundary_mix")  # the fields of Effects, in order
+SATURATION_RANGE = (1.0, 4.0)  # a saturated pixel's brightest observation lands at k x clip, k log-uniform here
+EXPOSURE_RANGE = (1.0 / 64.0, 0.5)  # an unsaturated quantised pixel's brightest lands at k x full scale
+BLACK_LEVEL_MAX = 2.0 / 255.0  # black-level offset U(-max, max) of full scale per quantised pixel
+EIGHT_BIT_SHARE = 0.5  # share of quantised pixels stored in 8 bits (255 levels); the rest 16 bits (65535)
+MIX_ALPHA_RANGE = (0.5, 1.0)  # foreground weight of a pixel straddling a depth discontinuity
+
+
 @dataclass(frozen=True)
 class Effects:
-    """Global effects and capture realism, each off at 0.
+    """Global effects and capture realism, each off at 0 (probabilities and strengths in [0, 1]).
 
     - ``cast_shadow``: probability that a pixel has an occluder: a spherical cap of
       directions (axis at a random azimuth, elevation U(0°, 45°), half-angle U(20°, 60°))
       whose lights reach the pixel only through the ambient and indirect terms;
-    - ``interreflection``: light bounced off a nearby lit surface (random normal facing the
-      pixel's hemisphere, albedo U(0, 1)^3): per pixel r ~ U(0, interreflection) and
-      indirect value r · ρ_pixel · ρ_neighbour · max(0, n_neighbour · l) (ρ_pixel the pixel's
-      diffuse, or for metals its base, colour; per channel, then grey);
+    - ``interreflection``: light bounced off a nearby lit surface of a random colour
+      (random normal facing the pixel's hemisphere, RGB albedo ρ_n ~ U(0, 1)^3): per pixel
+      r ~ U(0, interreflection) and indirect value r · ρ_pixel · ρ_n · max(0, n_n · l) per
+      channel (ρ_pixel the pixel's diffuse, or for metals its base, colour); grey maps
+      take the mean over R, G, B of this coloured term, RGB maps keep it per channel;
     - ``ambient``: a ~ U(0, ambient) per pixel times the pixel's brightest chosen value,
       added to every light (as :func:`cnnps.synth.training_samples.add_ambient`);
     - ``intensity_error``: per batch and light factor max(1 + N(0, σ), 0)
       (:func:`cnnps.synth.training_samples.light_gains`' law);
     - ``noise``: read and shot noise with per-pixel levels U(0, noise)
-      (:func:`cnnps.synth.training_samples.add_noise`'s law), clipped at 0.
+      (:func:`cnnps.synth.training_samples.add_noise`'s law), clipped at 0;
+    - ``saturation``: probability that a pixel is over-exposed: its values are multiplied
+      by an exposure that puts its brightest chosen value at k times the clip level 1,
+      k log-uniform in :data:`SATURATION_RANGE`, and clipped at 1 (each channel in RGB);
+    - ``quantisation``: probability that a pixel is stored as an integer image: an
+      exposure puts its brightest chosen value at k of full scale (k as for
+      ``saturation`` when the pixel is saturated, else log-uniform in
+      :data:`EXPOSURE_RANGE`), a black-level offset U(-:data:`BLACK_LEVEL_MAX`,
+      :data:`BLACK_LEVEL_MAX`) is added, values are clamped to [0, 1] and rounded to
+      8 bits (1/255 steps, share :data:`EIGHT_BIT_SHARE`) or 16 bits (1/65535);
+    - ``boundary_mix``: probability that a pixel straddles a depth discontinuity: its
+      direct shading is alpha · (its own surface) + (1 − alpha) · (a second surface with
+      an independently drawn normal and material), alpha ~ U(:data:`MIX_ALPHA_RANGE`);
+      the target normal stays the first (foreground) surface's.
+
+    Example: ``Effects(cast_shadow=0.3, saturation=0.1, quantisation=0.5, boundary_mix=0.05)``.
     """
 
     cast_shadow: float = 0.0
@@ -498,12 +526,20 @@ class Effects:
     ambient: float = 0.0
     intensity_error: float = 0.0
     noise: float = 0.0
+    saturation: float = 0.0
+    quantisation: float = 0.0
+    boundary_mix: float = 0.0
 
     def __post_init__(self):
-        for name in ("cast_shadow", "interreflection", "ambient", "intensity_error", "noise"):
+        for name in EFFECT_NAMES:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
                 raise ConfigError(f"pixelwise effect {name} must be in [0, 1], got {v!r}")
+
+    @property
+    def camera(self) -> bool:
+        """True when a pixel may be exposed, clipped or quantised."""
+        return bool(self.saturation or self.quantisation)
 
 
 def cast_shadow_mask(lights: torch.Tensor, n: int, probability: float, *, generator: torch.Generator) -> torch.Tensor:
@@ -521,6 +557,54 @@ def cast_shadow_mask(lights: torch.Tensor, n: int, probability: float, *, genera
     return inside & has[:, None]
 
 
+def camera_response(
+    intensities: torch.Tensor, light_mask: torch.Tensor, u: torch.Tensor, *, saturation: float, quantisation: float
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The ``saturation`` and ``quantisation`` effects of :class:`Effects` on P pixels.
+
+    ``intensities`` (P, m) grey or (P, m, C) per-channel values (≥ 0), ``light_mask``
+    (P, m) bool (the chosen lights), ``u`` (P, 5) uniforms in [0, 1) on the same device:
+    column 0 picks the saturated pixels (u < ``saturation``), 1 the exposure level, 2 the
+    quantised pixels (u < ``quantisation``), 3 the bit depth (u < :data:`EIGHT_BIT_SHARE`:
+    8 bits), 4 the black level. A pixel that is saturated or quantised (or both) is
+    multiplied by its exposure e = k / peak, peak its brightest value over the chosen
+    lights (and channels), k log-uniform in :data:`SATURATION_RANGE` (saturated) or
+    :data:`EXPOSURE_RANGE` (otherwise); a quantised pixel then gets the black level
+    b = :data:`BLACK_LEVEL_MAX` · (2 u₄ − 1); values are clamped to [0, 1] (the clip at 1
+    is the saturation), and a quantised pixel's are rounded to multiples of 1/255 or
+    1/65535. Other pixels are returned unchanged.
+
+    Returns (values of the same shape, in units of the full scale 1 where changed;
+    ``{"exposure" (P,) (1 where unchanged), "saturated" (P,) bool, "bits" (P,) int64
+    (8, 16, or 0: not quantised), "black_level" (P,)}``).
+
+    Example::
+
+        I2, cam = camera_response(I, mask, torch.rand(len(I), 5, generator=g), saturation=0.1, quantisation=0.5)
+    """
+    I = intensities
+    P = I.shape[0]
+    shp = (P,) + (1,) * (I.ndim - 1)
+    sat = u[:, 0] < saturation
+    qnt = u[:, 2] < quantisation
+    (s0, s1), (e0, e1) = SATURATION_RANGE, EXPOSURE_RANGE
+    log_k = torch.where(sat, math.log(s0) + u[:, 1] * (math.log(s1) - math.log(s0)),
+                        math.log(e0) + u[:, 1] * (math.log(e1) - math.log(e0)))
+    chosen = light_mask if I.ndim == 2 else light_mask[..., None]
+    peak = torch.where(chosen, I, torch.zeros_like(I)).reshape(P, -1).amax(1)
+    on = sat | qnt
+    exposure = torch.where(on & (peak > 0), torch.exp(log_k).to(I.dtype) / peak.clamp(min=1e-30),
+                           torch.ones_like(peak))
+    eight = u[:, 3] < EIGHT_BIT_SHARE
+    bits = torch.where(qnt, torch.where(eight, 8, 16), 0)
+    black = torch.where(qnt, BLACK_LEVEL_MAX * (2.0 * u[:, 4] - 1.0), torch.zeros_like(u[:, 4])).to(I.dtype)
+    levels = torch.where(eight, 255.0, 65535.0).to(I.dtype).view(shp)
+    x = (I * exposure.view(shp) + black.view(shp)).clamp(0.0, 1.0)
+    x = torch.where(qnt.view(shp), torch.round(x * levels) / levels, x)
+    out = torch.where(on.view(shp), x, I)
+    return out, {"exposure": exposure, "saturated": sat, "bits": bits, "black_level": black}
+
+
 # --------------------------------------------------------------------------- observation maps
 
 
@@ -533,13 +617,8 @@ def light_cells_torch(lights: torch.Tensor, w: int = DEFAULT_WIDTH) -> torch.Ten
     return row * w + col
 
 
-def observation_maps_torch(
-    intensities: torch.Tensor, lights: torch.Tensor, w: int = DEFAULT_WIDTH, light_mask: torch.Tensor | None = None
-) -> torch.Tensor:
-    """(P, w, w) float32 maps, the rule of :func:`cnnps.ps.obsmap.observation_maps`:
-    values max(I, 0) (0 where ``light_mask`` is False), summed per cell and divided by the
-    number of lights used in it, each map divided by its largest cell (an all-dark map stays
-    0). ``lights`` (m, 3) shared, or (P, m, 3) per pixel."""
+def _cell_means(intensities: torch.Tensor, lights: torch.Tensor, w: int, light_mask: torch.Tensor | None):
+    """(P, w * w) float32: per cell the mean of max(I, 0) over the chosen lights in it (0 if none)."""
     I = intensities.to(torch.float32)
     P, m = I.shape
     v = I.clamp(min=0.0)
@@ -553,10 +632,39 @@ def observation_maps_torch(
     cell = cell.expand(P, m) if cell.ndim == 1 else cell
     sums = torch.zeros(P, w * w, dtype=torch.float32, device=I.device).scatter_add_(1, cell, v)
     counts = torch.zeros(P, w * w, dtype=torch.float32, device=I.device).scatter_add_(1, cell, cnt)
-    maps = sums / counts.clamp(min=1.0)
+    return sums / counts.clamp(min=1.0)
+
+
+def observation_maps_torch(
+    intensities: torch.Tensor, lights: torch.Tensor, w: int = DEFAULT_WIDTH, light_mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    """(P, w, w) float32 maps, the rule of :func:`cnnps.ps.obsmap.observation_maps`:
+    values max(I, 0) (0 where ``light_mask`` is False), summed per cell and divided by the
+    number of lights used in it, each map divided by its largest cell (an all-dark map stays
+    0). ``lights`` (m, 3) shared, or (P, m, 3) per pixel."""
+    P = intensities.shape[0]
+    maps = _cell_means(intensities, lights, w, light_mask)
     peak = maps.amax(1, keepdim=True)
     maps = maps / torch.where(peak > 0, peak, torch.ones_like(peak))
     return maps.view(P, w, w)
+
+
+def observation_maps_rgb_torch(
+    intensities: torch.Tensor, lights: torch.Tensor, w: int = DEFAULT_WIDTH, light_mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    """(P, C, w, w) float32 colour maps of ``intensities`` (P, m, C) (C = 3: R, G, B): each
+    channel by the rule of :func:`observation_maps_torch`, all channels of a pixel divided
+    by one number, the largest cell over its channels (so the map keeps the pixel's colour;
+    an all-dark pixel stays 0). ``lights`` (m, 3) shared, or (P, m, 3) per pixel;
+    ``light_mask`` (P, m)."""
+    P, m, C = intensities.shape
+    I = intensities.permute(0, 2, 1).reshape(P * C, m)
+    L = lights if lights.ndim == 2 else lights.repeat_interleave(C, 0)
+    mk = None if light_mask is None else light_mask.repeat_interleave(C, 0)
+    maps = _cell_means(I, L, w, mk).view(P, C * w * w)
+    peak = maps.amax(1, keepdim=True)
+    maps = maps / torch.where(peak > 0, peak, torch.ones_like(peak))
+    return maps.view(P, C, w, w)
 
 
 # --------------------------------------------------------------------------- the generator
@@ -567,6 +675,13 @@ def default_lights(generator: torch.Generator, n: int = 1300, jitter_deg: float 
     (the render stage's jittered spiral) with a seed drawn from ``generator``."""
     seed = int(torch.randint(0, 2**62, (1,), generator=generator, device=generator.device).item())
     return hemisphere_lights(n, jitter_deg, seed=seed, min_elevation_deg=min_elevation_deg)
+
+
+def _diffuse_colour(params: dict[str, torch.Tensor]) -> torch.Tensor:
+    """(P, 3) the colour a surface reflects indirect light with: its diffuse colour, or for
+    metals (metallic > 0.5) its base colour."""
+    return torch.where(params["metallic"][:, None] > 0.5, params["base_color"],
+                       params["base_color"] * (1.0 - params["metallic"][:, None]))
 
 
 def generate(
@@ -589,6 +704,7 @@ def generate(
     effects: Effects = Effects(),
     diffuse_model: str = "lambert",
     sheen_model: str = "microfiber",
+    rgb: bool = False,
     return_details: bool = False,
 ):
     """``batch_size`` training samples: (maps (B, 1, w, w) float32, normals (B, 3) float32),
@@ -598,12 +714,41 @@ def generate(
     numbers, as reproducible), which a GPU needs: with a CPU generator the draws took 90 %
     of a 16,384-map batch on an H100 machine and the step waited for them.
 
-    ``lights``: (m, 3) directions shared by the batch, or None: a jittered spiral of
-    ``n_lights`` (:func:`default_lights`) drawn from the generator. Steps:
-    :func:`sample_normals`, :func:`sample_materials`, :func:`light_subsets`, :func:`shade`,
-    effects (:class:`Effects`: cast shadows, inter-reflection, then gains, ambient, noise),
-    :func:`observation_maps_torch`. ``return_details=True`` adds a dict of the draws
-    (params, category, mask, intensities, lights).
+    ``lights``: (m, 3) unit directions shared by the batch (frame: x right, y up, z toward
+    the camera), or None: a jittered spiral of ``n_lights`` (:func:`default_lights`) drawn
+    from the generator. Steps: :func:`sample_normals`, :func:`sample_materials`,
+    :func:`light_subsets`, :func:`shade`, effects (:class:`Effects`: mixing at depth
+    discontinuities, cast shadows, inter-reflection, then gains, ambient, noise, then the
+    camera: exposure, clipping, black level, quantisation, :func:`camera_response`),
+    :func:`observation_maps_torch`.
+
+    Order of the draws: lights (when None), normals, materials, light subsets, cast
+    shadows (B x 4), inter-reflection (B x 7), gains (m), ambient (B), noise levels (B x 2),
+    the noise field (B x m, or B x m x 3 with ``rgb``; drawn when ``noise`` or one of
+    ``saturation``, ``quantisation``, ``boundary_mix`` is on), then, only when one of
+    those three is on: the camera's uniforms (B x 5), the mixing uniforms (B x 2: which
+    pixels, alpha), the second surfaces' normals and materials (B each). Every effect
+    draws whether it is on or off, so turning one on changes no other draw; with the three
+    at 0 the generator's draws, and so the maps, are those of :class:`Effects` without them.
+
+    ``rgb=True`` shades R, G, B (:func:`shade` with ``rgb=True``), applies every effect per
+    channel (the inter-reflection's colour, the noise, the clip and the quantisation are per
+    channel; the gains, the ambient level and the shadows are shared), and returns maps
+    (B, 4, w, w): channel 0 the grey map (mean of R, G, B, as without ``rgb``), channels
+    1-3 :func:`observation_maps_rgb_torch`. ``return_details=True`` adds a dict of the
+    draws: params, category, mask (B, m), intensities ((B, m) or (B, m, 3): the values the
+    maps are made of; with the camera effects in units of the camera's full scale), lights;
+    with the camera effects ``camera`` (:func:`camera_response`'s dict); with
+    ``boundary_mix`` ``mix`` (``mixed`` (B,) bool, ``alpha`` (B,) (1 where not mixed),
+    ``normals``, ``params``, ``category`` of the second surfaces); with ``interreflection``
+    ``interreflection`` (``strength`` r (B,), the neighbour's ``normal`` (B, 3) and
+    ``colour`` ρ_n (B, 3), the pixel's ``reflectance`` ρ_pixel (B, 3)).
+
+    Example::
+
+        g = torch.Generator().manual_seed(0)
+        fx = Effects(cast_shadow=0.3, saturation=0.1, quantisation=0.5, boundary_mix=0.05)
+        maps, normals = generate(256, generator=g, effects=fx)   # (256, 1, 32, 32), (256, 3)
     """
     if batch_size < 1:
         raise ConfigError(f"batch_size must be >= 1, got {batch_size}")
@@ -627,15 +772,41 @@ def generate(
     gains = torch.clamp(1.0 + fx.intensity_error * torch.randn(m, generator=g, device=gdev), min=0.0)
     amb = fx.ambient * torch.rand(B, 1, generator=g, device=gdev)
     s_noise = fx.noise * torch.rand(B, 2, generator=g, device=gdev)
-    z_noise = torch.randn(B, m, generator=g, device=gdev) if fx.noise else None
+    later = fx.camera or bool(fx.boundary_mix)
+    chans = (3,) if rgb else ()
+    z_noise = torch.randn(B, m, *chans, generator=g, device=gdev) if (fx.noise or later) else None
+    if later:  # drawn only when one of these effects is on: at 0 they leave the generator as it was
+        cam_u = torch.rand(B, 5, generator=g, device=gdev)
+        mix_u = torch.rand(B, 2, generator=g, device=gdev)
+        normals_b = sample_normals(B, generator=g, device=gdev, grazing_fraction=grazing_fraction)
+        params_b, cat_b = sample_materials(B, ranges=ranges, categories=categories, generator=g, device=gdev)
 
     dev = torch.device(device)
     normals_d, L = normals.to(dev), L0.to(dev)
     params_d = {k: v.to(dev) for k, v in params.items()}
     mask_d = mask.to(dev)
-    I = shade(normals_d, L, params_d, diffuse_model=diffuse_model, sheen_model=sheen_model)
+    details = {}
+
+    def per_light(x):  # (B, m) -> broadcastable against I
+        return x[..., None] if rgb else x
+
+    I = shade(normals_d, L, params_d, diffuse_model=diffuse_model, sheen_model=sheen_model, rgb=rgb)
+    alpha = None
+    if fx.boundary_mix:
+        mixed = (mix_u[:, 0] < fx.boundary_mix).to(dev)
+        a0, a1 = MIX_ALPHA_RANGE
+        alpha = torch.where(mixed, a0 + (a1 - a0) * mix_u[:, 1].to(dev), torch.ones(B, device=dev))
+        nb = normals_b.to(dev)
+        pb = {k: v.to(dev) for k, v in params_b.items()}
+        idx = torch.nonzero(mixed)[:, 0]
+        if idx.numel():
+            Ib = shade(nb[idx], L, {k: v[idx] for k, v in pb.items()}, diffuse_model=diffuse_model,
+                       sheen_model=sheen_model, rgb=rgb)
+            a = alpha[idx].view(-1, *([1] * (I.ndim - 1)))
+            I = I.index_copy(0, idx, a * I[idx] + (1.0 - a) * Ib)
+        details["mix"] = {"mixed": mixed, "alpha": alpha, "normals": nb, "params": pb, "category": cat_b}
     if fx.cast_shadow:
-        I = torch.where(blocked.to(dev), torch.zeros_like(I), I)
+        I = torch.where(per_light(blocked.to(dev)), torch.zeros_like(I), I)
     if fx.interreflection:
         ir = ir.to(dev)
         r = fx.interreflection * ir[:, 0:1]
@@ -646,22 +817,41 @@ def generate(
         t = t - (t * normals_d).sum(1, keepdim=True) * normals_d
         t = t / t.norm(dim=1, keepdim=True).clamp(min=1e-6)
         n2 = torch.cos(tilt)[:, None] * normals_d + torch.sin(tilt)[:, None] * t
-        rho2 = ir[:, 3:6]
-        rho_pix = torch.where(params_d["metallic"][:, None] > 0.5, params_d["base_color"],
-                              params_d["base_color"] * (1.0 - params_d["metallic"][:, None]))
+        rho2 = ir[:, 3:6]  # the neighbour's RGB albedo: the bounced light's colour
+        rho_pix = _diffuse_colour(params_d)
+        if alpha is not None:
+            al = alpha[:, None]
+            rho_pix = al * rho_pix + (1.0 - al) * _diffuse_colour(details["mix"]["params"])
         lit2 = (n2 @ L.T).clamp(min=0.0)  # (B, m)
-        I = I + r * (rho_pix * rho2).mean(1, keepdim=True) * lit2
+        details["interreflection"] = {"strength": r[:, 0], "normal": n2, "colour": rho2, "reflectance": rho_pix}
+        if rgb:
+            I = I + (r * lit2)[..., None] * (rho_pix * rho2)[:, None, :]
+        else:
+            I = I + r * (rho_pix * rho2).mean(1, keepdim=True) * lit2
     if fx.intensity_error:
-        I = I * gains.to(dev)[None]
+        I = I * per_light(gains.to(dev)[None])
+    grey = (lambda x: x.mean(-1)) if rgb else (lambda x: x)
     if fx.ambient:
-        top = torch.where(mask_d, I, torch.zeros_like(I)).amax(1, keepdim=True)
-        I = I + amb.to(dev) * top
+        top = torch.where(mask_d, grey(I), torch.zeros_like(mask_d, dtype=I.dtype)).amax(1, keepdim=True)
+        I = I + per_light(amb.to(dev) * top)
     if fx.noise:
         s = s_noise.to(dev)
-        peak = torch.where(mask_d, I, torch.zeros_like(I)).amax(1)
-        var = (s[:, 0] * peak)[:, None] ** 2 + (s[:, 1] ** 2 * peak)[:, None] * I.clamp(min=0.0)
+        peak = torch.where(mask_d, grey(I), torch.zeros_like(mask_d, dtype=I.dtype)).amax(1)
+        if rgb:
+            peak = peak[:, None, None]
+            var = (s[:, 0, None, None] * peak) ** 2 + (s[:, 1, None, None] ** 2 * peak) * I.clamp(min=0.0)
+        else:
+            var = (s[:, 0] * peak)[:, None] ** 2 + (s[:, 1] ** 2 * peak)[:, None] * I.clamp(min=0.0)
         I = (I + torch.sqrt(var) * z_noise.to(dev)).clamp(min=0.0)
-    maps = observation_maps_torch(I, L, w, light_mask=mask_d)[:, None]
+    if fx.camera:
+        I, details["camera"] = camera_response(I, mask_d, cam_u.to(dev), saturation=fx.saturation,
+                                               quantisation=fx.quantisation)
+    if rgb:
+        maps = torch.cat([observation_maps_torch(I.mean(-1), L, w, light_mask=mask_d)[:, None],
+                          observation_maps_rgb_torch(I, L, w, light_mask=mask_d)], 1)
+    else:
+        maps = observation_maps_torch(I, L, w, light_mask=mask_d)[:, None]
     if return_details:
-        return maps, normals_d, {"params": params_d, "category": cat, "mask": mask_d, "intensities": I, "lights": L}
+        details.update({"params": params_d, "category": cat, "mask": mask_d, "intensities": I, "lights": L})
+        return maps, normals_d, details
     return maps, normals_d
