@@ -21,9 +21,10 @@ def method_name(k: int) -> str:
 
 
 def input_picture(cap) -> np.ndarray:
-    """The image lit most frontally, exposed to its 99th percentile, sRGB-ish gamma, uint8."""
+    """The image lit most frontally, exposed to its 99th percentile, sRGB-ish gamma, uint8
+    (read from its file when ``cap`` was scanned, not loaded)."""
     j = int(np.argmax(cap.lights[:, 2]))
-    img = cap.images[j]
+    img = cap.images[j] if cap.images is not None else cap.read_grey(j)
     vals = img[cap.mask]
     scale = float(np.percentile(vals, 99)) if vals.size else 1.0
     scale = scale if scale > 0 else 1.0
@@ -107,9 +108,16 @@ def format_table(metrics: dict, shipped: dict | None = None) -> str:
             s = c.get("methods", {}).get(m)
             row.append(f"{s['mean_deg']:6.2f} / {s['median_deg']:6.2f}" if s else "no GT")
         rows.append(row)
-    summary = metrics.get("summary", {})
-    if summary:
-        row = ["mean over captures", ""]
+    means = [("mean over captures", "", metrics.get("summary", {}))]
+    if metrics.get("summary_real") or metrics.get("summary_real_subsets"):  # real captures: their own means
+        left_out = ", ".join(metrics.get("real_exclude_from_mean") or [])
+        label = "mean over real" + (f" (not {left_out})" if left_out else "")
+        means = [m for m in means if m[2]] + [(label, "", metrics.get("summary_real", {}))]
+        means += [(label, n, s) for n, s in (metrics.get("summary_real_subsets") or {}).items()]
+    for label, lights, summary in means:
+        if not summary:
+            continue
+        row = [label, str(lights)]
         for m in methods:
             s = summary.get(m)
             row.append(f"{s['mean_deg']:6.2f} / {s['median_deg']:6.2f}" if s else "")

@@ -17,11 +17,19 @@ scored on the same pixels (mask pixels with a ground-truth normal,
 - CNN-PS with each ``rotations`` K (default K=1 and K=10),
 - the least-squares Lambertian baseline (:func:`cnnps.ps.least_squares.least_squares`).
 
+Observations are made as ``cnnps predict`` makes them: with ``saturated: exclude`` (the
+default, as ``cnnps predict``) an observation with a channel at 0.99 of an integer
+format's maximum is missing for both methods (float renders have none), and the network's
+maps get the Lambertian fill of ``sparse_fill``. :func:`score_real` scores the real
+captures alone (what ``cnnps score`` runs): the same numbers as this stage.
+
 Outputs (the report and pictures are replaced together at the end):
 
 - ``data_dir/eval/metrics.json``: per capture and method the error statistics
   (``mean_deg``, ``median_deg``, ...), plus a ``summary`` (mean over synthetic captures),
-  ``summary_real``, and ``by_lights`` / ``by_lights_nonconvex`` (per light count, all
+  ``summary_real`` (mean over the real captures from all their images, except
+  ``real_exclude_from_mean``), ``summary_real_subsets`` (the same per subset image count),
+  and ``by_lights`` / ``by_lights_nonconvex`` (per light count, all
   test shapes / all but the sphere: means and each CNN's ratio to least squares, the
   columns ``dvc exp show`` compares experiments by);
 - ``data_dir/eval/report.md``: a Markdown table and, per capture, input image,
@@ -107,7 +115,13 @@ class Params:
     ``real_captures``: capture folders (DiLiGenT layout) also scored; without ground
     truth only their pictures are made. ``real_subsets``: image counts n; each real
     capture is scored again from n of its images, drawn by the seeded rule of
-    :func:`cnnps.io.capture.subset_drop` (named ``<capture>-<n>``). ``model``: checkpoint;
+    :func:`cnnps.io.capture.subset_drop` (named ``<capture>-<n>``).
+    ``real_exclude_from_mean``: folder names of real captures scored and reported but left
+    out of ``summary_real`` / ``summary_real_subsets`` (e.g. a capture kept for reference
+    beside a group that is averaged). ``saturated``: "exclude" leaves saturated observations
+    out, as ``cnnps predict`` does by default; "keep" uses them as stored. ``precision``:
+    the network's ("auto": the measured pick of ``cnnps predict --precision auto``).
+    ``model``: checkpoint;
     default ``<data_dir>/train/model.pt``. ``rig``: also render every test capture again
     through that rig (:class:`Rig`; named ``<capture>-<rig>``, e.g. ``bowl-specular-17-fov40-point1.5``)
     and score the twins as ``cnnps predict`` treats rig captures; ``summary_rig`` and
@@ -124,6 +138,7 @@ class Params:
     rotations: tuple[int, ...] = (1, 10)
     real_captures: tuple[str, ...] = ()
     real_subsets: tuple[int, ...] = ()
+    real_exclude_from_mean: tuple[str, ...] = ()
     rig: Rig | None = None
     # point-light captures: "known" = the median depth a render records in scene.json, as a
     # measured --distance; "estimated" = found from the images, as without --distance
@@ -133,10 +148,13 @@ class Params:
     batch_size: int = 0  # maps per network call (0 = the inference default: 256 on a CPU, 4096 on CUDA)
     lambertian_shadow_threshold: UnitFraction | None = None
     sparse_fill: SparseFill = "auto"  # CNN, as `cnnps predict --sparse-fill` (cnnps.ps.sparse_fill)
+    saturated: Literal["exclude", "keep"] = "exclude"  # as `cnnps predict --saturated`
+    precision: Literal["auto", "fp32", "bf16"] = "fp32"  # the network's; auto as `cnnps predict --precision`
     seed: int = 0
 
     def __post_init__(self):
-        for name in ("test_shapes", "categories", "light_sets", "rotations", "real_captures", "real_subsets"):
+        for name in ("test_shapes", "categories", "light_sets", "rotations", "real_captures", "real_subsets",
+                     "real_exclude_from_mean"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
         if self.synthetic:
             if not self.test_shapes:
@@ -163,6 +181,11 @@ class Params:
 
         if any(n < MIN_IMAGES for n in self.real_subsets):
             raise ConfigError(f"eval.real_subsets: each image count must be >= {MIN_IMAGES}, got {list(self.real_subsets)}")
+        names = [Path(c).name for c in self.real_captures]
+        for name in self.real_exclude_from_mean:
+            if name not in names:
+                raise ConfigError(f"eval.real_exclude_from_mean: {name!r} is not the folder name of one of "
+                                  f"eval.real_captures ({', '.join(names) or 'none'})")
         if self.superpixels < 1:
             raise ConfigError(f"eval.superpixels must be >= 1, got {self.superpixels}")
         if self.size < 8:
@@ -201,8 +224,10 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> d
 
     ``predict(I (P, m), L, k, views=None) -> (P, 3)``: the CNN with k rotations; ``L`` is
     (m, 3), or (P, m, 3) per pixel under point lights; ``views`` (P, 3) the pixels' view
-    directions under a pinhole camera. ``drop``: image indices to leave out
-    (:func:`cnnps.io.capture.load_capture`).
+    directions under a pinhole camera. When some observations are saturated (and
+    ``params.saturated`` is "exclude") it is called with ``present=`` (P, m) bool too,
+    False for a missing observation. ``drop``: image indices to leave out
+    (:func:`cnnps.io.capture.scan_capture`).
 
     Rig captures are scored as ``cnnps predict`` treats them: with ``intrinsics.txt`` the
     network sees each pixel's lights in its own view frame; with ``light_positions.txt``
@@ -216,10 +241,11 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> d
     "errors": {method: (H,W)}, "scores": {method: GroundTruthScore}, "methods": {method: stats},
     "mask", "gt", "scored", "input"}`` (scores, errors, stats and scored only with ground truth).
     """
-    from cnnps.io.capture import load_capture, read_intrinsics
+    from cnnps.io.capture import read_intrinsics, scan_capture
     from cnnps.ps.metrics import score_normals
 
-    cap = load_capture(capture_dir, drop=drop)
+    cap = scan_capture(capture_dir, drop=drop)
+    I, missing = pixel_values(cap, params.saturated)
     K = read_intrinsics(Path(capture_dir) / "intrinsics.txt")
     distance = None
     scene = Path(capture_dir) / "scene.json"
@@ -227,7 +253,7 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> d
         import json
 
         distance = json.loads(scene.read_text()).get("median_depth")
-    normals, depths = _capture_normals(cap, K, predict, params, distance)
+    normals, depths = _capture_normals(cap, I, missing, K, predict, params, distance)
 
     out = {
         "capture": str(capture_dir),
@@ -258,16 +284,39 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> d
     return out
 
 
-def _capture_normals(cap, K, predict, params: Params, distance: float | None = None) -> tuple[dict, dict]:
+def pixel_values(cap, saturated: str = "exclude") -> tuple[np.ndarray, np.ndarray | None]:
+    """(I (P, m) float32, missing (P, m) bool or None): the mask pixels' values of a
+    scanned capture (row-major pixel order, exactly :meth:`cnnps.io.capture.Capture.read_pixels`'
+    values, as ``cnnps predict`` reads them) and, with ``saturated="exclude"``, its
+    saturated observations (None when there is none, or with "keep")."""
+    from cnnps.io.capture import SATURATION_LEVEL, for_each_image
+
+    values = np.empty((cap.n_images, cap.n_pixels), dtype=np.float32)
+    flags = np.zeros(values.shape, dtype=bool)
+    level = SATURATION_LEVEL if saturated == "exclude" else None
+
+    def read(k: int) -> None:
+        pix = cap.read_pixels(k, saturation=level)
+        values[k] = pix.values
+        if pix.saturated is not None:
+            flags[k] = pix.saturated
+
+    for_each_image(cap, read)
+    return np.ascontiguousarray(values.T), (np.ascontiguousarray(flags.T) if flags.any() else None)
+
+
+def _capture_normals(cap, I, missing, K, predict, params: Params, distance: float | None = None) -> tuple[dict, dict]:
     """({method: (H, W, 3) float32 normals}, {method: (H, W) depth} under point lights,
-    whose rounds start at ``distance``, or at the estimated scale when it is None)."""
+    whose rounds start at ``distance``, or at the estimated scale when it is None), from
+    the values ``I`` (P, m) with ``missing`` (P, m) observations (or None)."""
     from cnnps.ps.camera import view_directions
-    from cnnps.ps.least_squares import least_squares, least_squares_per_pixel
+    from cnnps.ps.least_squares import least_squares_masked, least_squares_per_pixel
     from cnnps.ps.near_field import run_rounds
     from cnnps.ps.near_lights import DEFAULT_ROUNDS, DEFAULT_TOLERANCE, pixel_lights_at
     from cnnps.ps.rotation import normalize
 
-    I, L = cap.pixel_intensities(), cap.lights
+    L = cap.lights
+    present = {} if missing is None else {"present": ~missing}
     rows, cols = np.nonzero(cap.mask)
     views = None if K is None else view_directions(K, rows, cols)
     shadow = params.lambertian_shadow_threshold
@@ -279,8 +328,8 @@ def _capture_normals(cap, K, predict, params: Params, distance: float | None = N
     depths: dict[str, np.ndarray] = {}
     if cap.light_positions is None:
         for k in params.rotations:
-            normals[method_name(k)] = image(predict(I, L, int(k), views))
-        normals[LAMBERTIAN] = image(least_squares(I, L, shadow_threshold=shadow)[0])
+            normals[method_name(k)] = image(predict(I, L, int(k), views, **present))
+        normals[LAMBERTIAN] = image(least_squares_masked(I, L, missing, shadow_threshold=shadow)[0])
         return normals, depths
 
     positions = cap.light_positions
@@ -297,13 +346,13 @@ def _capture_normals(cap, K, predict, params: Params, distance: float | None = N
     for k in params.rotations:
         def cnn(depth, final, k=int(k)):
             Ip, dirs = near(depth)
-            return image(predict(Ip, dirs, k if final else 1, views)), None  # rounds at K=1, as predict
+            return image(predict(Ip, dirs, k if final else 1, views, **present)), None  # rounds at K=1, as predict
 
         normals[method_name(k)], depths[method_name(k)] = rounds(cnn, final_pass=int(k) > 1)
 
     def lambertian(depth, _final):
         Ip, dirs = near(depth)
-        return image(least_squares_per_pixel(Ip, dirs, shadow_threshold=shadow)[0]), None
+        return image(least_squares_per_pixel(Ip, dirs, missing, shadow_threshold=shadow)[0]), None
 
     normals[LAMBERTIAN], depths[LAMBERTIAN] = rounds(lambertian, final_pass=False)
     return normals, depths
@@ -311,23 +360,56 @@ def _capture_normals(cap, K, predict, params: Params, distance: float | None = N
 
 def evaluate_all(captures, predict, params: Params, out_dir: Path, model_label: str, t0: float | None = None) -> dict:
     """Score ``captures`` ([(name, folder, "synthetic" | "real"[, drop])]); write the report;
-    return the metrics. ``drop``: image indices left out of that capture (default: none
-    beyond the capture's benchmark rule)."""
+    return the metrics (:func:`capture_metrics`). ``drop``: image indices left out of that
+    capture (default: none beyond the capture's benchmark rule); a real capture given a
+    ``drop`` is an image subset of its folder (``summary_real_subsets``)."""
+    t0 = time.perf_counter() if t0 is None else t0
+    results = score_all(captures, predict, params)
+    metrics = capture_metrics(results, params, model_label, t0)
+    write_report(out_dir, results, metrics)
+    return metrics
+
+
+def score_all(captures, predict, params: Params) -> dict[str, dict]:
+    """{name: :func:`evaluate_capture`'s result, plus ``kind`` and ``subset`` (a real
+    capture's image subset: True when a ``drop`` was given)} for ``captures`` as in
+    :func:`evaluate_all`, with a progress bar."""
     from cnnps.infra.progress import progress_bar
 
-    t0 = time.perf_counter() if t0 is None else t0
     results: dict[str, dict] = {}
     for name, path, kind, *drop in progress_bar(captures, desc="eval", unit="capture", leave=True):
         r = evaluate_capture(path, predict, params, drop=drop[0] if drop else None)
         r["kind"] = kind
+        r["subset"] = kind == "real" and bool(drop) and drop[0] is not None
         results[name] = r
+    return results
 
+
+def real_summaries(results: dict[str, dict], exclude=()) -> tuple[dict, dict]:
+    """(``summary_real``, ``summary_real_subsets``): :func:`summarize` of the real captures
+    from all their images, and per image count (a string key) of their subsets, leaving out
+    the captures whose folder is named in ``exclude`` (and their subsets)."""
+    real = {n: r for n, r in results.items()
+            if r.get("kind") == "real" and Path(r["capture"]).name not in set(exclude)}
+    counts = sorted({int(r["n_images"]) for r in real.values() if r.get("subset")}, reverse=True)
+    return (summarize({n: r for n, r in real.items() if not r.get("subset")}),
+            {str(c): summarize({n: r for n, r in real.items() if r.get("subset") and int(r["n_images"]) == c})
+             for c in counts})
+
+
+def capture_metrics(results: dict[str, dict], params: Params, model_label: str, t0: float, **extra) -> dict:
+    """What ``metrics.json`` holds for ``results`` (:func:`score_all`); ``extra`` keys
+    are added (e.g. the network's ``precision``)."""
+    summary_real, summary_real_subsets = real_summaries(results, params.real_exclude_from_mean)
     methods = [method_name(k) for k in params.rotations] + [LAMBERTIAN]
-    metrics = {
+    return {
         "model": model_label,
+        **extra,
         "methods": methods,
         "summary": summarize({n: r for n, r in results.items() if r["kind"] == "synthetic"}),
-        "summary_real": summarize({n: r for n, r in results.items() if r["kind"] == "real"}),
+        "summary_real": summary_real,
+        "summary_real_subsets": summary_real_subsets,
+        "real_exclude_from_mean": list(params.real_exclude_from_mean),
         "summary_rig": summarize({n: r for n, r in results.items() if r["kind"] == "rig"}),
         "rig_minus_ortho": rig_minus_ortho(results),
         "by_lights": summarize_by_lights({n: r for n, r in results.items() if r["kind"] == "synthetic"}),
@@ -338,6 +420,7 @@ def evaluate_all(captures, predict, params: Params, out_dir: Path, model_label: 
             n: {
                 "capture": r["capture"],
                 "kind": r["kind"],
+                **({"subset_of": Path(r["capture"]).name} if r.get("subset") else {}),
                 "n_images": r["n_images"],
                 "pixels": r["pixels"],
                 "scored_pixels": r.get("scored_pixels", 0),
@@ -347,8 +430,6 @@ def evaluate_all(captures, predict, params: Params, out_dir: Path, model_label: 
         },
         "seconds": round(time.perf_counter() - t0, 2),
     }
-    write_report(out_dir, results, metrics)
-    return metrics
 
 
 def score_shipped(metrics: dict, params: Params, rotations: int = 10) -> dict | None:
@@ -366,7 +447,6 @@ def score_shipped(metrics: dict, params: Params, rotations: int = 10) -> dict | 
 
     from cnnps.models.checkpoint import load_checkpoint
     from cnnps.models.devices import resolve_device
-    from cnnps.models.inference import predict_normals
     from cnnps.models.shipped import read_provenance, shipped_model_path
 
     path = shipped_model_path()
@@ -374,10 +454,7 @@ def score_shipped(metrics: dict, params: Params, rotations: int = 10) -> dict | 
     net, _config, _meta = load_checkpoint(path, device)
     net.eval()
     one = replace(params, rotations=(int(rotations),))
-
-    def predict(I, L, k, views=None):
-        return predict_normals(net, I, L, rotations=k, device=device, batch_size=params.batch_size or None,
-                               progress=False, sparse_fill=params.sparse_fill, views=views)
+    predict, _precision = network_predict(net, device, one, path)
 
     scores = {name: evaluate_capture(path, predict, one)["methods"][method_name(int(rotations))]
               for name, path in captures.items()}
@@ -394,49 +471,122 @@ def score_shipped(metrics: dict, params: Params, rotations: int = 10) -> dict | 
 # --------------------------------------------------------------------------- stage
 
 
-def run(params: Params, data_dir: Path) -> None:
-    t0 = time.perf_counter()
-    data_dir = Path(data_dir)
-    out_dir = data_dir / "eval"
+def load_network(params: Params, data_dir: Path):
+    """(network in eval mode, torch device name, model path): ``params.model`` (default
+    the train stage's ``model.pt``) loaded and verified; a damaged file is one line
+    naming it and the fix."""
     model_path = _model_path(params, data_dir)
-    for c in params.real_captures:  # fail before rendering anything
-        if not Path(c).is_dir():
-            raise InputError(c, "capture folder not found")
-
     from cnnps.models.checkpoint import load_checkpoint
     from cnnps.models.devices import resolve_device
 
     device = str(resolve_device(params.device))  # CnnpsError: cuda asked for, none here
-    try:  # before anything is rendered or written
+    try:
         net, _config, _meta = load_checkpoint(model_path, device)  # InputError naming the file
     except InputError as exc:
         fix = ("rerun `cnnps run-stage train` (it rewrites model.pt from its last checkpoint)"
                if params.model is None else "replace it with an intact copy")
         raise InputError(exc.path, f"{exc.problem}; {fix}") from None
     net.eval()
+    return net, device, model_path
 
-    captures: list[tuple[str, Path, str]] = []
-    if params.synthetic:
-        captures += [(p.name, p, "synthetic") for p in build_testset(params, data_dir)]
-        if params.rig is not None:
-            captures += [(p.name, p, "rig") for p in build_rig_twins(params, data_dir)]
+
+def network_predict(net, device: str, params: Params, model_path: Path):
+    """(``predict``, precision): the network as :func:`evaluate_capture` calls it, with
+    ``params.precision`` ("auto": the pick of :func:`cnnps.models.precision_probe.choose_precision`,
+    as ``cnnps predict --precision auto``, at the probe's batch size unless ``batch_size`` is
+    set), ``batch_size`` and ``sparse_fill``; missing
+    observations (``present`` False) are left out of the maps, as ``cnnps predict`` does."""
+    from cnnps.models.inference import MapPredictor, rotated_normals
+    from cnnps.ps.sparse_fill import lambertian_fill, should_fill
+
+    precision = params.precision
+    if precision == "auto":
+        import torch
+
+        from cnnps.infra.hashing import file_sha256
+        from cnnps.models.precision_probe import choose_precision
+
+        choice = choose_precision(net, torch.device(device), file_sha256(model_path), params.batch_size or None)
+        precision, batch_size = choice.precision, params.batch_size or choice.batch_size
+    else:
+        batch_size = params.batch_size or None
+    predictor = MapPredictor(net, device=device, precision=precision, batch_size=batch_size)
+
+    def predict(I, L, k, views=None, present=None):
+        I = np.asarray(I, dtype=np.float32)
+        if np.ndim(L) == 2 and should_fill(params.sparse_fill, I.shape[1]):  # never under point lights
+            f = lambertian_fill(I, L, light_mask=present, w=predictor.w)
+            I, L, present = f.intensities, f.lights, f.light_mask
+        return rotated_normals(predictor, I, np.asarray(L, dtype=np.float64), int(k), light_mask=present,
+                               views=views)
+
+    return predict, predictor.precision
+
+
+def real_capture_list(params: Params) -> list[tuple]:
+    """[(name, folder, "real"[, drop])]: each of ``real_captures`` (named by its folder),
+    then its ``real_subsets`` (``<name>-<n>``, drawn by :func:`cnnps.io.capture.subset_drop`
+    with ``params.seed``). An InputError names a folder that is not there."""
     from cnnps.io.capture import subset_drop
 
+    captures: list[tuple] = []
     for c in params.real_captures:
         p = Path(c)
+        if not p.is_dir():
+            raise InputError(c, "capture folder not found")
         captures.append((p.name, p, "real"))
         captures += [(f"{p.name}-{n}", p, "real", subset_drop(p, n, params.seed)) for n in params.real_subsets]
+    return captures
+
+
+def _check_names(captures) -> None:
     names = [c[0] for c in captures]
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
         raise ConfigError(f"eval: two captures are named {dup!r}; rename one folder")
 
-    from cnnps.models.inference import predict_normals
 
-    def predict(I, L, k, views=None):
-        return predict_normals(net, I, L, rotations=k, device=device, batch_size=params.batch_size or None, progress=False,
-                               sparse_fill=params.sparse_fill, views=views)
+def score_real(params: Params, data_dir: Path = Path("data")) -> dict:
+    """The real captures of ``params`` (``real_captures``, ``real_subsets``) scored by
+    ``params.model`` exactly as the eval stage scores them, nothing written: what
+    ``cnnps score`` runs.
 
-    metrics = evaluate_all(captures, predict, params, out_dir, str(model_path), t0)
+    Returns the metrics of :func:`capture_metrics` (``captures``: per capture and subset
+    ``n_images``, ``pixels``, ``scored_pixels`` and ``methods`` {``cnn_k<K>`` |
+    ``lambertian``: ``mean_deg``, ``median_deg``, ...}; ``summary_real``;
+    ``summary_real_subsets``) plus ``precision``, the network's.
+
+    Example: ``score_real(Params(synthetic=False, real_captures=("ballPNG",),
+    real_subsets=(10,), rotations=(10,), model="model.pt"))["captures"]["ballPNG-10"]``.
+    """
+    t0 = time.perf_counter()
+    captures = real_capture_list(params)  # missing folders first, before the model loads
+    _check_names(captures)
+    net, device, model_path = load_network(params, Path(data_dir))
+    predict, precision = network_predict(net, device, params, model_path)
+    results = score_all(captures, predict, params)
+    return capture_metrics(results, params, str(model_path), t0, precision=precision)
+
+
+def run(params: Params, data_dir: Path) -> None:
+    t0 = time.perf_counter()
+    data_dir = Path(data_dir)
+    out_dir = data_dir / "eval"
+    _model_path(params, data_dir)
+    real = real_capture_list(params)  # fail before rendering anything
+    net, device, model_path = load_network(params, data_dir)  # before anything is rendered or written
+
+    captures: list[tuple] = []
+    if params.synthetic:
+        captures += [(p.name, p, "synthetic") for p in build_testset(params, data_dir)]
+        if params.rig is not None:
+            captures += [(p.name, p, "rig") for p in build_rig_twins(params, data_dir)]
+    captures += real
+    _check_names(captures)
+
+    predict, precision = network_predict(net, device, params, model_path)
+    results = score_all(captures, predict, params)
+    metrics = capture_metrics(results, params, str(model_path), t0, precision=precision)
+    write_report(out_dir, results, metrics)
     print(format_table(metrics))
     print(f"eval: report {out_dir / 'report.md'}")

@@ -130,7 +130,10 @@ def test_image_subsets_are_scored_from_the_kept_images_only(tmp_path):
     metrics = ev.evaluate_all([("ball-6", cap, "real", drop)], predict, params, tmp_path / "e", "m")
     assert seen == [6, 6]  # K=1 and K=10, each from the 6 kept images
     assert metrics["captures"]["ball-6"]["n_images"] == 6
-    assert metrics["summary_real"]["cnn_k1"]["mean_deg"] == pytest.approx(10.0, abs=1e-3)
+    # a subset is averaged with the other captures' subsets of its size, not with whole captures
+    assert metrics["summary_real"] == {}
+    assert metrics["summary_real_subsets"]["6"]["cnn_k1"]["mean_deg"] == pytest.approx(10.0, abs=1e-3)
+    assert metrics["captures"]["ball-6"]["subset_of"] == "ball"
     names = read_filenames(cap)
     assert [names[i] for i in kept] == [f"{i:03d}.exr" for i in kept]
 
@@ -146,18 +149,21 @@ def test_subset_drop_keeps_the_benchmark_drops_out(tmp_path):
         subset_drop(cap, 11)
 
 
-def test_subset_drop_reproduces_the_committed_image_lists():
+@pytest.mark.parametrize("capture, counts", [("diligent/ballPNG", (20, 10, 6)), ("diligent-crop8/cowPNG", (10, 6)),
+                                             ("diligent-crop8/gobletPNG", (10, 6)), ("diligent-crop8/pot1PNG", (10, 6)),
+                                             ("diligent-crop8/pot2PNG", (10, 6))])
+def test_subset_drop_reproduces_the_committed_image_lists(shared_dir, capture, counts):
     from cnnps.io.capture import read_filenames, subset_drop
 
-    ball = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "diligent" / "ballPNG"
-    if not ball.is_dir():
-        pytest.skip("../shared/data/diligent/ballPNG not present")
+    folder = shared_dir / "data" / capture
+    if not folder.is_dir():
+        pytest.skip(f"{folder} not present")
     lists = Path(__file__).resolve().parents[2] / "benchmarks" / "image_lists"
-    names = read_filenames(ball)
-    for n in (20, 10, 6):
-        want = [x.strip() for x in (lists / f"ballPNG-{n}.txt").read_text().splitlines()
+    names = read_filenames(folder)
+    for n in counts:
+        want = [x.strip() for x in (lists / f"{folder.name}-{n}.txt").read_text().splitlines()
                 if x.strip() and not x.startswith("#")]
-        drop = set(subset_drop(ball, n))
+        drop = set(subset_drop(folder, n))
         assert [x for i, x in enumerate(names) if i not in drop] == want
 
 
@@ -200,6 +206,9 @@ def test_rerun_replaces_pictures(tmp_path):
         ({"lambertian_shadow_threshold": 1.5}, "shadow_threshold"),
         ({"real_subsets": (10,)}, "real_subsets needs eval.real_captures"),
         ({"real_subsets": (2,), "real_captures": ("x",)}, "image count must be >= 3"),
+        ({"real_exclude_from_mean": ("cow",), "real_captures": ("a/ball",)}, "'cow' is not the folder name"),
+        ({"saturated": "clip"}, "eval.saturated"),
+        ({"precision": "int8"}, "eval.precision"),
     ],
 )
 def test_params_validation(kwargs, message):
@@ -245,6 +254,24 @@ def test_real_captures_only_need_no_blender(tmp_path, tiny_model, monkeypatch):
     assert [metrics["captures"][n]["n_images"] for n in ("ball", "ball-6")] == [12, 6]
     # least squares on this shadow-free Lambertian capture is exact, whatever the model
     assert metrics["captures"]["ball"]["methods"]["lambertian"]["mean_deg"] < 0.05
+
+
+def test_real_means_leave_out_what_they_are_told_and_match_score_real(tmp_path, tiny_model):
+    """The stage's summary_real / summary_real_subsets: means over the real captures not in
+    real_exclude_from_mean, per image count; score_real (`cnnps score`) gives the same."""
+    caps = [make_capture(tmp_path / "caps" / name, m=12) for name in ("a", "b", "ref")]
+    params = ev.Params(synthetic=False, real_captures=tuple(str(c) for c in caps), real_subsets=(6,),
+                       real_exclude_from_mean=("ref",), rotations=(1,), model=str(tiny_model), device="cpu")
+    ev.run(params, tmp_path / "data")
+    metrics = json.loads((tmp_path / "data" / "eval" / "metrics.json").read_text())
+    assert list(metrics["captures"]) == ["a", "a-6", "b", "b-6", "ref", "ref-6"]
+    for key, summary in (("", metrics["summary_real"]), ("-6", metrics["summary_real_subsets"]["6"])):
+        for m in ("cnn_k1", "lambertian"):
+            want = np.mean([metrics["captures"][f"{c}{key}"]["methods"][m]["mean_deg"] for c in "ab"])
+            assert summary[m]["mean_deg"] == pytest.approx(want) and summary[m]["captures"] == 2
+    assert "mean over real (not ref)" in (tmp_path / "data" / "eval" / "report.md").read_text()
+    again = ev.score_real(params)
+    assert again["captures"] == metrics["captures"] and again["summary_real"] == metrics["summary_real"]
 
 
 def test_synthetic_test_set_to_render_without_blender_is_one_line(tmp_path, tiny_model, monkeypatch):

@@ -1,0 +1,101 @@
+"""A weights file on the real objects: BALL and the four 8-bit crops, least squares beside.
+
+    .venv/bin/python benchmarks/dev_real.py [--model shipped|PATH] [--name v4]
+        [--rotations 10] [--subsets 10,6] [--shared ../shared]
+        [--out benchmarks/results/dev_real_<name>.json]
+
+Runs `cnnps score` (the eval stage's scoring, `cnnps predict`'s default options) on
+../shared/data/diligent/ballPNG and ../shared/data/diligent-crop8/{cow,goblet,pot1,pot2}PNG
+with the image subsets of benchmarks/image_lists/ (the same seeded rule), BALL left out of
+the mean: "dev-real" is the mean over the four crops. Writes the command's --out JSON under
+``score`` with the command line, the git commit, the CPU (``lscpu``'s model name and
+benchmarks/machine.py's record) and the load averages. Captures missing from --shared are
+left out with a line on stderr; none present is an error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import shlex
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+REFERENCE = "ballPNG"  # reported beside the dev-real mean, not in it
+CAPTURES = (("diligent", "ballPNG"), ("diligent-crop8", "cowPNG"), ("diligent-crop8", "gobletPNG"),
+            ("diligent-crop8", "pot1PNG"), ("diligent-crop8", "pot2PNG"))
+
+
+def lscpu_model() -> str | None:
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    for line in out.splitlines():
+        if line.startswith("Model name:"):
+            return line.split(":", 1)[1].strip()
+    return None
+
+
+def git_commit() -> dict:
+    def git(*args):
+        return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True).stdout.strip()
+
+    return {"commit": git("rev-parse", "HEAD") or None, "dirty": bool(git("status", "--porcelain", "--", "cnnps"))}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", default="shipped", help="checkpoint, or 'shipped' (default)")
+    ap.add_argument("--name", default="v4", help="names the default --out file")
+    ap.add_argument("--rotations", default="10")
+    ap.add_argument("--subsets", default="10,6")
+    ap.add_argument("--shared", type=Path, default=REPO.parent / "shared")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    out = args.out or REPO / "benchmarks" / "results" / f"dev_real_{args.name}.json"
+
+    dirs = []
+    for group, name in CAPTURES:
+        d = args.shared / "data" / group / name
+        if d.is_dir():
+            dirs.append(d)
+        else:
+            print(f"dev_real: {d} not found; left out", file=sys.stderr)
+    if not dirs:
+        raise SystemExit(f"dev_real: no capture found under {args.shared / 'data'}")
+    rel = [os.path.relpath(d, REPO) for d in dirs]
+    with tempfile.TemporaryDirectory() as tmp:
+        score_file = Path(tmp) / "score.json"
+        cmd = ["cnnps", "score", args.model, *rel, "--rotations", args.rotations, "--subsets", args.subsets,
+               *(["--exclude-from-mean", REFERENCE] if any(d.name == REFERENCE for d in dirs) else []),
+               "--out", str(score_file)]
+        from benchmarks.machine import cpu_info
+
+        record = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                  "command": shlex.join(cmd[:-1] + ["FILE.json"]), **git_commit(),
+                  "cpu": {"lscpu_model_name": lscpu_model(), **cpu_info()},
+                  "load_average_before": list(os.getloadavg())}
+        t = time.perf_counter()
+        proc = subprocess.run([sys.executable, "-m", "cnnps", *cmd[1:]], cwd=REPO)
+        if proc.returncode:
+            raise SystemExit(f"dev_real: cnnps score exited with {proc.returncode}")
+        record["wall_seconds"] = round(time.perf_counter() - t, 1)
+        record["load_average_after"] = list(os.getloadavg())
+        record["score"] = json.loads(score_file.read_text())
+    from cnnps.infra.atomic import write_text
+
+    write_text(out, json.dumps(record, indent=2) + "\n")
+    print(f"-> {out.relative_to(REPO) if out.is_relative_to(REPO) else out}")
+
+
+if __name__ == "__main__":
+    main()
