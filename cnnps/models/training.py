@@ -336,6 +336,7 @@ class Trainer:
             self.step, self.history = int(state["step"]), state["history"]
             # checkpoints older than the record stepped in their run's precision (auto was fp32 then)
             self.resumed_precision = state.get("precision", self.precision)
+            self.precision_choice = state.get("precision_choice")  # kept when no step is left to probe for
             self.segments = [list(seg) for seg in state.get("precision_segments", [[0, self.resumed_precision]])]
             if info.enabled and self.main and state.get("world_size", 1) != info.world_size:
                 tqdm.write(f"train: resuming a checkpoint of {state.get('world_size', 1)} process(es) with "
@@ -361,6 +362,8 @@ class Trainer:
                 tqdm.write(f"train: precision {self.precision} ({choice['reason']})", file=sys.stderr)
         elif p.precision != "auto":
             self.precision = p.precision
+        else:  # auto with no step left: the precision the checkpoint stepped in
+            self.precision = self.resumed_precision or self.precision
         if self.resumed_precision and self.resumed_precision != self.precision and self.main:
             tqdm.write(f"train: resuming at step {self.step} in {self.precision}; the checkpoint stepped in "
                        f"{self.resumed_precision}" + (f" ({self.precision_choice['reason']})"
@@ -407,6 +410,7 @@ class Trainer:
                 "rank_rng": rank_rng,
                 "history": self.history,
                 "precision": self.precision,
+                "precision_choice": self.precision_choice,
                 "precision_segments": self.segments,
             },
             self.params.keep_checkpoints,

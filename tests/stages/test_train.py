@@ -433,3 +433,13 @@ def test_auto_precision_is_recorded_and_a_resume_in_another_precision_says_so(da
     # auto shares the fp32 run key: an explicit fp32 run resumes these checkpoints
     assert train.run_key(params, "m") == train.run_key(train.Params(**{**params.__dict__, "precision": "fp32"}), "m")
     assert train.run_key(params, "m") != train.run_key(train.Params(**{**params.__dict__, "precision": "bf16"}), "m")
+
+
+def test_a_finished_auto_run_finished_again_keeps_its_precision_record(dataset, tmp_path):
+    params = train.Params(max_steps=6, checkpoint_every=3, val_every=0, **BASE)
+    d = fresh_copy(dataset, tmp_path / "f")
+    first = train.run(params, d)
+    again = train.run(params, d)  # nothing left to step: no probe, the checkpoint's record
+    for key in ("precision", "precision_requested", "precision_choice", "precision_segments"):
+        assert again[key] == first[key], key
+    assert first["precision_choice"]["precision"] == first["precision"]

@@ -36,7 +36,8 @@ what the *last* run did, not what the outputs are:
   ``render_seconds`` (wall time) and ``images_rendered_last_run`` (a resumed render renders
   only the missing images, so this count is smaller after a kill);
 - extract ``scene-<id>.json``: ``seconds`` (wall time of the scene's extraction);
-- train ``metrics.json``: ``samples_per_s`` and ``seconds`` (speed and time split of the last call);
+- train ``metrics.json``: ``samples_per_s``, ``seconds`` (speed and time split of the last call) and
+  ``precision_choice`` (what the last call's ``train.precision: auto`` probe timed);
 - eval ``metrics.json``: ``seconds`` (wall time).
 
 A record with an excluded field that carries a ``checksum`` of its own content
@@ -71,7 +72,7 @@ OUTPUT_DIRS = {s: s for s in STAGES}  # data_dir/<folder> each stage writes (and
 EXCLUDED_FIELDS: dict[tuple[str, str], tuple[str, ...]] = {
     ("render", "*/scene.json"): ("render_seconds", "images_rendered_last_run"),
     ("extract", "scene-*.json"): ("seconds",),
-    ("train", "metrics.json"): ("samples_per_s", "seconds"),
+    ("train", "metrics.json"): ("samples_per_s", "seconds", "precision_choice"),
     ("eval", "metrics.json"): ("seconds",),
     ("eval", "testset/*/scene.json"): ("render_seconds", "images_rendered_last_run"),
 }
