@@ -242,3 +242,19 @@ def test_an_option_has_one_message_in_the_api_the_command_line_and_params_yaml(t
     assert str(api.value) == f"sparse_fill {said}"
     assert code == 2 and stderr == f"cnnps: error: --sparse-fill {said}\n"
     assert str(yaml_file.value) == f"{params}: eval.sparse_fill {said}"
+
+
+def test_help_shows_each_options_default(capsys):
+    """Every default in `cnnps predict --help` is the API's (cnnps.predict), shown in words
+    the help renderer prints (it reads "[...]" as markup and drops it)."""
+    import inspect
+    import re
+
+    from cnnps.api.prediction import predict
+
+    code, out, err = run_cli(["predict", "--help"], capsys)
+    text = re.sub(r"[\s│]+", " ", out + err)
+    assert code == 0
+    for option, name in (("--rotations", "rotations"), ("--precision", "precision"), ("--saturated", "saturated")):
+        default = inspect.signature(predict).parameters[name].default
+        assert re.search(rf"{option} .*?\(default: {default}\)", text), (option, default)
