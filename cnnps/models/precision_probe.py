@@ -19,9 +19,9 @@ measured, once per machine:
    its kernels per input shape on the first call, which can take longer than the
    calls after it, so a pass that includes it would judge the kernel creation, not the
    path. Then :data:`TIMED_CALLS` timed calls of that shape; the median decides. A
-   candidate is stopped (it cannot be the pick) when its warm-up alone takes longer than
-   :data:`PROBE_BUDGET_S`, or when its first timed call runs at under half of the best
-   rate so far. Its normals for the accuracy check come from one untimed pass over all
+   batch size whose first timed call runs at under half of the best rate so far is left
+   there (it cannot win); a candidate is stopped when every batch size was, or when a
+   warm-up call alone takes longer than :data:`PROBE_BUDGET_S`. Its normals for the accuracy check come from one untimed pass over all
    maps at its best batch size.
 3. **Exact enough**: a candidate qualifies when the mean angular error of its normals
    against the known ones is within :data:`TOLERANCE_DEG` (0.05°) of fp32's on the same
@@ -290,8 +290,10 @@ def _time_candidate(model: nn.Module, device: torch.device, precision: str, maps
     the pass for the normals (a trial for its rate alone)."""
     threads = torch.get_num_threads() if device.type == "cpu" else None
     rates: dict[int, float] = {}
+    slow: dict[int, float] = {}  # batch sizes stopped after one timed call (under half the best rate)
+    predictor = make_predictor(model, device, precision, batches[0])  # folded once, run at each batch size
     for b in batches:
-        predictor = make_predictor(model, device, precision, b)
+        predictor.batch_size = b
         batch = maps[:b] if len(maps) >= b else np.resize(maps, (b,) + maps.shape[1:])
         w0 = wall_clock()
         predictor(batch)  # kernels created for this shape, caches filled
@@ -308,11 +310,17 @@ def _time_candidate(model: nn.Module, device: torch.device, precision: str, maps
             if passes is not None:
                 passes.append(TimedPass(precision, threads, b, wall, cpu))
             if i == 0 and stoppable and floor is not None and b / wall < 0.5 * floor:
-                return Trial(b / wall, b, {**rates, b: round(b / wall, 1)}, None, "under half the best rate")
-        rates[b] = b / float(np.median(walls))
+                slow[b] = b / wall  # this batch size cannot win; another may
+                break
+        else:
+            rates[b] = b / float(np.median(walls))
+    if not rates:
+        b = max(slow, key=slow.get)
+        return Trial(slow[b], b, {k: round(v, 1) for k, v in slow.items()}, None, "under half the best rate")
     best = max(rates, key=rates.get)
-    normals = make_predictor(model, device, precision, best)(maps) if with_normals else None
-    return Trial(rates[best], best, {b: round(r, 1) for b, r in rates.items()}, normals)
+    predictor.batch_size = best
+    normals = predictor(maps) if with_normals else None
+    return Trial(rates[best], best, {b: round(r, 1) for b, r in {**slow, **rates}.items()}, normals)
 
 
 def probe(model: nn.Module, device: torch.device, batch_size: int | None = None) -> Choice:

@@ -305,6 +305,7 @@ class SimulatedCPU:
 
     def __init__(self, rate, creation_s):
         self.rate, self.creation_s, self.wall, self.cpu, self.seen = rate, creation_s, 0.0, 0.0, set()
+        self.built = 0  # predictors made (each folds the network once)
         self.truth = pp.probe_maps()[1]
 
     def wall_clock(self) -> float:
@@ -316,8 +317,8 @@ class SimulatedCPU:
     def predictor(self, model, device, precision, batch_size):
         def run(maps):
             dt = 0.0
-            for start in range(0, len(maps), batch_size):
-                b = min(batch_size, len(maps) - start)
+            for start in range(0, len(maps), run.batch_size):
+                b = min(run.batch_size, len(maps) - start)
                 if (precision, b) not in self.seen:
                     self.seen.add((precision, b))
                     dt += self.creation_s[precision]
@@ -326,6 +327,8 @@ class SimulatedCPU:
             self.cpu += dt * torch.get_num_threads()
             return self.truth[:len(maps)] if len(maps) <= len(self.truth) else np.resize(self.truth, (len(maps), 3))
 
+        run.batch_size = batch_size  # the probe sets it per batch size, as MapPredictor's
+        self.built += 1
         return run
 
 
@@ -372,3 +375,18 @@ def test_a_caller_batch_size_is_the_only_one_timed(net, cache, amx_like):
 def test_the_probe_stays_about_a_second_on_a_simulated_cpu(net, cache, amx_like):
     pp.probe(net, torch.device("cpu"))
     assert amx_like.wall < 1.0  # simulated seconds the probe's calls took (fp32 at 5,000 maps/s)
+    assert amx_like.built == 3  # one folded network per precision, and one for the thread count
+
+
+def test_a_batch_size_too_slow_to_win_does_not_stop_the_candidate(net, cache, monkeypatch, two_threads):
+    """bf16 far slower than fp32 at batch 64 but faster at 256 (say, kernels that want large
+    shapes): batch 64 is left after one timed call, and bf16 still wins at 256."""
+    cpu = SimulatedCPU(lambda p, b: 5000.0 if p == "fp32" else (2000.0 if b < 256 else 11000.0),
+                       {"fp32": 0.0, "bf16": 0.0})
+    for name in ("wall_clock", "cpu_clock"):
+        monkeypatch.setattr(pp, name, getattr(cpu, name))
+    monkeypatch.setattr(pp, "make_predictor", cpu.predictor)
+    monkeypatch.setattr(pp, "bf16_available", lambda device: True)
+    choice = pp.probe(net, torch.device("cpu"))
+    assert choice.precision == "bf16" and choice.batch_size == 256
+    assert choice.batch_rates["bf16"] == {"64": pytest.approx(2000.0), "256": pytest.approx(11000.0)}
