@@ -19,9 +19,7 @@ flags, the command and the commit.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -32,7 +30,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.bench_inference import cpu_kind  # noqa: E402
-from benchmarks.machine import cpu_info  # noqa: E402
+from benchmarks.machine import cpu_info, run_record  # noqa: E402
 from cnnps.infra.atomic import write_text  # noqa: E402
 
 SHARED = REPO.parent / "shared" / "data"
@@ -94,11 +92,7 @@ def main(argv=None) -> int:
     for c in captures:
         rows[c.name] = agreement(c, net, args.pixels, rotations)
         print(c.name, rows[c.name], flush=True)
-    commit = subprocess.run(["git", "-C", str(REPO), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-    result = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "cpu": info,
-              "commit": commit, "bf16_kernels": kernels,
-              "command": "benchmarks/bench_bf16_agreement.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-              "captures": rows}
+    result = {**run_record("benchmarks/bench_bf16_agreement.py", argv), "bf16_kernels": kernels, "captures": rows}
     out = args.out or REPO / "benchmarks" / "results" / "precision" / f"bf16-agreement_{cpu_kind(info)}.json"
     write_text(out, json.dumps(result, indent=1) + "\n")
     print(f"wrote {out}")

@@ -27,9 +27,7 @@ commit.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -40,7 +38,7 @@ sys.path.insert(0, str(REPO))
 
 from benchmarks.bench_bf16_agreement import DEFAULT_CAPTURES, SEED  # noqa: E402
 from benchmarks.bench_inference import cpu_kind  # noqa: E402
-from benchmarks.machine import cpu_info  # noqa: E402
+from benchmarks.machine import cpu_info, run_record  # noqa: E402
 from cnnps.infra.atomic import write_text  # noqa: E402
 
 DARK = 0.02  # a light reading under this share of the pixel's brightest counts as dark
@@ -118,11 +116,7 @@ def main(argv=None) -> int:
     for c in captures:
         rows[c.name] = measures(c, predictor, args.pixels, args.rotations)
         print(c.name, json.dumps(rows[c.name]), flush=True)
-    commit = subprocess.run(["git", "-C", str(REPO), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-    result = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "cpu": info,
-              "commit": commit,
-              "command": "benchmarks/bench_confidence.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-              "captures": rows}
+    result = {**run_record("benchmarks/bench_confidence.py", argv), "captures": rows}
     out = args.out or REPO / "benchmarks" / "results" / f"confidence_{cpu_kind(info)}.json"
     write_text(out, json.dumps(result, indent=1) + "\n")
     print(f"wrote {out}")

@@ -47,3 +47,19 @@ def gemm_peaks(repeat: int = 5, n: int = 2048) -> dict:
     kernels = mkldnn_bf16_available()
     return {"fp32": best(torch.float32, n), "bf16": best(torch.bfloat16, n if kernels else 512),
             "bf16_kernels": kernels, "threads": torch.get_num_threads(), "n": n}
+
+
+def run_record(script: str, argv: list[str] | None = None) -> dict:
+    """What a benchmark's result file records of its run: ``date`` (UTC), ``cpu``
+    (:func:`cpu_info`), ``commit`` (of the checkout the script is in) and ``command``
+    (``script`` and its arguments, ``sys.argv[1:]`` unless given)."""
+    import datetime
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    commit = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    args = sys.argv[1:] if argv is None else argv
+    return {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "cpu": cpu_info(),
+            "commit": commit, "command": " ".join([script, *args])}
