@@ -11,7 +11,7 @@ buffer) and times, for ``--seconds`` each, interleaved over two rounds (best kep
 
 - ``stream``: the numpy batches (maps float16, normals float32): what a GPU run sends to
   the device (float16 is converted there);
-- ``dataset``: :class:`~cnnps.models.shard_dataset.ShardDataset`'s torch tensors, maps converted to
+- ``dataset``: :class:`~cnnps.train.shard_dataset.ShardDataset`'s torch tensors, maps converted to
   float32 on the CPU: what a CPU run consumes;
 
 each with ``prefetch`` 0 (row groups decoded in the consuming thread) and 2 (the
@@ -36,7 +36,7 @@ sys.path.insert(0, str(REPO))
 from benchmarks.machine import cpu_info  # noqa: E402
 from cnnps.infra.atomic import write_text  # noqa: E402
 from cnnps.io.shards import ShardStream, load_manifest, manifest_files  # noqa: E402
-from cnnps.models.shard_dataset import ShardDataset  # noqa: E402
+from cnnps.train.shard_dataset import ShardDataset  # noqa: E402
 
 CANDIDATES = ("data/cpu-train-v3/extract", "data/cpu-train/extract", "data/extract")
 

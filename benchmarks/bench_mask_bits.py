@@ -3,9 +3,9 @@
     .venv/bin/python benchmarks/bench_mask_bits.py [--rounds 20] [--steps 8] [--rows 64]
         [--threads 1] [--out benchmarks/results/train_mask_bits.json]
 
-``train.dropout_masks: counter16`` (the default) reads the masks' counter stream 16 bits
+``train.cpu.dropout_masks: counter16`` (the default) reads the masks' counter stream 16 bits
 an element, ``counter`` 32 bits (:func:`cnnps.models.train_layers.counter_keep`). This
-times :func:`cnnps.models.optimiser.train_step` (fused layers, fused Adam, channels_last,
+times :func:`cnnps.train.optimiser.train_step` (fused layers, fused Adam, channels_last,
 the stage's defaults) of one model on ``--rows`` random maps with ``--threads`` torch
 threads (64 rows and 1 thread: one step process's share of a 128-row batch on 2 cores),
 switching ``model.mask_bits`` every ``--steps`` steps for ``--rounds`` rounds (the order
@@ -28,7 +28,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from cnnps.models.openmp import prefer_passive_openmp  # noqa: E402
+from cnnps.train.openmp import prefer_passive_openmp  # noqa: E402
 
 prefer_passive_openmp()  # as the stage does, before torch loads
 import torch  # noqa: E402
@@ -47,14 +47,14 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "train_mask_bits.json")
     args = ap.parse_args()
 
-    from cnnps.models.allocator import keep_freed_memory
-    from cnnps.models.optimiser import make_model, train_step
     from cnnps.stages.train import Params
+    from cnnps.train.allocator import keep_freed_memory
+    from cnnps.train.optimiser import make_model, train_step
 
     keep_freed_memory()  # as the stage does on a CPU
     torch.set_num_threads(args.threads)
     cpu = torch.device("cpu")
-    p = Params(batch_size=args.rows)
+    p = Params(data={"batch_size": args.rows})
     model, opt = make_model(32, p, cpu)
     model.train()
     g = torch.Generator().manual_seed(0)

@@ -47,7 +47,12 @@ def agreement(size: int, n_lights: int, samples: int, per_category: int, seed: i
         return {"skipped": "bpy not installed"}
     from cnnps.io.capture import load_capture
     from cnnps.ps.obsmap import observation_maps
-    from cnnps.synth.capture_render import principled_material, render_into
+    from cnnps.synth.capture_render import (
+        RenderSettings,
+        Scene,
+        principled_material,
+        render_into,
+    )
     from cnnps.synth.lights import hemisphere_lights
 
     mesh = trimesh.creation.icosphere(subdivisions=5, radius=0.9)
@@ -63,9 +68,9 @@ def agreement(size: int, n_lights: int, samples: int, per_category: int, seed: i
                 p = {k: v[i] for k, v in rows.items()}
                 folder = Path(tmp) / f"{cat}{i}"
                 t0 = time.perf_counter()
-                render_into(folder, mesh.vertices, mesh.faces, principled_material(p), key=f"{cat}{i}", lights=L,
-                            intensity=1.0, size=size, samples=samples, seed=seed + i, max_bounces=1, threads=0,
-                            progress=False)
+                render_into(folder, Scene(mesh.vertices, mesh.faces, principled_material(p), L),
+                            RenderSettings(size=size, samples=samples, seed=seed + i, max_bounces=1),
+                            key=f"{cat}{i}", progress=False)
                 cap = load_capture(folder)
                 rr, cc = np.nonzero(cap.mask)
                 n = cap.normal_gt[rr, cc].astype(np.float64)

@@ -4,7 +4,7 @@
         --testset data/eval/testset [--ball ../shared/data/diligent/ballPNG] [--steps 600]
 
 Each variant starts from ``cnnps/models/weights/cnnps_default.pt`` and trains the same
-number of steps (batch 128, lr 1e-4, counter dropout masks) with ``train.pixelwise`` 0,
+number of steps (batch 128, lr 1e-4, counter dropout masks) with ``train.pixelwise.share`` 0,
 ``--mix`` (default 0.25, v4's recipe) and 1 (per-pixel effects: cast shadows 0.3,
 inter-reflection 0.3, ambient 0.05, gains 0.05, noise 0.01; sparse share 0.2); its wall
 and CPU time are recorded beside it. With ``--cpu-minutes M`` each variant instead
@@ -37,7 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.machine import cpu_info  # noqa: E402
-from cnnps.models.openmp import prefer_passive_openmp  # noqa: E402
+from cnnps.train.openmp import prefer_passive_openmp  # noqa: E402
 
 prefer_passive_openmp()
 import torch  # noqa: E402
@@ -76,10 +76,11 @@ def finetune(share: float, shards: Path, steps: int, work: Path, cpu_budget: flo
     from cnnps.models.shipped import weights_path
     from cnnps.stages import train
 
-    params = train.Params(pixelwise=share, pixelwise_effects=EFFECTS, pixelwise_sparse_fraction=0.2,
-                          shards=str(shards), init=str(weights_path()), max_steps=10**7 if cpu_budget else steps,
-                          epochs=1000, lr=1e-4, batch_size=128, val_every=0,
-                          checkpoint_every=10**7 if cpu_budget else steps, progress=False, threads=threads)
+    params = train.Params(pixelwise={"share": share, "effects": EFFECTS, "sparse_fraction": 0.2},
+                          data={"shards": str(shards), "batch_size": 128}, optimiser={"lr": 1e-4},
+                          init=str(weights_path()), max_steps=10**7 if cpu_budget else steps, epochs=1000,
+                          val_every=0, checkpoint_every=10**7 if cpu_budget else steps, progress=False,
+                          cpu={"threads": threads})
     budget = CpuBudget(cpu_budget) if cpu_budget else None
     t0, c0 = time.perf_counter(), cpu_seconds()
     metrics = train.run(params, work, until=budget)
@@ -108,8 +109,8 @@ def score(model_path: Path, shards: Path, testset: Path | None, ball: Path | Non
     from cnnps.io.shards import load_manifest, manifest_files
     from cnnps.models.checkpoint import load_checkpoint
     from cnnps.models.inference import predict_normals
-    from cnnps.models.validation import load_val, val_errors
     from cnnps.ps.metrics import angular_error_deg
+    from cnnps.train.validation import load_val, val_errors
 
     net, _config, _meta = load_checkpoint(model_path)
     man = load_manifest(shards)
@@ -145,7 +146,7 @@ def main() -> None:
     ap.add_argument("--cpu-minutes", type=float, default=0.0,
                     help="equal CPU time instead of equal steps: each variant trains until its loop has used "
                          "this many CPU-minutes (the three at once, one thread each)")
-    ap.add_argument("--mix", type=float, default=0.25, help="train.pixelwise of the mixed variant (v4's: 0.25)")
+    ap.add_argument("--mix", type=float, default=0.25, help="train.pixelwise.share of the mixed variant (v4's: 0.25)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks/results/pixelwise_finetune.json")
     a = ap.parse_args()
     from cnnps.models.shipped import weights_path

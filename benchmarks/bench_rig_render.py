@@ -52,8 +52,8 @@ def main() -> None:
         for mesh, material in OBJECTS:
             name = mesh.split(":")[1]
             ortho = cnnps.render(mesh, tmp / f"{name}-o", material=material, **kw)
-            persp = cnnps.render(mesh, tmp / f"{name}-p", material=material, fov=40, **kw)
-            near = cnnps.render(mesh, tmp / f"{name}-n", material=material, fov=40, light_distance=3.0, **kw)
+            persp = cnnps.render(mesh, tmp / f"{name}-p", material=material, fov_deg=40, **kw)
+            near = cnnps.render(mesh, tmp / f"{name}-n", material=material, fov_deg=40, light_distance=3.0, **kw)
             depth = np.load(near / "depth_gt.npy")
             mask = np.isfinite(depth)
             r_o = cnnps.predict_folder(ortho, tmp / f"{name}-o-out", **pk)

@@ -7,7 +7,7 @@ Three rates, samples per second, measured one after the other in the same proces
 
 - ``loader``: the stage's loader alone over the same shards (``ShardDataset`` on a CPU,
   float32 tensors; the float16 ``ShardStream`` batches on CUDA), no network;
-- ``bare_step``: :func:`cnnps.models.optimiser.train_step` on batches already on the
+- ``bare_step``: :func:`cnnps.train.optimiser.train_step` on batches already on the
   device (real maps from the shards, gathered once), nothing else: the network's rate;
 - ``stage``: ``cnnps.stages.train.run`` itself for ``--steps`` steps from scratch with
   the stage's defaults (prefetch, channels_last, fused Adam, progress bar, loss log), a
@@ -32,10 +32,10 @@ it had before the fast CPU step (:data:`BEFORE`: torch's dropout masks, torch's 
 glibc's allocator as it comes) and with today's defaults, each run in its own process,
 alternately, ``ROUNDS`` times; it writes ``<device kind>-vs-before.json`` with the
 medians and the ratio of each round. ``--counter32`` adds today's defaults with the 32-bit
-counter masks (``dropout_masks: counter``, the default before ``counter16``). ``--bf16`` adds today's defaults in bf16 autocast, in
+counter masks (``cpu.dropout_masks: counter``, the default before ``counter16``). ``--bf16`` adds today's defaults in bf16 autocast, in
 one process and in ``--step-processes``: ``<device kind>-vs-before-bf16.json``. ``--ahead ROUNDS --share S`` does the same for a
 stage whose batches are ``S`` per-pixel maps (:data:`PIXELWISE`'s effects), made in the
-step's thread against made a step ahead (``pixelwise_ahead`` 0 and 1):
+step's thread against made a step ahead (``pixelwise.ahead`` 0 and 1):
 ``<device kind>-pixelwise-S-ahead.json``.
 """
 
@@ -54,7 +54,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from cnnps.models.openmp import prefer_passive_openmp  # noqa: E402
+from cnnps.train.openmp import prefer_passive_openmp  # noqa: E402
 
 prefer_passive_openmp()  # as the stage does, before torch loads
 import numpy as np  # noqa: E402
@@ -65,7 +65,7 @@ from benchmarks.bench_pixelwise_finetune import EFFECTS as FINETUNE_EFFECTS  # n
 from benchmarks.machine import cpu_info  # noqa: E402
 from cnnps.infra.atomic import write_text  # noqa: E402
 from cnnps.io.shards import ShardStream, load_manifest, manifest_files  # noqa: E402
-from cnnps.models.shard_dataset import ShardDataset  # noqa: E402
+from cnnps.train.shard_dataset import ShardDataset  # noqa: E402
 
 CANDIDATES = ("data/cpu-train-v3/extract", "data/cpu-train/extract")
 DEFAULT_VAL_EVERY, DEFAULT_CKPT_EVERY, DEFAULT_VAL_ROWS = 2000, 1000, 50000
@@ -96,10 +96,10 @@ def loader_rate(files, w: int, batch: int, device: torch.device, seconds: float)
 
 
 def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: float, masks: str = "counter16") -> dict:
-    from cnnps.models.optimiser import make_model, train_step
     from cnnps.stages.train import Params
+    from cnnps.train.optimiser import make_model, train_step
 
-    p = Params(batch_size=batch, dropout_masks=masks, precision="fp32")  # the bare fp32 step
+    p = Params(data={"batch_size": batch}, cpu={"dropout_masks": masks}, precision="fp32")  # the bare fp32 step
     stream = ShardStream(files, w, 4096, seed=0, prefetch=0)
     it = stream.iter_epoch(0)
     maps, normals = next(it)
@@ -134,19 +134,27 @@ def bare_step_rate(files, w: int, batch: int, device: torch.device, seconds: flo
 
 # the train stage's CPU settings before the fast step: torch's dropout masks, torch's layers,
 # glibc's allocator as it comes (the stage's speed when the work on it began)
-BEFORE = dict(dropout_masks="torch", cpu_layers="reference", keep_freed_memory=False, step_processes=1)
+BEFORE = {"cpu": dict(dropout_masks="torch", layers="reference", keep_freed_memory=False, step_processes=1)}
+
+
+def merged(base: dict, settings: dict) -> dict:
+    """Train params ``base`` with ``settings`` over them, a section's keys joining base's."""
+    return {**base, **{k: {**base.get(k, {}), **v} if isinstance(v, dict) else v for k, v in settings.items()}}
 
 
 def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path, masks: str = "counter16",
                **settings) -> dict:
+    """The stage for ``steps`` steps; ``settings``: train params (sections as mappings)
+    over this benchmark's, e.g. ``cpu={"step_processes": 2}``."""
     from cnnps.stages import train
 
     every = max(1, steps // 2)
     # as many validation maps per step as the defaults (50,000 every 2,000 steps)
     val_rows = max(1000, round(DEFAULT_VAL_ROWS * every / DEFAULT_VAL_EVERY))
-    params = train.Params(batch_size=batch, max_steps=steps, epochs=1000, val_every=every, checkpoint_every=every,
-                          val_max_rows=val_rows, shards=str(shards), device=device, progress=True,
-                          **{"dropout_masks": masks, **settings})
+    base = dict(data={"batch_size": batch, "shards": str(shards)}, cpu={"dropout_masks": masks}, max_steps=steps,
+                epochs=1000, val_every=every, checkpoint_every=every, val_max_rows=val_rows, device=device,
+                progress=True)
+    params = train.Params(**merged(base, settings))
     t = time.perf_counter()
     m = train.run(params, work)
     wall = time.perf_counter() - t
@@ -156,11 +164,8 @@ def stage_rate(shards: Path, batch: int, steps: int, device: str, work: Path, ma
             "seconds": sec, "validations_in_loop": n_val, "checkpoints": n_ckpt,
             "val_seconds_each": round(sec["validation"] / n_val, 3), "checkpoint_seconds_each": round(sec["checkpoints"] / n_ckpt, 3),
             "val_rows": m["val_rows"], "params": {k: v for k, v in dataclasses.asdict(params).items()
-                                                  if k in ("batch_size", "max_steps", "val_every", "checkpoint_every",
-                                                           "val_max_rows", "prefetch", "channels_last", "fused_adam",
-                                                           "precision", "num_workers", "dropout_masks",
-                                                           "cpu_layers", "keep_freed_memory", "pixelwise",
-                                                           "pixelwise_ahead")}}
+                                                  if k in ("max_steps", "val_every", "checkpoint_every", "val_max_rows",
+                                                           "channels_last", "precision", "data", "cpu", "pixelwise")}}
 
 
 def stage_vs(shards: Path, batch: int, steps: int, device: str, rounds: int, settings: dict[str, dict]) -> dict:
@@ -194,7 +199,7 @@ def stage_vs(shards: Path, batch: int, steps: int, device: str, rounds: int, set
 
 
 # per-pixel maps for --ahead: the fine-tune benchmark's effects and sparse share
-PIXELWISE = dict(pixelwise_effects=FINETUNE_EFFECTS, pixelwise_sparse_fraction=0.2)
+PIXELWISE = dict(effects=FINETUNE_EFFECTS, sparse_fraction=0.2)
 
 
 def main() -> None:
@@ -214,19 +219,19 @@ def main() -> None:
                          "comes) against today's defaults, each in its own process, alternately, ROUNDS rounds")
     ap.add_argument("--ahead", type=int, default=0, metavar="ROUNDS",
                     help="only the stage with --share per-pixel maps: made in the step's thread "
-                         "(pixelwise_ahead 0) against a step ahead (1), each in its own process, alternately")
-    ap.add_argument("--share", type=float, default=1.0, help="train.pixelwise of --ahead (1: per-pixel maps only)")
+                         "(pixelwise.ahead 0) against a step ahead (1), each in its own process, alternately")
+    ap.add_argument("--share", type=float, default=1.0, help="train.pixelwise.share of --ahead (1: per-pixel maps only)")
     ap.add_argument("--processes", type=int, default=0, metavar="ROUNDS",
                     help="only the stage: one process against --step-processes sharing each step "
-                         "(train.step_processes), each in its own process, alternately, ROUNDS rounds")
+                         "(train.cpu.step_processes), each in its own process, alternately, ROUNDS rounds")
     ap.add_argument("--step-processes", type=int, default=2,
-                    help="train.step_processes of --processes and of --vs-before's third setting (today's "
+                    help="train.cpu.step_processes of --processes and of --vs-before's third setting (today's "
                          "defaults with that many step processes; the second: with one)")
     ap.add_argument("--bf16", action="store_true",
                     help="--vs-before also runs today's defaults in bf16 autocast (train.precision: bf16), in one "
                          "process and in --step-processes")
     ap.add_argument("--counter32", action="store_true",
-                    help="--vs-before: also today's defaults with dropout_masks: counter (32-bit masks)")
+                    help="--vs-before: also today's defaults with cpu.dropout_masks: counter (32-bit masks)")
     ap.add_argument("--only", default="", help="--vs-before: the comma-separated settings to run, 'before' first "
                                                  "(names as in the results: now_1_process, now_2_processes, ...)")
     ap.add_argument("--one-stage", help=argparse.SUPPRESS)  # a child: the JSON of its train settings
@@ -250,15 +255,14 @@ def main() -> None:
                "torch": torch.__version__, "shards": str(shards), "batch_size": args.batch_size, "steps": args.steps,
                "load_average_before": [round(x, 2) for x in os.getloadavg()]}
         if args.vs_before:
-            settings = {"before": BEFORE, "now_1_process": {"step_processes": 1},
-                        f"now_{args.step_processes}_processes": {"step_processes": args.step_processes}}
+            n = args.step_processes
+            settings = {"before": BEFORE, "now_1_process": {"cpu": {"step_processes": 1}},
+                        f"now_{n}_processes": {"cpu": {"step_processes": n}}}
             if args.counter32:  # today's defaults with the 32-bit counter masks drawn before counter16
-                settings[f"now_{args.step_processes}_processes_counter32"] = {"step_processes": args.step_processes,
-                                                                              "dropout_masks": "counter"}
+                settings[f"now_{n}_processes_counter32"] = {"cpu": {"step_processes": n, "dropout_masks": "counter"}}
             if args.bf16:
-                settings["now_bf16_1_process"] = {"precision": "bf16", "step_processes": 1}
-                settings[f"now_bf16_{args.step_processes}_processes"] = {"precision": "bf16",
-                                                                         "step_processes": args.step_processes}
+                settings["now_bf16_1_process"] = {"precision": "bf16", "cpu": {"step_processes": 1}}
+                settings[f"now_bf16_{n}_processes"] = {"precision": "bf16", "cpu": {"step_processes": n}}
             if args.only:
                 keep = args.only.split(",")
                 unknown = sorted(set(keep) - set(settings))
@@ -266,11 +270,11 @@ def main() -> None:
                     sys.exit(f"bench_stage: --only takes 'before' and any of {', '.join(list(settings)[1:])}")
                 settings = {k: v for k, v in settings.items() if k in keep}
         elif args.processes:
-            settings = {"one_process": {"step_processes": 1},
-                        f"{args.step_processes}_processes": {"step_processes": args.step_processes}}
+            settings = {"one_process": {"cpu": {"step_processes": 1}},
+                        f"{args.step_processes}_processes": {"cpu": {"step_processes": args.step_processes}}}
         else:
-            px = dict(PIXELWISE, pixelwise=args.share)
-            settings = {"in_step": dict(px, pixelwise_ahead=0), "ahead": dict(px, pixelwise_ahead=1)}
+            px = dict(PIXELWISE, share=args.share)
+            settings = {"in_step": {"pixelwise": dict(px, ahead=0)}, "ahead": {"pixelwise": dict(px, ahead=1)}}
         rounds = args.vs_before or args.ahead or args.processes
         res.update(stage_vs(shards, args.batch_size, args.steps, args.device, rounds, settings))
         res["load_average_after"] = [round(x, 2) for x in os.getloadavg()]

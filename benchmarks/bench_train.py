@@ -29,34 +29,40 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.machine import cpu_info, gemm_peaks  # noqa: E402
-from cnnps.models.openmp import prefer_passive_openmp  # noqa: E402
 from cnnps.stages.train import Params  # noqa: E402
+from cnnps.train.openmp import prefer_passive_openmp  # noqa: E402
 
 prefer_passive_openmp()  # as the stage does (before torch loads); OMP_WAIT_POLICY=ACTIVE to compare
 import torch  # noqa: E402
 
-from cnnps.models.optimiser import compile_model, make_model, train_step  # noqa: E402
+from cnnps.train.optimiser import compile_model, make_model, train_step  # noqa: E402
 
-BASELINE = dict(channels_last=False, fused_adam=False)  # the stage's settings before the tuning
+
+def variant(name: str, batch: int, **params) -> dict:
+    """A variant: its name and train params (sections as mappings) at batch size ``batch``."""
+    return dict(name=name, data={"batch_size": batch}, **params)
+
+
+BASELINE = dict(channels_last=False, optimiser={"fused_adam": False})  # the stage's settings before the tuning
+ONE_THREAD = {"cpu": {"threads": 1}}
 VARIANTS = [
-    dict(name="baseline fp32 bs128 (NCHW, foreach Adam)", batch_size=128, **BASELINE),
-    dict(name="fp32 bs256 (NCHW, foreach Adam)", batch_size=256, **BASELINE),
-    dict(name="fp32 bs128 channels_last", batch_size=128, channels_last=True, fused_adam=False),
-    dict(name="fp32 bs128 channels_last fused Adam, torch dropout masks (before)", batch_size=128,
-         dropout_masks="torch"),
-    dict(name="fp32 bs128 channels_last fused Adam counter masks, reference layers", batch_size=128,
-         cpu_layers="reference"),
-    dict(name="fp32 bs128 channels_last fused Adam counter masks fused layers (defaults)", batch_size=128),
-    dict(name="fp32 bs64 counter masks", batch_size=64),
-    dict(name="fp32 bs256 channels_last fused Adam", batch_size=256),
-    dict(name="fp32 bs512 channels_last fused Adam", batch_size=512),
-    dict(name="bf16 bs128 channels_last fused Adam", batch_size=128, precision="bf16"),
-    dict(name="bf16 bs256 channels_last fused Adam", batch_size=256, precision="bf16"),
-    dict(name="compiled fp32 bs128 channels_last fused Adam", batch_size=128, compile=True),
-    dict(name="fp32 bs128 defaults, 1 thread", batch_size=128, threads=1),
-    dict(name="fp32 bs64 defaults, 1 thread", batch_size=64, threads=1),
-    dict(name="bf16 bs128 defaults, 1 thread", batch_size=128, precision="bf16", threads=1),
-    dict(name="bf16 bs64 defaults, 1 thread", batch_size=64, precision="bf16", threads=1),
+    variant("baseline fp32 bs128 (NCHW, foreach Adam)", 128, **BASELINE),
+    variant("fp32 bs256 (NCHW, foreach Adam)", 256, **BASELINE),
+    variant("fp32 bs128 channels_last", 128, channels_last=True, optimiser={"fused_adam": False}),
+    variant("fp32 bs128 channels_last fused Adam, torch dropout masks (before)", 128,
+            cpu={"dropout_masks": "torch"}),
+    variant("fp32 bs128 channels_last fused Adam counter masks, reference layers", 128, cpu={"layers": "reference"}),
+    variant("fp32 bs128 channels_last fused Adam counter masks fused layers (defaults)", 128),
+    variant("fp32 bs64 counter masks", 64),
+    variant("fp32 bs256 channels_last fused Adam", 256),
+    variant("fp32 bs512 channels_last fused Adam", 512),
+    variant("bf16 bs128 channels_last fused Adam", 128, precision="bf16"),
+    variant("bf16 bs256 channels_last fused Adam", 256, precision="bf16"),
+    variant("compiled fp32 bs128 channels_last fused Adam", 128, compile=True),
+    variant("fp32 bs128 defaults, 1 thread", 128, **ONE_THREAD),
+    variant("fp32 bs64 defaults, 1 thread", 64, **ONE_THREAD),
+    variant("bf16 bs128 defaults, 1 thread", 128, precision="bf16", **ONE_THREAD),
+    variant("bf16 bs64 defaults, 1 thread", 64, precision="bf16", **ONE_THREAD),
 ]
 
 
@@ -74,8 +80,8 @@ class Runner:
     def __init__(self, v: dict, w: int, maps, normals):
         v = dict(v)
         self.name = v.pop("name")
-        self.threads = v.pop("threads", 0) or 2
         self.p = Params(**{"precision": "fp32", **v})  # a variant names its precision, else fp32
+        self.threads = self.p.cpu.threads or 2
         self.dev = torch.device("cpu")
         torch.set_num_threads(self.threads)
         self.raw, self.opt = make_model(w, self.p, self.dev)
@@ -90,13 +96,13 @@ class Runner:
         self.step()
 
     def step(self):
-        B = self.p.batch_size
+        B = self.p.data.batch_size
         t0 = time.perf_counter()
         idx = self.rng.choice(len(self.maps), B, replace=False)  # the shuffle buffer's gather
         x = torch.from_numpy(self.maps[idx].astype(np.float32)).unsqueeze(1)
         y = torch.from_numpy(self.normals[idx])
         self.load_s += time.perf_counter() - t0
-        counter = self.p.dropout_masks != "torch" and self.model is self.raw  # as the stage does
+        counter = self.p.cpu.dropout_masks != "torch" and self.model is self.raw  # as the stage does
         self.raw.set_mask_key((self.p.seed, 0, self.steps) if counter else None)
         self.steps += 1
         return train_step(self.model, self.opt, x, y, self.dev, self.p.precision, self.p.channels_last)
@@ -107,7 +113,7 @@ class Runner:
         while time.perf_counter() - t0 < seconds:
             self.step()
             steps += 1
-        return steps * self.p.batch_size / (time.perf_counter() - t0)
+        return steps * self.p.data.batch_size / (time.perf_counter() - t0)
 
 
 def roofline(w: int, samples_per_s: dict[str, float]) -> dict:
@@ -151,8 +157,8 @@ def accuracy(steps: int) -> list[dict]:
         for precision in ("fp32", "bf16"):
             d = Path(tmp) / precision
             shutil.copytree(src / "extract", d / "extract")
-            m = train.run(train.Params(max_steps=steps, batch_size=32, shuffle_buffer=1000, progress=False,
-                                       val_every=0, threads=1, precision=precision), d)
+            m = train.run(train.Params(max_steps=steps, data={"batch_size": 32, "shuffle_buffer": 1000},
+                                       progress=False, val_every=0, cpu={"threads": 1}, precision=precision), d)
             out.append({"precision": precision, "steps": steps, "batch_size": 32, "w": 16,
                         "val_mean_deg": round(m["val_mean_deg"], 3), "val_median_deg": round(m["val_median_deg"], 3),
                         "train_loss": round(m["train_loss"], 5)})
@@ -169,11 +175,11 @@ def main():
     ap.add_argument("--accuracy-steps", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/train.json"))
     ap.add_argument("--keep-freed-memory", action="store_true",
-                    help="as the train stage does on a CPU (cnnps.models.allocator), for every variant: it lasts "
+                    help="as the train stage does on a CPU (cnnps.train.allocator), for every variant: it lasts "
                          "for the process, so compare with a run without it")
     a = ap.parse_args()
     if a.keep_freed_memory:
-        from cnnps.models.allocator import keep_freed_memory
+        from cnnps.train.allocator import keep_freed_memory
 
         keep_freed_memory()
     maps, normals = data(8192, a.w, np.random.default_rng(0))

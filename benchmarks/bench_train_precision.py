@@ -5,7 +5,7 @@
         [--out benchmarks/results/train_precision.json]
 
 For each seed, the train stage runs from scratch on per-pixel maps only
-(``train.pixelwise: 1``, the per-pixel fine-tune benchmark's effects, sparse share 0.2,
+(``train.pixelwise.share: 1``, the per-pixel fine-tune benchmark's effects, sparse share 0.2,
 batch 128, the stage's defaults otherwise: step processes auto), once with
 ``precision: fp32`` and once with ``precision: bf16``, each in its own process, the two
 precisions alternating. Every model is scored the same way, in float32: 10,000 per-pixel
@@ -46,17 +46,18 @@ def one_run(precision: str, seed: int, steps: int, ball: Path | None, work: Path
 
     import cnnps
     from cnnps.stages import train
+    from cnnps.train.loop import pixelwise_maker
 
-    params = train.Params(pixelwise=1.0, pixelwise_effects=EFFECTS, pixelwise_sparse_fraction=0.2, precision=precision,
-                          seed=seed, max_steps=steps, batch_size=128, val_every=steps, checkpoint_every=steps,
-                          progress=False)
+    params = train.Params(pixelwise={"share": 1.0, "effects": EFFECTS, "sparse_fraction": 0.2}, precision=precision,
+                          seed=seed, max_steps=steps, data={"batch_size": 128}, val_every=steps,
+                          checkpoint_every=steps, progress=False)
     m = train.run(params, work)
     from cnnps.models.checkpoint import load_checkpoint
-    from cnnps.models.validation import val_errors
+    from cnnps.train.validation import val_errors
 
     net, _config, _meta = load_checkpoint(work / "train" / "model.pt")
     gen = torch.Generator().manual_seed(VAL_SEED)  # one held-out set for every run
-    maps, normals = train.pixelwise_maker(params)(VAL_MAPS, gen, torch.device("cpu"), 32)
+    maps, normals = pixelwise_maker(params)(VAL_MAPS, gen, torch.device("cpu"), 32)
     val = val_errors(net, maps[:, 0].numpy(), normals.numpy(), torch.device("cpu"), "fp32")
     out = {"precision": precision, "seed": seed, "steps": m["steps"], "samples_per_s": m["samples_per_s"],
            "step_processes": m.get("step_processes"), "train_loss": m.get("train_loss"),

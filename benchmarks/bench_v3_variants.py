@@ -211,9 +211,9 @@ def main() -> None:
             extract.run(dataclasses.replace(base, **overrides, output=str(shards)), source)
             man = json.loads((shards / "manifest.json").read_text())
             row["data"] = {"train_rows": man["train_rows"], "extract_seconds": round(time.perf_counter() - t, 1)}
-            params = train.Params(max_steps=args.steps, epochs=1000, lr=args.lr, batch_size=128, val_every=0,
-                                  val_max_rows=4096, checkpoint_every=250, init=str(init), shards=str(shards),
-                                  progress=False)
+            params = train.Params(max_steps=args.steps, epochs=1000, optimiser={"lr": args.lr},
+                                  data={"batch_size": 128, "shards": str(shards)}, val_every=0, val_max_rows=4096,
+                                  checkpoint_every=250, init=str(init), progress=False)
             t = time.perf_counter()
             m = train.run(params, OUT_ROOT / name)
             row["train"] = {"steps": m["steps"], "lr": args.lr, "seconds": round(time.perf_counter() - t, 1),

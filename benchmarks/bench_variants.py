@@ -96,7 +96,7 @@ def score(model_path: Path, val: tuple[np.ndarray, np.ndarray], shared: Path) ->
     ball = shared / "data" / "diligent" / "ballPNG"
     if ball.is_dir():
         cap = load_capture(ball)
-        I = cap.images[:, cap.mask].T  # (P, m)
+        I = cap.pixel_intensities()  # (P, m)
         gt = cap.normal_gt[cap.mask]
         tilt = np.degrees(np.arccos(np.clip(gt[:, 2], -1, 1)))
         for k in (1, 10):
@@ -150,8 +150,9 @@ def main() -> None:
             man = json.loads((shards / "manifest.json").read_text())
             row["data"] = {"shards": VARIANTS[name], "train_scenes": len(man["train_scenes"]),
                            "train_rows": man["train_rows"], "params": man["params"]}
-            params = train.Params(max_steps=args.steps, epochs=1000, lr=args.lr, batch_size=128, val_every=0,
-                                  val_max_rows=4096, checkpoint_every=250, init=str(args.init), shards=str(shards))
+            params = train.Params(max_steps=args.steps, epochs=1000, optimiser={"lr": args.lr},
+                                  data={"batch_size": 128, "shards": str(shards)}, val_every=0, val_max_rows=4096,
+                                  checkpoint_every=250, init=str(args.init))
             t = time.perf_counter()
             m = train.run(params, REPO / "data" / "variants" / name)
             row["train"] = {"steps": m["steps"], "lr": args.lr, "seconds": round(time.perf_counter() - t, 1),

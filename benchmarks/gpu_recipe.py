@@ -39,7 +39,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from cnnps.models.openmp import prefer_passive_openmp  # noqa: E402
+from cnnps.train.openmp import prefer_passive_openmp  # noqa: E402
 
 PRESET = "gpu-train-pixelwise"
 PIECE = 15 * 2**20  # bytes per piece of a packed checkpoint (a returned file may hold 16 MiB)
@@ -58,12 +58,18 @@ def machine() -> dict:
     return info
 
 
+def with_params(p, **overrides):
+    """Train params ``p`` with ``overrides``; a section's are a mapping of its keys
+    (``optimiser={"lr": 1e-3}``), the rest of the section kept."""
+    return dataclasses.replace(p, **{k: dataclasses.replace(getattr(p, k), **v) if isinstance(v, dict) else v
+                                     for k, v in overrides.items()})
+
+
 def preset_params(**overrides):
-    """The train section of the ``gpu-train-pixelwise`` preset, with ``overrides``."""
+    """The train section of the ``gpu-train-pixelwise`` preset, with ``overrides`` (:func:`with_params`)."""
     from cnnps.pipeline.config import build_params, load_config, preset_path
 
-    p = build_params(load_config(preset_path(PRESET)), "train", check_files=False)
-    return dataclasses.replace(p, **overrides)
+    return with_params(build_params(load_config(preset_path(PRESET)), "train", check_files=False), **overrides)
 
 
 def _sync(device):
@@ -82,15 +88,15 @@ def _generator(device, seed: int):
 
 def generation_rate(device, batch: int, seconds: float, params) -> dict:
     """Per-pixel maps/s of the preset's draws (effects, sparse share) at ``batch``."""
-    from cnnps.stages.train import pixelwise_maker
+    from cnnps.train.loop import pixelwise_maker
 
-    make = pixelwise_maker(params)
+    make, w = pixelwise_maker(params), params.pixelwise.w
     g = _generator(device, 0)
-    make(batch, g, device, params.w)
+    make(batch, g, device, w)
     _sync(device)
     n, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds or n == 0:
-        make(batch, g, device, params.w)
+        make(batch, g, device, w)
         n += 1
     _sync(device)
     return {"batch": batch, "maps_per_s": round(n * batch / (time.perf_counter() - t0))}
@@ -100,9 +106,9 @@ def step_rate(device, params, seconds: float) -> dict:
     """Bare train-step samples/s (random sparse maps already on the device)."""
     import torch
 
-    from cnnps.models.optimiser import compile_model, make_model, train_step
+    from cnnps.train.optimiser import compile_model, make_model, train_step
 
-    B, w = params.batch_size, params.w
+    B, w = params.data.batch_size, params.pixelwise.w
     model, opt = make_model(w, params, device)
     step_model = compile_model(model, params)
     g = torch.Generator(device=device).manual_seed(0)
@@ -123,26 +129,26 @@ def step_rate(device, params, seconds: float) -> dict:
 
 
 def lr_probe(device, params, steps: int, val_n: int = 4096) -> dict:
-    """Train ``steps`` steps from scratch on per-pixel maps at ``params.lr``; the mean
+    """Train ``steps`` steps from scratch on per-pixel maps at ``params.optimiser.lr``; the mean
     angular error (deg) on ``val_n`` held per-pixel maps, and the last 20 steps' loss."""
     import torch
 
-    from cnnps.models.optimiser import make_model, train_step
-    from cnnps.stages.train import pixelwise_maker
+    from cnnps.train.loop import pixelwise_maker
+    from cnnps.train.optimiser import make_model, train_step
 
-    make = pixelwise_maker(params)
-    model, opt = make_model(params.w, params, device)
+    make, w = pixelwise_maker(params), params.pixelwise.w
+    model, opt = make_model(w, params, device)
     losses = []
     t0 = time.perf_counter()
     for s in range(steps):
-        maps, normals = make(params.batch_size, _generator(device, 1000 + s), device, params.w)
+        maps, normals = make(params.data.batch_size, _generator(device, 1000 + s), device, w)
         losses.append(train_step(model, opt, maps, normals, device, params.precision, params.channels_last))
-    vm, vn = make(val_n, _generator(device, 7), device, params.w)
+    vm, vn = make(val_n, _generator(device, 7), device, w)
     model.eval()
     with torch.no_grad():
         pred = torch.nn.functional.normalize(model(vm.contiguous(memory_format=torch.channels_last)).float(), dim=1)
     err = torch.rad2deg(torch.acos((pred * vn).sum(1).clamp(-1, 1))).mean()
-    return {"lr": params.lr, "steps": steps, "loss_last20": round(float(torch.stack(losses[-20:]).mean()), 5),
+    return {"lr": params.optimiser.lr, "steps": steps, "loss_last20": round(float(torch.stack(losses[-20:]).mean()), 5),
             "val_mean_deg": round(float(err), 2), "seconds": round(time.perf_counter() - t0, 1)}
 
 
@@ -158,14 +164,14 @@ def measure(args) -> dict:
     steps = []
     for b in args.batches:
         for prec in args.precisions:
-            r = step_rate(device, dataclasses.replace(base, batch_size=b, precision=prec), args.seconds)
+            r = step_rate(device, with_params(base, data={"batch_size": b}, precision=prec), args.seconds)
             steps.append(r)
             print("step", r, flush=True)
     if args.compile:
         best = max(steps, key=lambda r: r["samples_per_s"])
         try:
-            r = step_rate(device, dataclasses.replace(base, batch_size=best["batch_size"], precision=best["precision"],
-                                                      compile=True), args.seconds)
+            r = step_rate(device, with_params(base, data={"batch_size": best["batch_size"]},
+                                              precision=best["precision"], compile=True), args.seconds)
             steps.append(r)
             print("step", r, flush=True)
         except Exception as exc:  # compile is optional: record why it failed
@@ -179,14 +185,15 @@ def measure(args) -> dict:
                      "step_samples_per_s": best["samples_per_s"],
                      "generation_maps_per_s": gen.get(best["batch_size"])}
     if args.lr_steps:
-        probes = [lr_probe(device, dataclasses.replace(base, batch_size=best["batch_size"], precision=best["precision"],
-                                                       lr=lr), args.lr_steps, args.probe_maps) for lr in args.lrs]
+        probes = [lr_probe(device, with_params(base, data={"batch_size": best["batch_size"]},
+                                               precision=best["precision"], optimiser={"lr": lr}),
+                           args.lr_steps, args.probe_maps) for lr in args.lrs]
         for p in probes:
             print("lr", p, flush=True)
         res["lr_probe"] = probes
         res["chosen"]["lr"] = min(probes, key=lambda p: p["val_mean_deg"])["lr"]
     else:
-        res["chosen"]["lr"] = base.lr
+        res["chosen"]["lr"] = base.optimiser.lr
     # samples/s of the whole loop (generation + step), what the plan budgets with
     g = res["chosen"]["generation_maps_per_s"] or math.inf
     res["chosen"]["loop_samples_per_s_est"] = round(1 / (1 / best["samples_per_s"] + 1 / g))
@@ -242,11 +249,10 @@ def train(args) -> dict:
         steps = max(1, min(stop - done, int(rate * min(args.chunk_seconds, left - 25))))
         if left < 40 or steps < 1:
             break
-        p = preset_params(device=args.device, batch_size=plan["batch_size"], precision=plan["precision"],
-                          lr=plan["lr"], compile=plan["compile"], lr_milestones=tuple(plan["lr_milestones"]),
-                          max_steps=done + steps, checkpoint_every=max(1, steps), val_every=0,
-                          val_max_rows=args.val_rows,
-                          progress=args.progress)
+        p = preset_params(device=args.device, data={"batch_size": plan["batch_size"]}, precision=plan["precision"],
+                          optimiser={"lr": plan["lr"], "lr_milestones": tuple(plan["lr_milestones"])},
+                          compile=plan["compile"], max_steps=done + steps, checkpoint_every=max(1, steps),
+                          val_every=0, val_max_rows=args.val_rows, progress=args.progress)
         t0 = time.monotonic()
         metrics = train_stage.run(p, data_dir)
         chunk_t = steps / max(1e-6, time.monotonic() - t0)

@@ -4,8 +4,8 @@
 
 The rule (the same for every capture, so held-back objects get subsets drawn the same
 way; :func:`cnnps.io.capture.subset_drop`, which the eval stage's ``real_subsets`` uses):
-the images are those of ``filenames.txt`` after the capture's benchmark drops
-(``bearPNG``: the first 20); n of those m are drawn uniformly without replacement by
+the images are those of ``filenames.txt`` after DiLiGenT's benchmark rule
+(:data:`cnnps.io.capture.DILIGENT_RULES`: ``bearPNG`` loses its first 20); n of those m are drawn uniformly without replacement by
 ``numpy.random.default_rng([seed, m, n]).choice(m, n, replace=False)`` and kept in
 filenames.txt order. Writes ``benchmarks/image_lists/<capture>-<n>.txt``, one image name
 a line. ``bench_model.py --subsets`` predicts with each list (the other images dropped).
@@ -23,19 +23,23 @@ sys.path.insert(0, str(REPO))
 
 
 def usable_images(capture: Path) -> list[str]:
-    """Image names in light order, after the benchmark's default drops."""
-    from cnnps.io.capture import DEFAULT_DROPS
+    """Image names in light order, after DiLiGenT's benchmark rule."""
+    from cnnps.io.capture import DILIGENT_RULES, benchmark_drop, read_filenames
 
-    names = [n.strip() for n in (capture / "filenames.txt").read_text().splitlines() if n.strip()]
-    drop = set(DEFAULT_DROPS.get(capture.name, ()))
-    return [n for i, n in enumerate(names) if i not in drop]
+    drop = set(benchmark_drop(capture, DILIGENT_RULES))
+    return [n for i, n in enumerate(read_filenames(capture)) if i not in drop]
 
 
 def subset_names(capture: Path, n: int, seed: int = 0) -> list[str]:
     """The n image names kept by the seeded rule (:func:`cnnps.io.capture.subset_drop`)."""
-    from cnnps.io.capture import read_filenames, subset_drop
+    from cnnps.io.capture import (
+        DILIGENT_RULES,
+        benchmark_drop,
+        read_filenames,
+        subset_drop,
+    )
 
-    drop = set(subset_drop(capture, n, seed))
+    drop = set(subset_drop(capture, n, seed, exclude=benchmark_drop(capture, DILIGENT_RULES)))
     return [name for i, name in enumerate(read_filenames(capture)) if i not in drop]
 
 

@@ -6,7 +6,7 @@ CPU-time ledger, and a fallback to committed weights.
     .venv/bin/python benchmarks/long_run.py save v4 [--root /work/runs]      # then commit benchmarks/runs/v4/
     .venv/bin/python benchmarks/long_run.py status v4
     .venv/bin/python benchmarks/long_run.py study v4                  # a clone for `dvc exp run`
-    .venv/bin/python benchmarks/long_run.py exp v4 -- -n NAME -S train.lr=1e-4   # one variant, timed
+    .venv/bin/python benchmarks/long_run.py exp v4 -- -n NAME -S train.optimiser.lr=1e-4   # one variant, timed
     .venv/bin/python benchmarks/long_run.py table v4                  # the study's table (and study.json)
     .venv/bin/python benchmarks/long_run.py probe v4                  # score the newest checkpoint now
     .venv/bin/python benchmarks/long_run.py probe v4 --model MID.pt --name mid   # or a candidate weights file
@@ -23,7 +23,7 @@ it often survives. So a run lives in ``ROOT/NAME/``:
   continues exactly where the folder left off;
 - ``study/``: a second clone at the same commit for the variant study (``study``): its
   ``params.yaml`` is the run's, its data phase is linked to the run's folders, and
-  ``dvc exp run -S train.lr=...`` there trains and scores one variant into its own
+  ``dvc exp run -S train.optimiser.lr=...`` there trains and scores one variant into its own
   ``data/train`` and ``data/eval``; ``dvc exp show`` is the table. ``exp`` runs one such
   experiment and books its time in the ledger as stage ``study``;
 - ``ledger.json``: wall and CPU seconds of every stage call (the stage's whole process
@@ -74,24 +74,68 @@ def _write_json(path: Path, data) -> None:
 # ----------------------------------------------------------------------------- the schedule
 
 
+def _in_sections(train: dict) -> bool:
+    """Whether a run's train section is in sections (``optimiser: {lr: ...}``, what the
+    code reads since the sections came) or flat (``lr: ...``, what a run of older code
+    reads): the layout the section itself has, sections when it shows neither."""
+    from cnnps.stages.train import MOVED_KEYS, SECTIONS
+
+    if any(isinstance(train.get(s), dict) for s in SECTIONS):
+        return True
+    return not any(k in MOVED_KEYS for k in train)
+
+
+def train_value(train: dict, name: str, default=None):
+    """The value of the train key ``name``, by its flat name (``lr``), in a section of
+    either layout (``optimiser.lr`` or ``lr``).
+
+    >>> train_value({"optimiser": {"lr": 0.001}}, "lr"), train_value({"lr": 0.001}, "lr")
+    (0.001, 0.001)
+    """
+    from cnnps.stages.train import MOVED_KEYS
+
+    if name in MOVED_KEYS and _in_sections(train):
+        section, key = MOVED_KEYS[name].split(".")
+        return (train.get(section) or {}).get(key, default)
+    return train.get(name, default)
+
+
+def with_train_values(train: dict, **values) -> dict:
+    """The train section ``train`` with ``values`` (flat names) set in its own layout.
+
+    >>> with_train_values({"optimiser": {"lr": 0.001}, "max_steps": 9}, lr=0.0001, max_steps=5)
+    {'optimiser': {'lr': 0.0001}, 'max_steps': 5}
+    """
+    from cnnps.stages.train import MOVED_KEYS
+
+    out, nested = dict(train), _in_sections(train)
+    for name, value in values.items():
+        if name in MOVED_KEYS and nested:
+            section, key = MOVED_KEYS[name].split(".")
+            out[section] = {**(out.get(section) or {}), key: value}
+        else:
+            out[name] = value
+    return out
+
+
 def continue_schedule(train: dict, step: int, init: str) -> dict:
     """The train section that continues a run of ``train`` from the weights of its step
     ``step`` (``init``) as a new run: ``max_steps`` the steps left, ``lr_milestones`` those
-    ahead (shifted by ``step``), ``lr`` the rate reached at ``step``.
+    ahead (shifted by ``step``), ``lr`` the rate reached at ``step``; in the section's own
+    layout (the run's code reads it).
 
-    >>> continue_schedule({"max_steps": 100, "lr": 1e-3, "lr_milestones": [50, 80], "lr_gamma": 0.1}, 60, "w.pt")
-    {'max_steps': 40, 'lr': 0.0001, 'lr_milestones': [20], 'lr_gamma': 0.1, 'init': 'w.pt'}
+    >>> continue_schedule({"max_steps": 100, "optimiser": {"lr": 1e-3, "lr_milestones": [50, 80], "lr_gamma": 0.1}},
+    ...                   60, "w.pt")
+    {'max_steps': 40, 'optimiser': {'lr': 0.0001, 'lr_milestones': [20], 'lr_gamma': 0.1}, 'init': 'w.pt'}
     """
     total = int(train.get("max_steps") or 0)
     if not 0 <= step < total:
         raise ValueError(f"step {step} is not inside the run's {total} steps")
-    ms = [int(m) for m in train.get("lr_milestones") or []]
-    gamma = float(train.get("lr_gamma", 0.1))
+    ms = [int(m) for m in train_value(train, "lr_milestones") or []]
+    gamma = float(train_value(train, "lr_gamma", 0.1))
     passed = sum(step >= m for m in ms)
-    out = dict(train)
-    out.update(max_steps=total - step, lr=float(train["lr"]) * gamma**passed,
-               lr_milestones=[m - step for m in ms if m > step], init=init)
-    return out
+    return with_train_values(train, max_steps=total - step, lr=float(train_value(train, "lr")) * gamma**passed,
+                             lr_milestones=[m - step for m in ms if m > step], init=init)
 
 
 # ----------------------------------------------------------------------------- CPU time
@@ -365,7 +409,8 @@ class Run:
                         continue  # not scored (still running, or failed)
                     train = params.get("train") or {}
                     row = {"name": rev.get("name") or rev.get("rev"), "init": Path(train.get("init") or "scratch").stem,
-                           "lr": train.get("lr"), "steps": train.get("max_steps"), "pixelwise": train.get("pixelwise", 0.0),
+                           "lr": train_value(train, "lr"), "steps": train.get("max_steps"),
+                           "pixelwise": train_value(train, "pixelwise", 0.0),
                            "changes": changes.get(rev.get("name"), []),
                            "cpu_hours": round(cpu.get(rev.get("name"), 0.0), 3),
                            "val_mean_deg": tm.get("val_mean_deg")}
@@ -440,8 +485,8 @@ class Run:
 
         from cnnps.io.shards import MANIFEST
         from cnnps.models.checkpoint import load_checkpoint
-        from cnnps.models.training import open_training_data
-        from cnnps.models.validation import load_val, val_errors
+        from cnnps.train.loop import open_training_data
+        from cnnps.train.validation import load_val, val_errors
 
         if not (self.data / "extract" / MANIFEST).is_file():
             return None
@@ -489,7 +534,8 @@ class Run:
         params = yaml.safe_load(self.params.read_text())
         train = params.get("train") or {}
         manifest = self.data / "extract" / "manifest.json"  # shards carry their map width
-        w = json.loads(manifest.read_text())["w"] if manifest.is_file() and train.get("pixelwise", 0) < 1 else train.get("w", 32)
+        per_pixel_only = train_value(train, "pixelwise", 0) >= 1
+        w = json.loads(manifest.read_text())["w"] if manifest.is_file() and not per_pixel_only else train_value(train, "w", 32)
         net = CNNPS(w=int(w), dropout=float(train.get("dropout", 0.2)))
         net.load_state_dict(state["model"])
         out = dst / "intermediate.pt"

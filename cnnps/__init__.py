@@ -19,8 +19,9 @@ The package, lowest layer first, each importing only the ones before it
 - ``cnnps.ps``: photometric-stereo maths on arrays (observation maps, rotations, least
   squares, the sparse fill, metrics, integration, light calibration);
 - ``cnnps.io``: files (capture folders, images, the pixel stack, shards, surfaces, pictures);
-- ``cnnps.models``: the CNN-PS network (PyTorch), inference, training, shipped weights;
+- ``cnnps.models``: the CNN-PS network (PyTorch), inference, shipped weights;
 - ``cnnps.synth``: the synthesis library (meshes, materials, BSDF, lights, Blender renderer);
+- ``cnnps.train``: the training loop and its speed machinery;
 - ``cnnps.stages``: one module per pipeline stage;
 - ``cnnps.api``: the Python API above;
 - ``cnnps.pipeline``: ``params.yaml`` configuration and the command line.
@@ -30,7 +31,7 @@ Frame everywhere: x right, y up, z toward the camera; image row 0 is the top row
 
 __version__ = "0.1.0"
 
-_API = ("Calibration", "CaptureData", "Prediction", "Surface", "calibrate", "integrate", "load_capture",
+_API = ("Calibration", "Capture", "Prediction", "Surface", "calibrate", "integrate", "load_capture",
         "predict", "predict_folder", "render")
 __all__ = list(_API)
 

@@ -1,6 +1,6 @@
 """The layering contract of docs/ARCHITECTURE.md, read from the source.
 
-infra -> ps -> io -> models -> synth -> stages -> api -> pipeline: a module imports its own layer or a lower
+infra -> ps -> io -> models -> synth -> train -> stages -> api -> pipeline: a module imports its own layer or a lower
 one, never a higher one, lazily inside a function included; no two modules import each
 other, directly or round a loop; only the Blender renderer imports bpy.
 """
@@ -85,8 +85,10 @@ def tree(tmp_path):
         "cnnps/models/network.py": "from cnnps.ps.rotation import rotate_z\nfrom cnnps.io import images\n",
         "cnnps/synth/__init__.py": "",
         "cnnps/synth/raster.py": "from ..models import network\n",
+        "cnnps/train/__init__.py": "",
+        "cnnps/train/loop.py": "from cnnps.models import network\nfrom cnnps.synth import raster\n",
         "cnnps/stages/__init__.py": "",
-        "cnnps/stages/train.py": "import cnnps.synth.raster\n",
+        "cnnps/stages/train.py": "import cnnps.synth.raster\nfrom cnnps.train import loop\n",
         "cnnps/api/__init__.py": "",
         "cnnps/api/prediction.py": "from cnnps.stages import train\n",
         "cnnps/pipeline/__init__.py": "",
@@ -113,6 +115,14 @@ def test_checker_fails_on_a_relative_upward_import(tree):
     _append(tree / "cnnps/models/network.py", "\nfrom ..stages import train  # noqa\n")
     bad = upward_imports(read_imports(tree))
     assert len(bad) == 1 and "imports cnnps.stages.train" in bad[0]
+
+
+def test_checker_fails_when_the_network_imports_the_training_loop(tree):
+    """train/ may import models/, never the other way round, not even lazily."""
+    assert upward_imports(read_imports(tree)) == []
+    _append(tree / "cnnps/models/network.py", "\n\ndef _fit():\n    from cnnps.train import loop  # noqa\n")
+    bad = upward_imports(read_imports(tree))
+    assert len(bad) == 1 and "cnnps.models.network (cnnps.models) imports cnnps.train.loop (cnnps.train)" in bad[0]
 
 
 def test_checker_fails_on_a_cycle_within_a_layer(tree):

@@ -38,7 +38,8 @@ def test_only_the_cnnps_namespace_imports():
         "        assert exc.name == old, exc\n"
         "    else:\n"
         "        sys.exit(f'import {old} worked: {sys.modules[old].__file__}')\n"
-        "import cnnps.infra, cnnps.ps, cnnps.io, cnnps.models, cnnps.synth, cnnps.stages, cnnps.api, cnnps.pipeline\n"
+        "import cnnps.infra, cnnps.ps, cnnps.io, cnnps.models, cnnps.synth, cnnps.train, cnnps.stages, cnnps.api, "
+        "cnnps.pipeline\n"
         "print('ok')\n"
     )
     res = _run([sys.executable, "-c", code], cwd=REPO)  # the checkout's root is on sys.path too
@@ -104,7 +105,7 @@ def test_wheel_ships_presets_and_weights_and_runs_outside_the_checkout(tmp_path)
     weights = {f"cnnps/models/weights/{p.name}" for p in (REPO / "cnnps" / "models" / "weights").iterdir() if p.is_file()}
     assert "cnnps/presets/demo.yaml" in presets and "cnnps/models/weights/cnnps_default.pt" in weights
     assert presets <= names and weights <= names, sorted((presets | weights) - names)
-    for pkg in ("infra", "ps", "io", "models", "synth", "stages", "api", "pipeline"):
+    for pkg in ("infra", "ps", "io", "models", "synth", "train", "stages", "api", "pipeline"):
         assert f"cnnps/{pkg}/__init__.py" in names
     meta = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith(".dist-info/METADATA"))).decode()
     bpy = [line for line in meta.splitlines() if line.startswith("Requires-Dist: bpy")]

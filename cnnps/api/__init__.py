@@ -25,11 +25,10 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING
 
-from cnnps.api.captures import CaptureData
-
 # The names are imported on first use, so `import cnnps` and `cnnps --help` stay fast.
 _WHERE = {
     "Calibration": "cnnps.api.calibration",
+    "Capture": "cnnps.io.capture",
     "calibrate": "cnnps.api.calibration",
     "Prediction": "cnnps.api.prediction",
     "predict": "cnnps.api.prediction",
@@ -44,6 +43,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from cnnps.api.prediction import Prediction, predict, predict_folder
     from cnnps.api.rendering import render
     from cnnps.api.surfaces import integrate
+    from cnnps.io.capture import Capture
     from cnnps.io.surface import Surface
 
 
@@ -59,22 +59,26 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(_WHERE))
 
 
-def load_capture(folder, drop=None, *, progress: bool = False) -> CaptureData:
+def load_capture(folder, drop=None, *, progress: bool = False) -> Capture:
     """Read a capture folder (DiLiGenT layout) into memory, its images as stored.
 
     Arguments:
         folder: holds ``filenames.txt`` (image names in light order),
-            ``light_directions.txt`` (m x 3), ``light_intensities.txt`` (m x 3 RGB),
-            ``mask.png``, the images (8/16-bit PNG, JPEG, TIFF or float EXR) and optionally
-            ``Normal_gt.mat`` or ``normal_gt.npy`` (H x W x 3).
-        drop: image indices (0-based, filenames.txt order) to leave out; None applies the
-            benchmark rule for known objects (bearPNG: its first 20), recorded in ``notes``.
+            ``light_directions.txt`` (m x 3) or ``light_positions.txt`` with
+            ``intrinsics.txt``, ``light_intensities.txt`` (m x 3 RGB), ``mask.png``, the
+            images (8/16-bit PNG, JPEG, TIFF, float EXR or camera RAW) and optionally
+            ``Normal_gt.mat`` or ``normal_gt.npy`` (H x W x 3) (docs/capture.md).
+        drop: image indices (0-based, filenames.txt order) to leave out; None drops
+            nothing. A benchmark's rule is explicit:
+            ``drop=benchmark_drop(folder, DILIGENT_RULES)`` (:mod:`cnnps.io.capture`)
+            leaves out bearPNG's first 20 images, as DiLiGenT's published results do.
 
     Returns:
-        :class:`CaptureData`: ``images`` (m, H, W, C) as stored, ``lights`` (m, 3) unit,
-        ``intensities`` (m, 3), ``mask`` (H, W) bool, ``normal_gt`` or None, ``filenames``,
-        ``dropped``, ``notes``. Pass them to :func:`predict` as they are: it converts the
-        images exactly as ``cnnps predict`` converts the files.
+        :class:`cnnps.io.capture.Capture`: ``images`` (m, H, W, C) as stored, ``lights``
+        (m, 3) unit, ``intensities`` (m, 3), ``mask`` (H, W) bool, ``normal_gt`` or None,
+        ``intrinsics`` (3, 3) or None, ``light_positions`` (m, 3) or None, ``filenames``,
+        ``dropped``, ``notes``. Pass them to :func:`cnnps.predict` as they are: it
+        converts the images exactly as ``cnnps predict`` converts the files.
 
     A bad file is a :class:`cnnps.infra.errors.InputError` naming it.
 
@@ -83,10 +87,10 @@ def load_capture(folder, drop=None, *, progress: bool = False) -> CaptureData:
         >>> cap.images.shape, cap.images.dtype                      # doctest: +SKIP
         ((96, 512, 612, 3), dtype('uint16'))
     """
-    from cnnps.api.captures import read_capture
+    from cnnps.io.capture import load_capture as read
 
-    return read_capture(folder, drop=drop, progress=progress)
+    return read(folder, drop=drop, progress=progress)
 
 
-__all__ = ["Calibration", "CaptureData", "Prediction", "Surface", "calibrate", "integrate", "load_capture",
+__all__ = ["Calibration", "Capture", "Prediction", "Surface", "calibrate", "integrate", "load_capture",
            "predict", "predict_folder", "render"]

@@ -31,10 +31,17 @@ import numpy as np
 from cnnps.infra.errors import InputError
 from cnnps.infra.options import check_arguments
 from cnnps.io.capture import (
+    FILENAMES_FILE,
+    INTRINSICS_FILE,
+    LIGHT_DIRECTIONS_FILE,
+    LIGHT_INTENSITIES_FILE,
+    LIGHT_POSITIONS_FILE,
+    MASK_FILE,
     SATURATION_LEVEL,
     linear_values,
-    read_filenames,
+    read_mask_file,
     saturation_code,
+    scan_images,
 )
 from cnnps.io.srgb import Linearize
 from cnnps.ps.light_calibration import (
@@ -53,8 +60,10 @@ from cnnps.ps.light_calibration import (
     normalise_intensities,
 )
 
-OUTPUT_FILES = ("light_directions.txt", "light_intensities.txt", "calibration.json", "calibration.png",
-                "light_positions.txt", "intrinsics.txt")  # the last two: point lights (cnnps.api.point_calibration)
+REPORT_FILE = "calibration.json"
+PICTURE_FILE = "calibration.png"
+OUTPUT_FILES = (LIGHT_DIRECTIONS_FILE, LIGHT_INTENSITIES_FILE, REPORT_FILE, PICTURE_FILE,
+                LIGHT_POSITIONS_FILE, INTRINSICS_FILE)  # the last two: point lights (cnnps.api.point_calibration)
 
 
 # ----------------------------------------------------------------------------- picture
@@ -125,18 +134,10 @@ class BallPhotos:
 
 
 def read_names(folder: Path, what: str) -> tuple[list[str], list[Path]]:
-    """filenames.txt of a ball folder (names and paths), every listed image present."""
-    folder = Path(folder)
-    if not folder.exists():
-        raise InputError(folder, f"{what} folder not found")
-    if not folder.is_dir():
-        raise InputError(folder, f"not a folder (expected the {what} photos with filenames.txt)")
-    names = read_filenames(folder)
-    paths = [folder / n for n in names]
-    for p in paths:
-        if not p.is_file():
-            raise InputError(p, "image listed in filenames.txt not found")
-    return names, paths
+    """filenames.txt of a ball folder (names and paths), every listed image present
+    (:func:`cnnps.io.capture.scan_images`; ``what`` names the folder in errors)."""
+    photos = scan_images(folder, what)
+    return photos.filenames, photos.paths
 
 
 def read_linear(path: Path, shape=None, linearize: str | None = None) -> tuple[np.ndarray, np.ndarray | None, str]:
@@ -154,20 +155,6 @@ def read_linear(path: Path, shape=None, linearize: str | None = None) -> tuple[n
         raise InputError(path, "image contains NaN or infinite pixels")
     level = saturation_code(raw.dtype)
     return img, (None if level is None else raw >= level), pixel_kind(path, raw)
-
-
-def _read_mask(folder: Path, shape) -> np.ndarray | None:
-    from cnnps.io.images import read_mask
-
-    path = folder / "mask.png"
-    if not path.is_file():
-        return None
-    mask = read_mask(path)
-    if mask.shape != tuple(shape):
-        raise InputError(path, f"mask is {mask.shape[1]}x{mask.shape[0]} but the images are {shape[1]}x{shape[0]}")
-    if not mask.any():
-        raise InputError(path, "mask is empty (no non-zero pixel)")
-    return mask
 
 
 def read_ball_photos(folder, names, paths, keep: bool, progress: bool = False, desc: str = "reading",
@@ -198,7 +185,7 @@ def read_ball_photos(folder, names, paths, keep: bool, progress: bool = False, d
             if clipped is not None:
                 sat[j] = clipped.any(axis=2)
     any_integer = any(k != "float32" for k in kinds)
-    mask = _read_mask(Path(folder), (H, W))
+    mask = read_mask_file(Path(folder), (H, W), required=False)
     return BallPhotos(Path(folder), list(names), list(paths), grey, sat if keep and any_integer else None,
                       max_image, mask, dict(sorted(kinds.items())))
 
@@ -211,7 +198,7 @@ def locate_ball(photos: BallPhotos, picture: np.ndarray, picture_name: str) -> B
         try:
             return fit_circle(photos.mask, source="circle fit to mask.png")
         except CalibrationError as exc:
-            raise InputError(photos.root / "mask.png", str(exc)) from None
+            raise InputError(photos.root / MASK_FILE, str(exc)) from None
     try:
         return find_ball(picture, source=f"circle fit to the bright region of the {picture_name} (no mask.png)")
     except CalibrationError as exc:
@@ -335,8 +322,8 @@ def matte_names(matte_dir: Path, chrome_dir: Path, m: int) -> tuple[list[str], l
     """The matte folder's names and paths: one photo per light of the chrome folder."""
     mnames, mpaths = read_names(matte_dir, "matte ball")
     if len(mnames) != m:
-        raise InputError(matte_dir / "filenames.txt",
-                         f"lists {len(mnames)} images but {chrome_dir / 'filenames.txt'} lists {m}: "
+        raise InputError(matte_dir / FILENAMES_FILE,
+                         f"lists {len(mnames)} images but {chrome_dir / FILENAMES_FILE} lists {m}: "
                          "the matte ball needs one photo per light, in the same order")
     return mnames, mpaths
 
@@ -444,16 +431,6 @@ def _image_types(report: dict, chrome: BallPhotos, matte: BallPhotos | None) -> 
     return kinds
 
 
-def directions_text(L: np.ndarray) -> str:
-    """DiLiGenT light_directions.txt: one ``x y z`` line per light."""
-    return "".join(f"{x:.9f} {y:.9f} {z:.9f}\n" for x, y, z in np.asarray(L, dtype=np.float64))
-
-
-def intensities_text(E: np.ndarray) -> str:
-    """DiLiGenT light_intensities.txt: one ``r g b`` line per light."""
-    return "".join(f"{r:.9g} {g:.9g} {b:.9g}\n" for r, g, b in np.asarray(E, dtype=np.float64))
-
-
 def check_out_dir(out_dir, *inputs) -> None:
     """Refuse an output folder that is (or holds) an input folder, or holds foreign files."""
     out = Path(out_dir).resolve()
@@ -478,11 +455,12 @@ def write_calibration(cal: Calibration, out_dir) -> None:
     import json
 
     from cnnps.infra.atomic import atomic_dir
+    from cnnps.io.capture import write_light_directions, write_light_intensities
     from cnnps.io.images import write_png
 
     with atomic_dir(out_dir) as tmp:
-        (tmp / "light_directions.txt").write_text(directions_text(cal.directions))
+        write_light_directions(tmp, cal.directions)
         if cal.intensities is not None:
-            (tmp / "light_intensities.txt").write_text(intensities_text(cal.intensities))
-        (tmp / "calibration.json").write_text(json.dumps(cal.report, indent=2) + "\n")
-        write_png(tmp / "calibration.png", cal.picture)
+            write_light_intensities(tmp, cal.intensities)
+        (tmp / REPORT_FILE).write_text(json.dumps(cal.report, indent=2) + "\n")
+        write_png(tmp / PICTURE_FILE, cal.picture)

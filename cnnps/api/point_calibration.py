@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from cnnps.api.calibration import (
+    REPORT_FILE,
     ball_outline,
     locate_ball,
     matte_intensities,
@@ -36,6 +37,7 @@ from cnnps.api.calibration import (
     read_names,
 )
 from cnnps.infra.errors import ConfigError, InputError
+from cnnps.io.capture import FILENAMES_FILE
 from cnnps.ps.light_calibration import (
     MATTE_RADIUS_FRACTION,
     MIN_SHADING,
@@ -98,7 +100,7 @@ def calibrate_point_lights(chrome_dirs, *, ball_radius: float, intrinsics, linea
     matte = None if matte_dir is None else (Path(matte_dir), *matte_names(Path(matte_dir), dirs[0], m))
     for d, (names, _paths) in zip(dirs[1:], listed[1:]):
         if len(names) != m:
-            raise InputError(d / "filenames.txt", f"lists {len(names)} images but {dirs[0] / 'filenames.txt'} "
+            raise InputError(d / FILENAMES_FILE, f"lists {len(names)} images but {dirs[0] / FILENAMES_FILE} "
                                                   f"lists {m}: every ball needs one photo per light, in the same order")
     rays, balls, notices = [], [], []
     for d, (names, paths) in zip(dirs, listed):
@@ -196,10 +198,15 @@ def write_point_calibration(cal: PointCalibration, out_dir) -> None:
     import json
 
     from cnnps.infra.atomic import atomic_dir
+    from cnnps.io.capture import (
+        write_intrinsics,
+        write_light_intensities,
+        write_light_positions,
+    )
 
     with atomic_dir(out_dir) as tmp:
-        np.savetxt(tmp / "light_positions.txt", cal.positions, fmt="%.9f")
-        np.savetxt(tmp / "intrinsics.txt", cal.intrinsics, fmt="%.12g")
+        write_light_positions(tmp, cal.positions)
+        write_intrinsics(tmp, cal.intrinsics)
         if cal.intensities is not None:
-            np.savetxt(tmp / "light_intensities.txt", cal.intensities, fmt="%.9f")
-        (tmp / "calibration.json").write_text(json.dumps(cal.report, indent=2) + "\n")
+            write_light_intensities(tmp, cal.intensities)
+        (tmp / REPORT_FILE).write_text(json.dumps(cal.report, indent=2) + "\n")

@@ -203,8 +203,8 @@ def build_pixel_stack(
 ) -> PixelStack:
     """Pass 1: read every image of a scanned ``capture`` once into a new PixelStack.
 
-    capture: a :class:`cnnps.io.capture.Capture` from ``scan_capture`` (or
-        ``load_capture``; its images are read again from the files either way).
+    capture: a :class:`cnnps.io.capture.Capture` from ``scan_capture`` (images read
+        from their files), or one holding its images (``load_capture``, or made in memory).
     scratch_dir: where the temporary folder goes when the stack is larger than
         ``memory_limit`` bytes (None: the system's temporary folder).
     saturation: the fraction of an integer type's maximum at and above which an

@@ -15,7 +15,7 @@ under ``torch.inference_mode``, CPU batches small enough to stay in the caches
 (``DEFAULT_BATCH_CPU`` = 256 maps). Outputs equal the trained network's up to float32
 rounding. Any other ``nn.Module`` mapping (B, 1, w, w) maps to (B, 3) normals is run as
 given. :class:`MapPredictor` is also what the train stage validates with
-(:mod:`cnnps.models.validation`).
+(:mod:`cnnps.train.validation`).
 """
 
 from __future__ import annotations

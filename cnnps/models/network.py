@@ -145,7 +145,7 @@ def counter_dropout(t: torch.Tensor, p: float, key: tuple[int, ...], row0: int =
 
     Example: for a batch ``b`` and a key ``k`` (say (seed, 0, step, layer)),
     ``counter_dropout(b[16:], 0.2, k, row0=16)`` equals ``counter_dropout(b, 0.2, k)[16:]``
-    (``tests/models/test_step_processes.py``).
+    (``tests/train/test_step_processes.py``).
     """
     if t.dim() == 4 and not t.is_contiguous() and t.is_contiguous(memory_format=torch.channels_last):
         B, C, H, W = t.shape

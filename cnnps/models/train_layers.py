@@ -1,7 +1,7 @@
 """CNN-PS's training pass on a CPU, layer by layer, with fewer passes over memory.
 
 :meth:`cnnps.models.network.CNNPS.forward` uses :func:`features` for eager float32
-training steps on a CPU with counter-based dropout masks (``train.cpu_layers: fused``,
+training steps on a CPU with counter-based dropout masks (``train.cpu.layers: fused``,
 the default). It computes what the reference layers compute, with the same dropout
 masks, up to float rounding (``tests/models/test_train_layers.py`` compares gradients
 with a float64 reference); only the order of the arithmetic changes:
@@ -43,7 +43,7 @@ import torch
 import torch.nn.functional as F
 
 MASK_BLOCK_ROWS = 16  # rows of a batch that share one counter stream (see counter_keep)
-# train.dropout_masks values that draw counter-based masks (counter_keep), and their random bits per element
+# train.cpu.dropout_masks values that draw counter-based masks (counter_keep), and their random bits per element
 COUNTER_MASK_BITS = {"counter16": 16, "counter": 32}
 
 
@@ -56,7 +56,7 @@ def counter_keep(shape: tuple[int, ...], p: float, key: tuple[int, ...], row0: i
     The rows are those from ``row0`` on of a whole batch: the batch's rows are drawn in
     blocks of :data:`MASK_BLOCK_ROWS` (block ``k``: rows 16k..16k+15, SFC64 seeded with
     ``key + (k,)``, ``bits`` (32 or 16) bits per element in memory order), so any part of a
-    batch, say one process's share of a step (:mod:`cnnps.models.step_processes`), gets the
+    batch, say one process's share of a step (:mod:`cnnps.train.step_processes`), gets the
     masks the whole batch has there. An element is kept when its bits, read as a signed
     integer, are >= -2^(bits-1) + round(p 2^bits): the drop rate is p to within
     2^-(bits+1) (16 bits: 0.2 is 13107 / 65536, 0.19999695), and the scale is 1 / (1 -

@@ -28,7 +28,8 @@ def _default(name: str):
 
 
 def parse_drop(text: Optional[str]) -> Optional[list[int]]:
-    """'0,1,2' -> [0, 1, 2]; '' or 'none' -> [] (drop nothing); None -> None (default)."""
+    """'0,1,2' -> [0, 1, 2]; '0-19' -> [0, ..., 19]; '' or 'none' -> [] and None -> None
+    (both drop nothing)."""
     if text is None:
         return None
     text = text.strip()
@@ -59,7 +60,7 @@ def predict(
     device: Optional[str] = typer.Option(None, "--device", metavar="auto|cpu|cuda", help=f"Where the network runs; auto = CUDA when available. (default: {_default('device')})"),
     precision: Optional[str] = typer.Option(None, "--precision", metavar="auto|fp32|bf16", help=f"auto: the fastest path within 0.05 deg of fp32 on this machine, measured once (about 1 s) and cached. (default: {_default('precision')})"),
     batch_size: Optional[str] = typer.Option(None, "--batch-size", metavar="N", help="Observation maps per network batch (default 256 on a CPU, 4096 on CUDA)."),
-    drop: Optional[str] = typer.Option(None, "--drop", metavar="INDICES", help="Image indices to leave out, 0-based, e.g. '0,1,2' or '0-19'; 'none' drops nothing (bearPNG drops its first 20 by default)."),
+    drop: Optional[str] = typer.Option(None, "--drop", metavar="INDICES", help="Image indices to leave out, 0-based, e.g. '0,1,2' or '0-19' (default: none). DiLiGenT's bearPNG: '0-19' scores it as the benchmark does."),
     shadow_threshold: Optional[str] = typer.Option(None, "--shadow-threshold", metavar="T", help="lambertian: per pixel, use only lights brighter than this fraction of its brightest, in [0, 1)."),
     grey: Optional[str] = typer.Option(None, "--grey", metavar="mean|luminance", help=f"How RGB becomes grey. (default: {_default('grey')})"),
     linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none", help="How 8/16-bit images become linear: srgb = decode the sRGB curve (camera JPEG/PNG), none = already linear (DiLiGenT, raw converters). Unset: taken as linear, with a note when images are 8-bit. Camera RAW photos are always read linearly."),

@@ -5,7 +5,9 @@ Scoring is the eval stage's (:func:`cnnps.stages.evaluate.score_real`): the same
 the stage records for ``eval.real_captures`` / ``eval.real_subsets`` in
 ``data/eval/metrics.json``, with ``cnnps predict``'s default options unless told
 otherwise (K=10, saturated observations left out, the Lambertian fill below 50 images,
-precision auto).
+precision auto), and under the DiLiGenT benchmark's rule
+(:data:`cnnps.io.capture.DILIGENT_RULES`: a folder named bearPNG is scored without its
+first 20 images, and its subsets are drawn from the other 76).
 """
 
 from __future__ import annotations
@@ -48,14 +50,21 @@ def parse_counts(flag: str, text: Optional[str], minimum: int) -> tuple[int, ...
 
 def check_capture_dir(path: Path) -> None:
     """One line (InputError) when ``path`` is not a capture folder with ground truth."""
+    from cnnps.io.capture import (
+        FILENAMES_FILE,
+        GROUND_TRUTH_FILES,
+        ground_truth_file,
+        is_capture_folder,
+    )
+
     if not path.exists():
         raise InputError(path, "capture folder not found")
     if not path.is_dir():
         raise InputError(path, "not a folder")
-    if not (path / "filenames.txt").is_file():
-        raise InputError(path, "not a capture folder (no filenames.txt)")
-    if not ((path / "Normal_gt.mat").is_file() or (path / "normal_gt.npy").is_file()):
-        raise InputError(path, "no ground truth (Normal_gt.mat or normal_gt.npy): nothing to score")
+    if not is_capture_folder(path):
+        raise InputError(path, f"not a capture folder (no {FILENAMES_FILE})")
+    if ground_truth_file(path) is None:
+        raise InputError(path, f"no ground truth ({' or '.join(GROUND_TRUTH_FILES)}): nothing to score")
 
 
 def _model(model: str) -> Path:
@@ -72,7 +81,7 @@ def _model(model: str) -> Path:
 @app.command("score")
 def score(
     model: str = typer.Argument(..., metavar="MODEL", help=f"CNN-PS checkpoint (.pt), or '{SHIPPED}' for the shipped weights."),
-    capture_dirs: list[Path] = typer.Argument(..., metavar="CAPTURE_DIR...", help="Capture folders with ground truth (DiLiGenT layout, Normal_gt.mat or normal_gt.npy); each is named by its folder."),
+    capture_dirs: list[Path] = typer.Argument(..., metavar="CAPTURE_DIR...", help="Capture folders with ground truth (DiLiGenT layout, Normal_gt.mat or normal_gt.npy); each is named by its folder. bearPNG is scored without its first 20 images, as the DiLiGenT benchmark does."),
     rotations: Optional[str] = typer.Option(None, "--rotations", metavar="K[,K...]", help=f"Test-time rotations; several give one column each. (default: {_default('rotations')})"),
     subsets: Optional[str] = typer.Option(None, "--subsets", metavar="N[,N...]", help="Also score each capture from N of its images, drawn by the seeded rule of cnnps.io.capture.subset_drop (rows <capture>-<N>)."),
     exclude_from_mean: Optional[str] = typer.Option(None, "--exclude-from-mean", metavar="NAME[,NAME...]", help="Capture folder names scored and shown but left out of the means."),

@@ -16,7 +16,9 @@ Each section is turned into the stage's frozen dataclass generically, from the
 dataclass fields and their type hints (int, float, str, bool, Path, list, tuple,
 dict, Literal, nested dataclasses, Optional). A nested dataclass with a ``from_dict``
 classmethod builds itself from its mapping (it knows its own defaults). Unknown keys and wrong types are
-:class:`cnnps.infra.errors.ConfigError` naming the file, stage and key; value checks
+:class:`cnnps.infra.errors.ConfigError` naming the file, stage and key; a key a ``Params``
+lists in its ``MOVED_KEYS`` (``{"lr": "optimiser.lr"}``) is refused with its new place
+(``params.yaml: train.lr moved to train.optimiser.lr``); value checks
 (negative counts, reversed bounds, ...) are the stages' own ``__post_init__``.
 :func:`load_all` validates every stage before any work starts.
 
@@ -175,59 +177,74 @@ def convert(value: Any, tp: Any, where: str) -> Any:
         return value
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
-
     if origin in (typing.Union, types.UnionType):
-        if value is None:
-            if type(None) in args:
-                return None
-            _fail(where, tp, value)
-        options = [a for a in args if a is not type(None)]
-        errors = []
-        for opt in options:
-            try:
-                return convert(value, opt, where)
-            except ConfigError as exc:
-                errors.append(exc)
-        if len(options) == 1:
-            raise errors[0]
-        _fail(where, tp, value)
+        return _convert_union(value, tp, args, where)
     if value is None:
         _fail(where, tp, value)
-
     if origin is typing.Literal:
         return declared.check(where, value, tp)  # "<where> must be one of a, b, got 'x'", as the API and CLI say it
-
     if origin in (list, tuple, set, frozenset) or tp in (list, tuple):
-        if not isinstance(value, (list, tuple)):
-            _fail(where, tp, value)
-        if origin is tuple and args and not (len(args) == 2 and args[1] is Ellipsis):
-            if len(value) != len(args):
-                raise ConfigError(f"{where}: expected {len(args)} values, got {value!r}")
-            return tuple(convert(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
-        item = args[0] if args else Any
-        items = [convert(v, item, f"{where}[{i}]") for i, v in enumerate(value)]
-        kind = origin or tp
-        return kind(items) if kind is not list else items
-
+        return _convert_sequence(value, tp, origin, args, where)
     if origin is dict or tp is dict:
         if not isinstance(value, dict):
             _fail(where, tp, value)
         kt, vt = args if args else (Any, Any)
         return {convert(k, kt, f"{where} key"): convert(v, vt, f"{where}.{k}") for k, v in value.items()}
-
     if dataclasses.is_dataclass(tp) and isinstance(tp, type):
-        if isinstance(value, tp):
-            return value
-        if not isinstance(value, dict):
-            _fail(where, f"a mapping ({tp.__name__})", value)
-        from_dict = getattr(tp, "from_dict", None)
-        if callable(from_dict):  # the type knows its own defaults (e.g. per-category ranges)
-            try:
-                return from_dict(value)
-            except ConfigError as exc:
-                raise ConfigError(f"{where}: {exc}") from None
-        return build_dataclass(tp, value, where)
+        return _convert_dataclass(value, tp, where)
+    return _convert_scalar(value, tp, where)
 
+
+def _convert_union(value: Any, tp: Any, args: tuple, where: str) -> Any:
+    """``X | Y | None``: None where allowed, else the first member that takes the value."""
+    if value is None:
+        if type(None) in args:
+            return None
+        _fail(where, tp, value)
+    options = [a for a in args if a is not type(None)]
+    errors = []
+    for opt in options:
+        try:
+            return convert(value, opt, where)
+        except ConfigError as exc:
+            errors.append(exc)
+    if len(options) == 1:
+        raise errors[0]
+    _fail(where, tp, value)
+
+
+def _convert_sequence(value: Any, tp: Any, origin: Any, args: tuple, where: str) -> Any:
+    """Lists, sets and tuples (fixed-length tuples element by element)."""
+    if not isinstance(value, (list, tuple)):
+        _fail(where, tp, value)
+    if origin is tuple and args and not (len(args) == 2 and args[1] is Ellipsis):
+        if len(value) != len(args):
+            raise ConfigError(f"{where}: expected {len(args)} values, got {value!r}")
+        return tuple(convert(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    item = args[0] if args else Any
+    items = [convert(v, item, f"{where}[{i}]") for i, v in enumerate(value)]
+    kind = origin or tp
+    return kind(items) if kind is not list else items
+
+
+def _convert_dataclass(value: Any, tp: type, where: str) -> Any:
+    """A nested section: the dataclass itself, or built from a mapping (its ``from_dict``
+    when it has one: the type knows its own defaults, e.g. per-category ranges)."""
+    if isinstance(value, tp):
+        return value
+    if not isinstance(value, dict):
+        _fail(where, f"a mapping ({tp.__name__})", value)
+    from_dict = getattr(tp, "from_dict", None)
+    if callable(from_dict):
+        try:
+            return from_dict(value)
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+    return build_dataclass(tp, value, where)
+
+
+def _convert_scalar(value: Any, tp: Any, where: str) -> Any:
+    """bool, int, float (YAML 1.1's ``1e-4`` strings included), str, paths, other types."""
     if tp is bool:
         if not isinstance(value, bool):
             _fail(where, "true or false", value)
@@ -273,6 +290,12 @@ def build_dataclass(cls: type, values: dict[str, Any], where: str, extra: dict[s
     except Exception as exc:  # pragma: no cover - a broken stage module
         raise ConfigError(f"{where}: cannot read the parameter types of {cls.__name__} ({exc})") from exc
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    moved = getattr(cls, "MOVED_KEYS", None) or {}  # a key of an older layout -> its "section.key" now
+    for k, v in values.items():
+        if k in moved and (k not in fields or not isinstance(v, dict)):
+            file, _, section = where.rpartition(": ")
+            msg = f"{section}.{k} moved to {section}.{moved[k]}"
+            raise ConfigError(f"{file}: {msg}" if file else msg)
     unknown = [k for k in values if k not in fields]
     if unknown:
         known = ", ".join(fields) or "(none)"

@@ -108,3 +108,46 @@ def point_light_directions(points: np.ndarray, positions: np.ndarray, intensitie
     I = np.ones(len(L)) if intensities is None else np.asarray(intensities, dtype=np.float64)
     scale = I[None] / (r2[..., None] if I.ndim == 2 else r2)
     return dirs, scale
+
+
+class Orthographic:
+    """The orthographic camera: every pixel looks along -z, so every view is +z.
+
+    >>> Orthographic().views(np.array([0.0]), np.array([5.0])) is None
+    True
+    """
+
+    intrinsics = None
+
+    def views(self, rows: np.ndarray, cols: np.ndarray) -> None:
+        """None: the view of every pixel is +z (what the solvers take as "orthographic")."""
+        return None
+
+    def record(self) -> dict:
+        return {"model": "orthographic"}
+
+
+class Pinhole:
+    """A pinhole camera of intrinsics ``K`` (:func:`check_intrinsics`): each pixel's view
+    is its own (:func:`view_directions`).
+
+    >>> cam = Pinhole([[100.0, 0, 10], [0, 100.0, 10], [0, 0, 1]])
+    >>> cam.views(np.array([10.0]), np.array([10.0])) + 0.0
+    array([[0., 0., 1.]])
+    """
+
+    def __init__(self, K):
+        self.intrinsics = check_intrinsics(K)
+
+    def views(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """(P, 3) unit view directions of pixels (rows, cols)."""
+        return view_directions(self.intrinsics, rows, cols)
+
+    def record(self) -> dict:
+        return {"model": "perspective", "intrinsics": self.intrinsics.tolist()}
+
+
+def camera_for(intrinsics) -> Orthographic | Pinhole:
+    """The camera a capture describes: :class:`Pinhole` with intrinsics, else
+    :class:`Orthographic`."""
+    return Orthographic() if intrinsics is None else Pinhole(intrinsics)

@@ -265,6 +265,26 @@ def _edge_confidence(graph: MaskGraph, conf: np.ndarray) -> tuple[np.ndarray, np
     return wh, np.minimum(conf, np.take(conf, graph.below)).astype(np.float32)
 
 
+def _check_options(sigma: float, reweights: int, distance: float) -> None:
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"sigma must be a positive number, got {sigma}")
+    if isinstance(reweights, bool) or not isinstance(reweights, (int, np.integer)) or reweights < 0:
+        raise ValueError(f"reweights must be an integer >= 0, got {reweights}")
+    if not (np.isfinite(distance) and distance > 0):
+        raise ValueError(f"distance must be a positive number, got {distance}")
+
+
+def _anchor(z: np.ndarray, mask: np.ndarray, n_comp: int, *, perspective: bool, distance: float) -> None:
+    """Shift ``z`` in place, per 4-connected component: mean 0 (orthographic heights), or
+    the median log-depth log(``distance``) (perspective)."""
+    labels = _component_labels(mask)[0]
+    if not perspective:
+        shift = np.bincount(labels, z, n_comp) / np.bincount(labels, minlength=n_comp)
+    else:
+        shift = _component_medians(labels, z, n_comp) - np.log(distance)
+    z -= shift[labels]
+
+
 # ----------------------------------------------------------------------------- public
 
 
@@ -296,12 +316,7 @@ def integrate(
     """
     t0 = time.perf_counter()
     normals, mask = check_inputs(normals, mask)
-    if not (np.isfinite(sigma) and sigma > 0):
-        raise ValueError(f"sigma must be a positive number, got {sigma}")
-    if isinstance(reweights, bool) or not isinstance(reweights, (int, np.integer)) or reweights < 0:
-        raise ValueError(f"reweights must be an integer >= 0, got {reweights}")
-    if not (np.isfinite(distance) and distance > 0):
-        raise ValueError(f"distance must be a positive number, got {distance}")
+    _check_options(sigma, reweights, distance)
     if intrinsics is None:
         p, q, conf, clamped = gradients(normals, mask, nz_min)
     else:
@@ -350,13 +365,7 @@ def integrate(
         iterations.append(its)
 
     # mean 0 per component (orthographic), or the median depth ``distance`` (perspective)
-    labels = _component_labels(mask)[0]
-    if intrinsics is None:
-        shift = np.bincount(labels, z, n_comp) / np.bincount(labels, minlength=n_comp)
-    else:
-        shift = _component_medians(labels, z, n_comp) - np.log(distance)
-    z -= shift[labels]
-    del labels
+    _anchor(z, mask, n_comp, perspective=intrinsics is not None, distance=distance)
     gh, gv = _targets(graph, p, q)
     dh, dv = graph.edge_differences(z)
     equations = int(graph.right.sum()) + int(graph.down.sum())

@@ -35,6 +35,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from cnnps.ps.solver import Solver, Tile
+
 _CHUNK = 65536  # pixels per batch of normal equations (bounds memory at ~m * 64k floats)
 
 
@@ -218,3 +220,44 @@ def least_squares_per_pixel(
     if return_valid:
         return normals, albedo, valid
     return normals, albedo
+
+
+class LeastSquaresSolver(Solver):
+    """The classic baseline as a solver (``method="lambertian"``): per pixel, the
+    Lambertian least squares of its present observations (:func:`least_squares_masked`
+    under shared lights, :func:`least_squares_per_pixel` under each pixel's own). It does
+    not depend on the view. Option: ``shadow_threshold`` (its own)."""
+
+    name = "lambertian"
+    only_options = ("shadow_threshold",)
+
+    def __init__(self, shadow_threshold: float | None = None):
+        self.shadow_threshold = shadow_threshold
+
+    @classmethod
+    def prepare(cls, options: dict) -> "LeastSquaresSolver":
+        return cls(options.get("shadow_threshold"))
+
+    def solve(self, tile: Tile, bar=None) -> tuple[np.ndarray, dict[str, int]]:
+        solve = least_squares_per_pixel if tile.lights.ndim == 3 else least_squares_masked
+        normals, _albedo, valid = solve(tile.values, tile.lights, tile.missing,
+                                        shadow_threshold=self.shadow_threshold, return_valid=True)
+        if bar is not None:
+            bar.update(tile.n)
+        return normals, {"invalid": int((~valid).sum())}
+
+    def progress_bar(self, n_pixels: int):
+        from cnnps.infra.progress import progress_bar
+
+        return progress_bar(total=n_pixels, unit="px", unit_scale=True, desc="least squares")
+
+    def notes(self, counts: dict[str, int]) -> list[str]:
+        invalid = counts.get("invalid", 0)
+        if not invalid:
+            return []
+        if self.shadow_threshold is not None:
+            return [f"{invalid} pixels had fewer than 3 lights above the shadow threshold; they use all lights"]
+        return [f"{invalid} pixels had fewer than 3 unsaturated lights; they use all lights, saturated ones included"]
+
+    def record(self, counts: dict[str, int], n_images: int, shared_lights: bool) -> dict:
+        return {"model": None, "rotations": None, "shadow_threshold": self.shadow_threshold}

@@ -3,6 +3,6 @@ section) and ``run(params, data_dir)`` (stages with per-scene jobs also take ``e
 
 A stage module holds only its parameters, its plan (what to write, with content keys),
 the per-scene job and ``run``; the library it calls lives in :mod:`cnnps.synth`,
-:mod:`cnnps.models`, :mod:`cnnps.io`, :mod:`cnnps.ps` and :mod:`cnnps.infra`. Importing a
+:mod:`cnnps.train`, :mod:`cnnps.models`, :mod:`cnnps.io`, :mod:`cnnps.ps` and :mod:`cnnps.infra`. Importing a
 stage module never imports bpy. ``eval_report`` is the eval stage's table and report.
 """

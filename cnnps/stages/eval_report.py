@@ -24,7 +24,7 @@ def input_picture(cap) -> np.ndarray:
     """The image lit most frontally, exposed to its 99th percentile, sRGB-ish gamma, uint8
     (read from its file when ``cap`` was scanned, not loaded)."""
     j = int(np.argmax(cap.lights[:, 2]))
-    img = cap.images[j] if cap.images is not None else cap.read_grey(j)
+    img = cap.read_grey(j)
     vals = img[cap.mask]
     scale = float(np.percentile(vals, 99)) if vals.size else 1.0
     scale = scale if scale > 0 else 1.0

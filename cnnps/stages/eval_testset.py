@@ -113,12 +113,12 @@ def build_testset(params, data_dir: Path) -> list[Path]:
     """Render (or reuse: each capture carries a content key) the synthetic test captures
     under ``data_dir/eval/testset/<shape>-<category>-<lights>/``; return their folders."""
     from cnnps.infra.stage_folders import prune_stale
-    from cnnps.synth.capture_render import render_capture
+    from cnnps.synth.capture_render import RENDER_MARKERS, render_capture
 
     root = Path(data_dir) / "eval" / "testset"
     plan = testset_plan(params)
     wanted = {c["name"] for c in plan} | {rig_name(c["name"], params.rig) for c in plan if params.rig}
-    prune_stale(root, wanted, ["scene.json", ".pending.json"])  # captures of an older plan
+    prune_stale(root, wanted, RENDER_MARKERS)  # captures of an older plan
     meshes: dict[str, object] = {}
     out = []
     for c in plan:

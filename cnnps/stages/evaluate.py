@@ -21,7 +21,10 @@ Observations are made as ``cnnps predict`` makes them: with ``saturated: exclude
 default, as ``cnnps predict``) an observation with a channel at 0.99 of an integer
 format's maximum is missing for both methods (float renders have none), and the network's
 maps get the Lambertian fill of ``sparse_fill``. :func:`score_real` scores the real
-captures alone (what ``cnnps score`` runs): the same numbers as this stage.
+captures alone (what ``cnnps score`` runs): the same numbers as this stage. Real
+captures are scored as the DiLiGenT benchmark scores its objects: its rule
+(:data:`cnnps.io.capture.DILIGENT_RULES`: bearPNG without its first 20 images) is
+applied to them, and their sparse subsets are drawn from the images it leaves.
 
 Outputs (the report and pictures are replaced together at the end):
 
@@ -203,10 +206,12 @@ class Params:
 
 def check_inputs(params: Params, data_dir: Path) -> None:
     """Checks on named files, before any stage runs (called by cnnps.pipeline.config)."""
+    from cnnps.io.capture import FILENAMES_FILE, is_capture_folder
+
     for c in params.real_captures:
         p = Path(c)
-        if not (p / "filenames.txt").is_file():
-            raise ConfigError(f"eval.real_captures: {p} is not a capture folder (no filenames.txt)")
+        if not is_capture_folder(p):
+            raise ConfigError(f"eval.real_captures: {p} is not a capture folder (no {FILENAMES_FILE})")
 
 
 # --------------------------------------------------------------------------- scoring
@@ -241,19 +246,15 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> d
     "errors": {method: (H,W)}, "scores": {method: GroundTruthScore}, "methods": {method: stats},
     "mask", "gt", "scored", "input"}`` (scores, errors, stats and scored only with ground truth).
     """
-    from cnnps.io.capture import read_intrinsics, scan_capture
+    from cnnps.io.capture import read_scene, scan_capture
     from cnnps.ps.metrics import score_normals
 
     cap = scan_capture(capture_dir, drop=drop)
     I, missing = pixel_values(cap, params.saturated)
-    K = read_intrinsics(Path(capture_dir) / "intrinsics.txt")
     distance = None
-    scene = Path(capture_dir) / "scene.json"
-    if cap.light_positions is not None and params.rig_distance == "known" and scene.is_file():
-        import json
-
-        distance = json.loads(scene.read_text()).get("median_depth")
-    normals, depths = _capture_normals(cap, I, missing, K, predict, params, distance)
+    if cap.light_positions is not None and params.rig_distance == "known":
+        distance = (read_scene(capture_dir) or {}).get("median_depth")
+    normals, depths = _capture_normals(cap, I, missing, cap.intrinsics, predict, params, distance)
 
     out = {
         "capture": str(capture_dir),
@@ -275,9 +276,8 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> d
             out["methods"][m] = score.stats
         out["scored"] = score.scored
         out["scored_pixels"] = int(score.scored.sum())
-    depth_gt = Path(capture_dir) / "depth_gt.npy"
-    if depths and depth_gt.is_file() and out["methods"]:
-        gt = np.load(depth_gt)
+    if depths and cap.depth_gt is not None and out["methods"]:
+        gt = cap.depth_gt
         for m, d in depths.items():
             rel = np.abs(d[cap.mask] - gt[cap.mask]) / gt[cap.mask]
             out["methods"][m]["depth_median_rel_error"] = float(np.median(rel))
@@ -361,8 +361,9 @@ def _capture_normals(cap, I, missing, K, predict, params: Params, distance: floa
 def evaluate_all(captures, predict, params: Params, out_dir: Path, model_label: str, t0: float | None = None) -> dict:
     """Score ``captures`` ([(name, folder, "synthetic" | "real"[, drop])]); write the report;
     return the metrics (:func:`capture_metrics`). ``drop``: image indices left out of that
-    capture (default: none beyond the capture's benchmark rule); a real capture given a
-    ``drop`` is an image subset of its folder (``summary_real_subsets``)."""
+    capture; a real capture given a ``drop`` is an image subset of its folder
+    (``summary_real_subsets``). A real capture without one is scored under the DiLiGenT
+    benchmark's rule (:data:`cnnps.io.capture.DILIGENT_RULES`: bearPNG without its first 20 images)."""
     t0 = time.perf_counter() if t0 is None else t0
     results = score_all(captures, predict, params)
     metrics = capture_metrics(results, params, model_label, t0)
@@ -375,12 +376,17 @@ def score_all(captures, predict, params: Params) -> dict[str, dict]:
     capture's image subset: True when a ``drop`` was given)} for ``captures`` as in
     :func:`evaluate_all`, with a progress bar."""
     from cnnps.infra.progress import progress_bar
+    from cnnps.io.capture import DILIGENT_RULES, benchmark_drop
 
     results: dict[str, dict] = {}
     for name, path, kind, *drop in progress_bar(captures, desc="eval", unit="capture", leave=True):
-        r = evaluate_capture(path, predict, params, drop=drop[0] if drop else None)
+        subset = kind == "real" and bool(drop) and drop[0] is not None
+        given = drop[0] if drop else None
+        if kind == "real" and given is None:
+            given = benchmark_drop(path, DILIGENT_RULES)  # the real objects are scored as the benchmark scores them
+        r = evaluate_capture(path, predict, params, drop=given)
         r["kind"] = kind
-        r["subset"] = kind == "real" and bool(drop) and drop[0] is not None
+        r["subset"] = subset
         results[name] = r
     return results
 
@@ -526,8 +532,9 @@ def network_predict(net, device: str, params: Params, model_path: Path):
 def real_capture_list(params: Params) -> list[tuple]:
     """[(name, folder, "real"[, drop])]: each of ``real_captures`` (named by its folder),
     then its ``real_subsets`` (``<name>-<n>``, drawn by :func:`cnnps.io.capture.subset_drop`
-    with ``params.seed``). An InputError names a folder that is not there."""
-    from cnnps.io.capture import subset_drop
+    with ``params.seed`` from the images :data:`cnnps.io.capture.DILIGENT_RULES` leave). An InputError names a
+    folder that is not there."""
+    from cnnps.io.capture import DILIGENT_RULES, benchmark_drop, subset_drop
 
     captures: list[tuple] = []
     for c in params.real_captures:
@@ -535,7 +542,9 @@ def real_capture_list(params: Params) -> list[tuple]:
         if not p.is_dir():
             raise InputError(c, "capture folder not found")
         captures.append((p.name, p, "real"))
-        captures += [(f"{p.name}-{n}", p, "real", subset_drop(p, n, params.seed)) for n in params.real_subsets]
+        rule = benchmark_drop(p, DILIGENT_RULES) if params.real_subsets else []
+        captures += [(f"{p.name}-{n}", p, "real", subset_drop(p, n, params.seed, exclude=rule))
+                     for n in params.real_subsets]
     return captures
 
 

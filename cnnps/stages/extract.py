@@ -67,6 +67,7 @@ from cnnps.infra.hashing import (
     stable_hash,
 )
 from cnnps.infra.progress import progress_bar
+from cnnps.io.capture import SCENE_FILE, SCENE_INDENT
 from cnnps.io.shards import (
     MANIFEST,
     MANIFEST_INDENT,
@@ -78,7 +79,7 @@ from cnnps.io.shards import (
     shard_schema,
 )
 from cnnps.ps.rotation import rotation_angles
-from cnnps.synth.capture_render import SCENE_INDENT, SCENE_TIMINGS, folder_problems
+from cnnps.synth.capture_render import SCENE_TIMINGS, folder_problems
 from cnnps.synth.training_samples import (
     STREAM_SPARSE,
     apply_capture_effects,
@@ -125,7 +126,7 @@ class Params:
     executor: ExecutorParams | None = None
     workers: int | None = None
     # where shards + manifest go: a path or an fsspec URL (s3://, gs://, file://, memory://);
-    # None = data_dir/extract. The train stage reads the same place (train.shards).
+    # None = data_dir/extract. The train stage reads the same place (train.data.shards).
     output: str | None = None
 
     def __post_init__(self):
@@ -226,7 +227,7 @@ def list_scenes(render_dir: Path) -> list[tuple[str, Path, dict]]:
         raise InputError(render_dir, "no rendered scenes (run the render stage first)")
     scenes = []
     for d in sorted(p for p in render_dir.iterdir() if p.is_dir() and not p.name.startswith(".")):
-        meta_path = d / "scene.json"
+        meta_path = d / SCENE_FILE
         if not meta_path.is_file():
             continue  # an unfinished render leaves no scene.json
         try:
@@ -239,7 +240,7 @@ def list_scenes(render_dir: Path) -> list[tuple[str, Path, dict]]:
             raise InputError(meta_path, f"edited by hand or damaged: its content does not match its checksum; {FIX_RENDER}")
         scenes.append((d.name, d, meta))
     if not scenes:
-        raise InputError(render_dir, "no rendered scenes with a scene.json")
+        raise InputError(render_dir, f"no rendered scenes with a {SCENE_FILE}")
     return scenes
 
 
@@ -280,6 +281,15 @@ def _load_render(folder: Path, checksummed: bool):
         raise InputError(exc.path, f"{exc.problem}; {fix}") from None
 
 
+def _scene_pixels(valid: np.ndarray, scene_seed: int, limit: int | None) -> np.ndarray:
+    """The indices of the ``valid`` mask pixels to extract, in the scene's seeded random
+    order, the first ``limit`` of them (None or 0: all)."""
+    rng = np.random.default_rng([scene_seed, 0])
+    pix = np.flatnonzero(valid)
+    pix = pix[rng.permutation(len(pix))]
+    return pix[:limit] if limit else pix
+
+
 def extract_scene(job: SceneJob) -> dict:
     """Extract one scene into its shards and marker; returns the marker's contents."""
     if job.threads:
@@ -295,11 +305,7 @@ def extract_scene(job: SceneJob) -> dict:
     valid = np.isfinite(norm) & (norm > 0.5)
     I_all = cap.pixel_intensities()  # (P, m), mask pixels row-major, like rr, cc
     scene_seed = derive_seed64(p.seed, job.scene_key)
-    rng = np.random.default_rng([scene_seed, 0])
-    pix = np.flatnonzero(valid)
-    pix = pix[rng.permutation(len(pix))]
-    if p.pixels_per_scene:
-        pix = pix[: p.pixels_per_scene]
+    pix = _scene_pixels(valid, scene_seed, p.pixels_per_scene)
     angles = rotation_angles(p.rotations)
     angles_deg = np.degrees(angles).astype(np.float32)
     schema = shard_schema(p.w)
@@ -352,17 +358,9 @@ def extract_scene(job: SceneJob) -> dict:
             )
             rows_written += R * P
             bar.update(len(sel) + int((~lit).sum()))
-    record = {
-        "scene": job.scene_id,
-        "key": job.key,
-        "scene_key": job.scene_key,
-        "lights": int(m),
-        "pixels": int(len(pix) - dropped_dark),
-        "dropped_dark_pixels": dropped_dark,
-        "rows": rows_written,
-        "seconds": round(time.perf_counter() - t0, 3),
-        "shards": [asdict(s) for s in wr.infos],
-    }
+    record = {"scene": job.scene_id, "key": job.key, "scene_key": job.scene_key, "lights": int(m),
+              "pixels": int(len(pix) - dropped_dark), "dropped_dark_pixels": dropped_dark, "rows": rows_written,
+              "seconds": round(time.perf_counter() - t0, 3), "shards": [asdict(s) for s in wr.infos]}
     record = add_json_checksum(record, indent=MARKER_INDENT, skip=MARKER_TIMINGS)
     storage.write_text(shard_path(job.out_dir, f"scene-{job.scene_id}.json"), json.dumps(record, indent=MARKER_INDENT))
     return record

@@ -2,8 +2,9 @@
 
 For each ``data_dir/materials/<scene_id>/`` (written by the materials stage, naming its
 mesh view in ``material.json``) this writes ``data_dir/render/<scene_id>/``, a capture
-folder rendered by :func:`cnnps.synth.capture_render.render_into` (its docstring: layout,
-resuming a killed render, mask and ground truth from Blender). A scene's ``key`` hashes
+folder rendered by :func:`cnnps.synth.capture_render.render_into` (the one capture
+renderer; its module docstring: layout, resuming a killed render, mask and ground truth
+from Blender) with the orthographic camera and one sun per image. A scene's ``key`` hashes
 the mesh file, the material files and the parameters that change the pictures (not the
 device, workers or threads), plus the scene's environment strength when it has one; a
 folder holding the current key and all its images is skipped. Render folders of scenes
@@ -40,7 +41,7 @@ job starts; on Ray the first job on a node without bpy fails with it). Only
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,9 +55,12 @@ from cnnps.infra.executor import (
 )
 from cnnps.infra.hashing import derive_seed, file_sha256, files_sha256
 from cnnps.infra.stage_folders import prune_stale, read_json
+from cnnps.io.capture import MASK_FILE
 from cnnps.synth.capture_render import (
+    RENDER_MARKERS,
     VERSION,
     RenderSettings,
+    Scene,
     capture_key,
     extend_maps,
     is_complete,
@@ -70,8 +74,9 @@ from cnnps.synth.capture_render import (
 class Params(RenderSettings):
     """Parameters of the render stage (``render:`` in params.yaml): the render settings of
     :class:`cnnps.synth.capture_render.RenderSettings` (size, samples, lights, jitter_deg,
-    min_elevation_deg, light_intensity, max_bounces, device, seed, threads) and how the
-    scenes are run.
+    min_elevation_deg, light_intensity, max_bounces, device, seed, threads: the names and
+    defaults ``cnnps.render`` and ``cnnps render`` use too; params.yaml and the presets set
+    the stage's own values) and how the scenes are run.
 
     ``executor``: params.yaml's shared ``executor`` section (None = in this process);
     ``workers`` overrides executor.workers when set (1 = in this process, 0 = one per
@@ -182,7 +187,7 @@ def _material_from_dir(sdir: Path, meta: dict) -> dict:
     """Renderer material of a materials-stage folder (maps extended past their mask)."""
     from cnnps.io.images import read_mask
 
-    mask = read_mask(sdir / "mask.png")
+    mask = read_mask(sdir / MASK_FILE)
     if meta.get("category") == "lambertian" or meta.get("bsdf") == "lambertian":
         albedo = _load_map(sdir / "base_color.npy") if (sdir / "base_color.npy").is_file() else 1.0
         return lambertian_material(extend_maps({"a": albedo}, mask)["a"] if np.ndim(albedo) >= 2 else albedo)
@@ -260,14 +265,13 @@ def render_scene_job(job: dict) -> dict:
         raise InputError(exc.path, f"{exc.problem}; {_upstream_fix('materials', sdir)}") from None
     if isinstance(material.get("Color"), np.ndarray) and material["Color"].shape[:2] != (p.size, p.size):
         raise InputError(sdir, f"material maps are {material['Color'].shape[:2]}, render size is {p.size}")
-    scene_seed = derive_seed(int(p.seed), str(sid))
+    scene_seed = derive_seed(int(p.seed), str(sid))  # the scene's lights and Cycles seed
     L = hemisphere_lights(p.lights, p.jitter_deg, seed=scene_seed, min_elevation_deg=p.min_elevation_deg)
-    res = render_into(
-        out, np.asarray(mesh.vertices), np.asarray(mesh.faces), material, key=job["key"], lights=L,
-        intensity=p.light_intensity, size=p.size, samples=p.samples, seed=scene_seed, max_bounces=p.max_bounces,
-        device=p.device, threads=job.get("threads", p.threads), meta=job["meta"], desc=sid,
-        progress=job.get("progress", True), environment=job.get("environment", 0.0),
-    )
+    scene = Scene(np.asarray(mesh.vertices), np.asarray(mesh.faces), material, L,
+                  environment=job.get("environment", 0.0))  # orthographic camera, suns
+    settings = replace(p, seed=scene_seed, threads=job.get("threads", p.threads))
+    res = render_into(out, scene, settings, key=job["key"], meta=job["meta"], desc=sid,
+                      progress=job.get("progress", True))
     return {"scene_id": sid, **res}
 
 
@@ -284,7 +288,7 @@ def run(params: Params, data_dir: Path, executor=None) -> dict:
     out_root = data_dir / "render"
     out_root.mkdir(parents=True, exist_ok=True)
     if params.prune:
-        prune_stale(out_root, {j["scene_id"] for j in jobs}, ["scene.json", ".pending.json"])
+        prune_stale(out_root, {j["scene_id"] for j in jobs}, RENDER_MARKERS)
     todo = [j for j in jobs if not is_complete(Path(j["out"]), j["key"])]
     results = []
     if todo:

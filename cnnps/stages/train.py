@@ -8,12 +8,13 @@ normal; Adam. Validation (mean / median angular error in degrees over up to
 averaging, through the batched inference of ``cnnps predict``) runs every
 ``val_every`` steps and at the end.
 
-This module holds the stage's ``Params``, its run key and :func:`run`; the machinery is
-in the network layer: :mod:`cnnps.models.training` (the loop: data set-up, resume, step
-loop, finish), :mod:`cnnps.models.optimiser` (model and Adam, learning rate, one step),
-:mod:`cnnps.models.train_state` (resumable checkpoints, RNG states),
-:mod:`cnnps.models.validation`, :mod:`cnnps.models.distributed` (torchrun) and
-:mod:`cnnps.models.openmp`.
+This module holds the stage's ``Params`` (nested: ``optimiser``, ``data``, ``pixelwise``,
+``cpu``; see :class:`Params`), its run key and :func:`run`; the machinery is in
+:mod:`cnnps.train`: :mod:`cnnps.train.loop` (the loop: data set-up, resume, step
+loop, finish), :mod:`cnnps.train.optimiser` (model and Adam, learning rate, one step),
+:mod:`cnnps.train.resume` (resumable checkpoints, RNG states),
+:mod:`cnnps.train.validation`, :mod:`cnnps.train.distributed` (torchrun) and
+:mod:`cnnps.train.openmp`.
 
 Resuming: every ``checkpoint_every`` steps (and at the end) ``data_dir/train/
 checkpoints/step-NNNNNNNN.pt`` is written atomically with model, optimiser, torch RNG
@@ -25,20 +26,21 @@ uninterrupted run (tests/stages/test_train.py checks it). ``epochs``, ``max_step
 the logging/checkpoint intervals are not part of the key: raising ``max_steps`` or
 ``epochs`` continues a finished run.
 
-Learning rate: ``lr``, multiplied by ``lr_gamma`` at each step in ``lr_milestones``
-(:func:`cnnps.models.optimiser.lr_at`; a step schedule, independent of ``max_steps``). Fine-tuning: ``init``
+Learning rate: ``optimiser.lr``, multiplied by ``optimiser.lr_gamma`` at each step in
+``optimiser.lr_milestones``
+(:func:`cnnps.train.optimiser.lr_at`; a step schedule, independent of ``max_steps``). Fine-tuning: ``init``
 names a cnnps checkpoint (e.g. a shipped model) whose weights replace the random
 initialisation; the SHA-256 of those weights, not the path, is part of the run key and
 is recorded in the model's meta (``init_weights_sha256``).
 
-Shards: read from ``shards`` (a path or an fsspec URL, the extract stage's ``output``),
+Shards: read from ``data.shards`` (a path or an fsspec URL, the extract stage's ``output``),
 by default ``data_dir/extract``.
 
 Several processes (DistributedDataParallel). Under ``torchrun`` (which sets
 ``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK``), e.g.
 ``torchrun --standalone --nproc-per-node 4 -m cnnps run-stage train``, every process
 trains a replica: NCCL on GPUs (process ``LOCAL_RANK`` uses ``cuda:LOCAL_RANK``), gloo on
-CPU. ``batch_size`` stays the *global* batch: each of the N ranks takes
+CPU. ``data.batch_size`` stays the *global* batch: each of the N ranks takes
 ``batch_size / N`` rows a step (it must divide), from its own disjoint share of the row
 groups of every epoch (``ShardStream(rank, world_size)``), and DDP averages the
 gradients, so a step sees ``batch_size`` rows as in one process. Every rank runs the
@@ -52,19 +54,19 @@ all ranks.
 
 Speed on CPU (benchmarks/bench_train.py, benchmarks/results/train.json): activations
 are channels_last (``channels_last``, ~1.3x), Adam uses torch's fused kernel
-(``fused_adam``), batches are decoded float16 -> float32 by torch, and :func:`run` sets
+(``optimiser.fused_adam``), batches are decoded float16 -> float32 by torch, and :func:`run` sets
 ``OMP_WAIT_POLICY=PASSIVE`` before torch loads unless the environment sets a policy
 (with another busy process on a 2-core machine, spinning OpenMP threads made training
 2.7x slower); dropout masks are drawn from a counter-based stream keyed by the step
-(``dropout_masks: counter16``, 16 random bits an element; ``counter`` draws 32; torch's
+(``cpu.dropout_masks: counter16``, 16 random bits an element; ``counter`` draws 32; torch's
 ``bernoulli_`` took a third of a step on 2 cores);
-with those masks the layers run as :mod:`cnnps.models.train_layers` (``cpu_layers:
+with those masks the layers run as :mod:`cnnps.models.train_layers` (``cpu.layers:
 fused``: fewer passes over memory, the same results up to float rounding); and glibc
 keeps freed memory for the next step instead of page-faulting it back in
-(``keep_freed_memory``, :mod:`cnnps.models.allocator`; docs/performance.md).
+(``cpu.keep_freed_memory``, :mod:`cnnps.train.allocator`; docs/performance.md).
 ``precision: auto`` (the default) times a few steps in fp32 and in bf16 (autocast) at the
 run's start and steps in bf16 where it is clearly faster and its loss agrees
-(:mod:`cnnps.models.train_precision`; bf16 is not even tried where the CPU has no bf16
+(:mod:`cnnps.train.precision`; bf16 is not even tried where the CPU has no bf16
 kernels); ``fp32`` and ``bf16`` fix it. ``metrics.json`` records the choice and the
 precision of each segment of a resumed run; validation always runs in fp32.
 ``compile: true`` (torch.compile; slower than eager here, ~40 s to compile; falls back to
@@ -72,30 +74,30 @@ eager with a warning when compilation fails) is opt-in. None of these changes th
 they change float rounding (and, for channels_last or compile, which elements a dropout
 mask draws), so they are part of the resume key, except that ``auto`` enters it as fp32
 (an auto run and an fp32 run resume each other's checkpoints; a resume in another
-precision than the checkpoint's says so in one line and goes on). ``threads: 1`` is faster than 2 threads
+precision than the checkpoint's says so in one line and goes on). ``cpu.threads: 1`` is faster than 2 threads
 when another job keeps a core busy.
 
-Processes sharing each step (``step_processes``; 0, the default, means one per thread
+Processes sharing each step (``cpu.step_processes``; 0, the default, means one per thread
 where it applies: eager steps (float32 or bf16 autocast) with counter masks on a CPU, one training process,
 200 steps or more to go).
 The run's process computes its rows of every batch and ``step_processes - 1`` helper
 processes, started for the run, the rest, each on ``threads / step_processes`` threads
-(:mod:`cnnps.models.step_processes`); it adds their gradients and steps Adam on weights
+(:mod:`cnnps.train.step_processes`); it adds their gradients and steps Adam on weights
 kept in shared memory. The dropout masks are drawn per block of 16 rows of a batch, so a
 process's rows draw what they draw in one process: the weights are those of one process
 up to float rounding, and the setting is not part of the resume key. Two 1-thread
 processes made 1.1x the steps of one 2-thread process on 2 AMD EPYC cores, with AVX2 and
 with AVX-512 alike (docs/performance.md).
 
-Feeding a GPU: Parquet row groups are decoded ``prefetch`` groups ahead in a background
+Feeding a GPU: Parquet row groups are decoded ``data.prefetch`` groups ahead in a background
 thread; on CUDA the float16 batches go through a ring of pinned host buffers with
-non-blocking copies (:mod:`cnnps.models.device_feed`) and are converted on the device,
+non-blocking copies (:mod:`cnnps.train.device_feed`) and are converted on the device,
 and the logged loss is summed on the device and read every ``log_every`` steps only, so
-no step waits for the one before. Per-pixel maps (``pixelwise``) are made
-``pixelwise_ahead`` steps ahead in a background thread, on CUDA on a stream of their own
-(:mod:`cnnps.models.maps_ahead`); each step's maps come from a generator seeded by the
+no step waits for the one before. Per-pixel maps (``pixelwise.share``) are made
+``pixelwise.ahead`` steps ahead in a background thread, on CUDA on a stream of their own
+(:mod:`cnnps.train.maps_ahead`); each step's maps come from a generator seeded by the
 step, so they are the same made ahead or in the step. ``metrics.json`` (``seconds``,
-:mod:`cnnps.models.step_clock`) splits the step loop's wall time: waiting for data,
+:mod:`cnnps.train.step_clock`) splits the step loop's wall time: waiting for data,
 validation, checkpoints (benchmarks/bench_stage.py compares the stage with the bare step).
 
 Outputs: ``data_dir/train/model.pt`` (``cnnps.models.checkpoint.save_checkpoint``; config w,
@@ -107,43 +109,104 @@ split), ``plots/loss.csv``
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, ClassVar, Literal
 
 from cnnps.infra.errors import ConfigError
 from cnnps.infra.hashing import stable_hash
 from cnnps.infra.options import Range, check_fields
-from cnnps.models.openmp import prefer_passive_openmp  # torch-free (torch loads in run)
+from cnnps.train.openmp import prefer_passive_openmp  # torch-free (torch loads in run)
+
+# cnnps.synth.pixelwise.EFFECT_NAMES (named here: this module loads without torch)
+PIXELWISE_EFFECTS = ("cast_shadow", "interreflection", "ambient", "intensity_error", "noise", "saturation",
+                     "quantisation", "boundary_mix")
+
+
+def _at_least(section: object, prefix: str, names: tuple[str, ...], low: int) -> None:
+    for name in names:
+        if getattr(section, name) < low:
+            raise ConfigError(f"{prefix}{name} must be >= {low}, got {getattr(section, name)}")
 
 
 @dataclass(frozen=True)
-class Params:
-    epochs: int = 10
-    max_steps: int = 0  # 0 = no limit; otherwise stop after this many optimiser steps
-    batch_size: int = 128
+class OptimiserParams:
+    """``train.optimiser``: Adam and its step schedule. The learning rate of step k + 1 is
+    ``lr * lr_gamma ** (milestones <= k)`` (:func:`cnnps.train.optimiser.lr_at`)."""
+
     lr: float = 1e-3
     lr_milestones: tuple[int, ...] = ()  # steps at which the learning rate is multiplied by lr_gamma
     lr_gamma: float = 0.1
-    init: str | None = None  # start from these weights (a cnnps checkpoint) instead of a random init
     weight_decay: float = 0.0
-    dropout: float = 0.2
-    seed: int = 0
-    shuffle_buffer: int = 65536  # rows
-    val_every: int = 2000  # steps; 0 = only at the end
-    val_max_rows: int = 50000
-    checkpoint_every: int = 1000  # steps
-    keep_checkpoints: int = 2
-    log_every: int = 50  # steps between loss points in plots/loss.csv
-    device: str = "auto"  # auto | cpu | cuda
-    # auto = the faster of fp32 and bf16 on this machine, timed at the run's start
-    # (cnnps.models.train_precision; bf16 only where the CPU or GPU has bf16 units); fp32 | bf16 (autocast)
-    precision: Literal["auto", "fp32", "bf16"] = "auto"
-    threads: int = 0  # torch CPU threads; 0 = one per core
-    channels_last: bool = True  # NHWC activations: ~1.4x faster training on CPU (oneDNN)
     fused_adam: bool = True  # torch's fused Adam kernel (same algorithm, one pass per tensor)
-    compile: bool = False  # torch.compile the model (inductor); falls back to eager with a warning
-    # dropout masks on a CPU: "counter16" = drawn from a stream keyed by (seed, rank, step, layer, 16-row block),
+
+    def __post_init__(self):
+        if not self.lr > 0:
+            raise ConfigError(f"train.optimiser.lr must be > 0, got {self.lr}")
+        object.__setattr__(self, "lr_milestones", tuple(self.lr_milestones or ()))
+        if any(not isinstance(m, int) or m < 1 for m in self.lr_milestones) or list(self.lr_milestones) != sorted(
+            set(self.lr_milestones)
+        ):
+            raise ConfigError(f"train.optimiser.lr_milestones must be increasing steps >= 1, "
+                              f"got {list(self.lr_milestones)}")
+        if not 0 < self.lr_gamma <= 1:
+            raise ConfigError(f"train.optimiser.lr_gamma must be in (0, 1], got {self.lr_gamma}")
+
+
+@dataclass(frozen=True)
+class DataParams:
+    """``train.data``: where the training rows come from and how they are batched."""
+
+    shards: str | None = None  # where extract wrote (its `output`: path or fsspec URL); None = data_dir/extract
+    batch_size: int = 128  # rows a step (the global batch under torchrun)
+    shuffle_buffer: int = 65536  # rows
+    prefetch: int = 2  # row groups decoded ahead in a background thread (0 = none); batches do not change
+    num_workers: int = 0  # DataLoader worker processes; 0 = load in the main process
+
+    def __post_init__(self):
+        _at_least(self, "train.data.", ("batch_size", "shuffle_buffer"), 1)
+        _at_least(self, "train.data.", ("prefetch", "num_workers"), 0)
+        if self.shards is not None and (not isinstance(self.shards, str) or not self.shards.strip()):
+            raise ConfigError(f"train.data.shards must be a folder path or URL, got {self.shards!r}")
+
+
+@dataclass(frozen=True)
+class PixelwiseParams:
+    """``train.pixelwise``: per-pixel maps (:mod:`cnnps.synth.pixelwise`) in every batch."""
+
+    # this share of a batch's rows, the rest from the Cycles shards; 1 = per-pixel maps only (no renders
+    # or shards: a core install or a GPU machine trains; needs max_steps, and validates on a fixed per-pixel set)
+    share: Annotated[float, Range(ge=0.0, le=1.0)] = 0.0
+    effects: dict[str, float] = field(default_factory=dict)  # cnnps.synth.pixelwise.Effects, e.g. {ambient: 0.05}
+    sparse_fraction: Annotated[float, Range(ge=0.0, le=1.0)] = 0.0  # per-pixel maps of 6..49 lights
+    w: Annotated[int, Range(ge=2)] = 32  # map width of per-pixel-only training (shards carry their own)
+    # made this many steps ahead in a background thread (on CUDA on a stream of its own;
+    # cnnps.train.maps_ahead); 0 = in the step's thread. The maps do not change.
+    ahead: Annotated[int, Range(ge=0, le=8)] = 1
+
+    def __post_init__(self):
+        check_fields(self, "train.pixelwise.")
+        for k, v in self.effects.items():
+            if k not in PIXELWISE_EFFECTS:
+                raise ConfigError(f"train.pixelwise.effects: unknown effect {k!r}; "
+                                  f"effects (cnnps.synth.pixelwise.Effects): {', '.join(PIXELWISE_EFFECTS)}")
+            if not 0.0 <= float(v) <= 1.0:
+                raise ConfigError(f"train.pixelwise.effects.{k} must be a number in [0, 1], got {v!r}")
+
+
+@dataclass(frozen=True)
+class CpuParams:
+    """``train.cpu``: how a step runs on a CPU. None of these changes the model or the loss."""
+
+    threads: int = 0  # torch CPU threads; 0 = one per core
+    # processes that share each CPU step, the batch split between them by rows, each with
+    # threads / step_processes torch threads (cnnps.train.step_processes): eager steps (fp32 or bf16) with
+    # counter masks in one training process (not under torchrun, not on CUDA). 0 = auto: one
+    # process per thread of `threads` (one per core), at most one per 16 rows of a batch, where
+    # that applies and the run has 200 steps or more to go, else 1. The weights do not change.
+    step_processes: Annotated[int, Range(ge=0, le=64)] = 0
+    # dropout masks: "counter16" = drawn from a stream keyed by (seed, rank, step, layer, 16-row block),
     # 16 bits an element (the drop rate to 2^-17), ~4x cheaper than torch's and resume-exact with no RNG
     # state (cnnps.models.network.counter_dropout); "counter" = the same with 32 bits an element (rate to
     # 2^-33; ~2 ms more a 64-row step, and what runs before counter16 drew); "torch" = torch's generator.
@@ -151,81 +214,146 @@ class Params:
     dropout_masks: Literal["counter16", "counter", "torch"] = "counter16"
     # eager float32 CPU steps with counter masks: "fused" = the layers of cnnps.models.train_layers
     # (fewer passes over memory, the same results up to float rounding); "reference" = torch's layers
-    cpu_layers: Literal["fused", "reference"] = "fused"
-    # on a CPU, glibc keeps freed memory for the next step instead of returning it to the kernel
-    # (cnnps.models.allocator: a tenth of the machine's time went to page faults); process-wide
+    layers: Literal["fused", "reference"] = "fused"
+    # glibc keeps freed memory for the next step instead of returning it to the kernel
+    # (cnnps.train.allocator: a tenth of the machine's time went to page faults); process-wide
     keep_freed_memory: bool = True
-    # per-pixel maps (cnnps.synth.pixelwise) in every batch: this share of its rows, the rest
-    # from the Cycles shards; 1 = per-pixel maps only (no renders or shards: a core install or
-    # a GPU machine trains; needs max_steps, and validates on a fixed per-pixel set)
-    pixelwise: Annotated[float, Range(ge=0.0, le=1.0)] = 0.0
-    pixelwise_effects: dict[str, float] = field(default_factory=dict)  # cnnps.synth.pixelwise.Effects, e.g. {ambient: 0.05}
-    pixelwise_sparse_fraction: Annotated[float, Range(ge=0.0, le=1.0)] = 0.0  # per-pixel maps of 6..49 lights
-    w: Annotated[int, Range(ge=2)] = 32  # map width of per-pixel-only training (shards carry their own)
-    # per-pixel batches made this many steps ahead in a background thread (on CUDA on a stream of its
-    # own; cnnps.models.maps_ahead); 0 = in the step's thread. The maps do not change.
-    pixelwise_ahead: Annotated[int, Range(ge=0, le=8)] = 1
-    # processes that share each CPU step, the batch split between them by rows, each with
-    # threads / step_processes torch threads (cnnps.models.step_processes): eager steps (fp32 or bf16) with
-    # counter masks in one training process (not under torchrun, not on CUDA). 0 = auto: one
-    # process per thread of `threads` (one per core), at most one per 16 rows of a batch, where
-    # that applies and the run has 200 steps or more to go, else 1. The weights do not change.
-    step_processes: Annotated[int, Range(ge=0, le=64)] = 0
-    num_workers: int = 0  # DataLoader worker processes; 0 = load in the main process
-    prefetch: int = 2  # row groups decoded ahead in a background thread (0 = none); batches do not change
-    progress: bool = True
-    shards: str | None = None  # where extract wrote (its `output`: path or fsspec URL); None = data_dir/extract
 
     def __post_init__(self):
-        for name in ("epochs", "batch_size", "shuffle_buffer", "val_max_rows", "checkpoint_every", "keep_checkpoints", "log_every"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"train.{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("max_steps", "val_every", "threads", "num_workers", "prefetch"):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"train.{name} must be >= 0, got {getattr(self, name)}")
-        if not self.lr > 0:
-            raise ConfigError(f"train.lr must be > 0, got {self.lr}")
-        object.__setattr__(self, "lr_milestones", tuple(self.lr_milestones or ()))
-        if any(not isinstance(m, int) or m < 1 for m in self.lr_milestones) or list(self.lr_milestones) != sorted(
-            set(self.lr_milestones)
-        ):
-            raise ConfigError(f"train.lr_milestones must be increasing steps >= 1, got {list(self.lr_milestones)}")
-        if not 0 < self.lr_gamma <= 1:
-            raise ConfigError(f"train.lr_gamma must be in (0, 1], got {self.lr_gamma}")
+        _at_least(self, "train.cpu.", ("threads",), 0)
+        check_fields(self, "train.cpu.")
+
+
+SECTIONS = {"optimiser": OptimiserParams, "data": DataParams, "pixelwise": PixelwiseParams, "cpu": CpuParams}
+
+# Where each key of the flat train section (params files, model-file records and run keys
+# written before the sections) lives now: flat name -> "section.key".
+MOVED_KEYS = {
+    **{k: f"optimiser.{k}" for k in ("lr", "lr_milestones", "lr_gamma", "weight_decay", "fused_adam")},
+    **{k: f"data.{k}" for k in ("shards", "batch_size", "shuffle_buffer", "prefetch", "num_workers")},
+    "pixelwise": "pixelwise.share", "pixelwise_effects": "pixelwise.effects",
+    "pixelwise_sparse_fraction": "pixelwise.sparse_fraction", "w": "pixelwise.w", "pixelwise_ahead": "pixelwise.ahead",
+    **{k: f"cpu.{k}" for k in ("threads", "step_processes", "dropout_masks", "keep_freed_memory")},
+    "cpu_layers": "cpu.layers",
+}
+
+
+def _section(cls: type, value, name: str):
+    """``value`` as section ``cls``: itself, or built from a mapping (unknown keys named)."""
+    if isinstance(value, cls):
+        return value
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"train.{name} must be a mapping of its keys, got {value!r}")
+    known = [f.name for f in fields(cls)]
+    unknown = [k for k in value if k not in known]
+    if unknown:
+        raise ConfigError(f"train.{name}: unknown key {unknown[0]!r}; known keys: {', '.join(known)}")
+    return cls(**value)
+
+
+@dataclass(frozen=True)
+class Params:
+    """``train:`` in params.yaml. The run's length, validation, checkpoints and where it
+    runs are top-level keys; the rest sits in four sections::
+
+        train:
+          max_steps: 3000
+          optimiser: {lr: 0.001, lr_milestones: [2000], lr_gamma: 0.2}
+          data: {batch_size: 128}
+          pixelwise: {share: 0.5, effects: {ambient: 0.05}}
+          cpu: {threads: 2}
+
+    A key of the flat section that preceded them (``train: {lr: 0.001}``) is refused with
+    its new place (``train.lr moved to train.optimiser.lr``; :data:`MOVED_KEYS`). In Python
+    a section is its dataclass or a mapping of its keys:
+    ``Params(max_steps=10, optimiser={"lr": 1e-4})``.
+    """
+
+    # flat key -> "section.key", for the one-line error of cnnps.pipeline.config
+    MOVED_KEYS: ClassVar[dict[str, str]] = MOVED_KEYS
+
+    epochs: int = 10
+    max_steps: int = 0  # 0 = no limit; otherwise stop after this many optimiser steps
+    init: str | None = None  # start from these weights (a cnnps checkpoint) instead of a random init
+    dropout: float = 0.2
+    seed: int = 0
+    val_every: int = 2000  # steps; 0 = only at the end
+    val_max_rows: int = 50000
+    checkpoint_every: int = 1000  # steps
+    keep_checkpoints: int = 2
+    log_every: int = 50  # steps between loss points in plots/loss.csv
+    device: str = "auto"  # auto | cpu | cuda
+    # auto = the faster of fp32 and bf16 on this machine, timed at the run's start
+    # (cnnps.train.precision; bf16 only where the CPU or GPU has bf16 units); fp32 | bf16 (autocast)
+    precision: Literal["auto", "fp32", "bf16"] = "auto"
+    channels_last: bool = True  # NHWC activations: ~1.4x faster training on CPU (oneDNN)
+    compile: bool = False  # torch.compile the model (inductor); falls back to eager with a warning
+    progress: bool = True
+    optimiser: OptimiserParams = field(default_factory=OptimiserParams)
+    data: DataParams = field(default_factory=DataParams)
+    pixelwise: PixelwiseParams = field(default_factory=PixelwiseParams)
+    cpu: CpuParams = field(default_factory=CpuParams)
+
+    def __post_init__(self):
+        for name, cls in SECTIONS.items():
+            object.__setattr__(self, name, _section(cls, getattr(self, name), name))
+        _at_least(self, "train.", ("epochs", "val_max_rows", "checkpoint_every", "keep_checkpoints", "log_every"), 1)
+        _at_least(self, "train.", ("max_steps", "val_every"), 0)
         if self.init is not None and (not isinstance(self.init, str) or not self.init.strip()):
             raise ConfigError(f"train.init must be a checkpoint path, got {self.init!r}")
         if not 0 <= self.dropout < 1:
             raise ConfigError(f"train.dropout must be in [0, 1), got {self.dropout}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ConfigError(f"train.device must be auto, cpu or cuda, got {self.device!r}")
-        if self.precision not in ("auto", "fp32", "bf16"):
-            raise ConfigError(f"train.precision must be auto, fp32 or bf16, got {self.precision!r}")
-        if self.shards is not None and (not isinstance(self.shards, str) or not self.shards.strip()):
-            raise ConfigError(f"train.shards must be a folder path or URL, got {self.shards!r}")
-        check_fields(self, "train.")  # the declared choices and ranges (dropout_masks, pixelwise, w)
-        effects = ("cast_shadow", "interreflection", "ambient", "intensity_error", "noise", "saturation",
-                   "quantisation", "boundary_mix")  # cnnps.synth.pixelwise.EFFECT_NAMES
-        for k, v in self.pixelwise_effects.items():
-            if k not in effects:
-                raise ConfigError(f"train.pixelwise_effects: unknown effect {k!r}; "
-                                  f"effects (cnnps.synth.pixelwise.Effects): {', '.join(effects)}")
-            if not 0.0 <= float(v) <= 1.0:
-                raise ConfigError(f"train.pixelwise_effects.{k} must be a number in [0, 1], got {v!r}")
-        if self.step_processes > 1 and (self.compile or self.dropout_masks == "torch"):
-            raise ConfigError("train.step_processes > 1 needs eager steps with counter dropout masks "
-                              "(compile: false, dropout_masks: counter16 or counter)")
-        if self.pixelwise >= 1.0 and not self.max_steps:
-            raise ConfigError("train.pixelwise: 1 (per-pixel maps only) needs train.max_steps: there are no epochs")
+        check_fields(self, "train.")  # the declared choices (precision)
+        if self.cpu.step_processes > 1 and (self.compile or self.cpu.dropout_masks == "torch"):
+            raise ConfigError("train.cpu.step_processes > 1 needs eager steps with counter dropout masks "
+                              "(compile: false, cpu.dropout_masks: counter16 or counter)")
+        if self.pixelwise.share >= 1.0 and not self.max_steps:
+            raise ConfigError("train.pixelwise.share: 1 (per-pixel maps only) needs train.max_steps: "
+                              "there are no epochs")
+
+    @classmethod
+    def from_record(cls, record: Mapping) -> Params:
+        """The params a model file or ``metrics.json`` recorded (``meta["params"]``), in
+        sections or flat as files written before the sections hold them (each flat key
+        put in its section, :data:`MOVED_KEYS`).
+
+        >>> Params.from_record({"lr": 1e-4, "batch_size": 64, "max_steps": 10}).optimiser.lr
+        0.0001
+        """
+        nested: dict = {}
+        sections: dict[str, dict] = {}
+        for key, value in record.items():
+            if key in MOVED_KEYS and not (key in SECTIONS and isinstance(value, Mapping)):
+                section, _, name = MOVED_KEYS[key].partition(".")
+                sections.setdefault(section, {})[name] = value
+            else:
+                nested[key] = value
+        for section, values in sections.items():
+            nested[section] = {**(nested.get(section) or {}), **values}
+        return cls(**nested)
+
+    def flat(self) -> dict:
+        """The params as one flat mapping, each key under its flat name (:data:`MOVED_KEYS`):
+        what :meth:`result_key` hashes, so run keys do not depend on the sections."""
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in SECTIONS}
+        back = {new: old for old, new in MOVED_KEYS.items()}
+        for name in SECTIONS:
+            for key, value in asdict(getattr(self, name)).items():
+                d[back[f"{name}.{key}"]] = value
+        return d
 
     def result_key(self) -> dict:
-        """Params that change the trained weights (a resume needs them equal). ``init``
-        enters :func:`run_key` as the SHA-256 of its weights, not as a path."""
-        d = asdict(self)
+        """Params that change the trained weights (a resume needs them equal), under their
+        flat names. ``init`` enters :func:`run_key` as the SHA-256 of its weights, not as a
+        path."""
+        d = self.flat()
         for k in ("epochs", "max_steps", "val_every", "val_max_rows", "checkpoint_every", "keep_checkpoints",
                   "log_every", "threads", "num_workers", "prefetch", "progress", "shards", "init",
                   "keep_freed_memory", "pixelwise_ahead", "step_processes"):
             d.pop(k)
-        d["lr_milestones"] = list(self.lr_milestones)
+        d["lr_milestones"] = list(self.optimiser.lr_milestones)
         if d["precision"] == "auto":  # auto resumes fp32 runs and they resume it; each checkpoint says what ran
             d["precision"] = "fp32"
         return d
@@ -249,33 +377,15 @@ def run(params: Params, data_dir: Path, *, until=None, _stop_after_step: int | N
     set up here unless the caller already did.
     """
     prefer_passive_openmp()  # before torch loads (the import below)
-    from cnnps.models import training
+    from cnnps.train import loop
 
     data_dir = Path(data_dir)
-    with training.training_processes(params) as (info, device):
-        if params.pixelwise >= 1.0:
-            data = training.pixelwise_only_data(params.w)  # no shards at all
+    with loop.training_processes(params) as (info, device):
+        if params.pixelwise.share >= 1.0:
+            data = loop.pixelwise_only_data(params.pixelwise.w)  # no shards at all
         else:
-            data = training.open_training_data(params.shards or data_dir / "extract")
-        init_state, init_sha = training.load_init_weights(params.init, data.w)
+            data = loop.open_training_data(params.data.shards or data_dir / "extract")
+        init_state, init_sha = loop.load_init_weights(params.init, data.w)
         key = run_key(params, data.manifest_sha256, init_sha)
-        return training.train(params, data, data_dir / "train", key, info, device, init_state, init_sha,
-                              stop_after_step=_stop_after_step, make_pixelwise=pixelwise_maker(params),
-                              until=until)
-
-
-def pixelwise_maker(params: Params):
-    """``(n, generator, device, w) -> (maps, normals)``: per-pixel training maps
-    (:func:`cnnps.synth.pixelwise.generate`) with ``train.pixelwise_effects`` and
-    ``train.pixelwise_sparse_fraction``; None when ``train.pixelwise`` is 0."""
-    if not params.pixelwise:
-        return None
-    from cnnps.synth import pixelwise
-
-    effects = pixelwise.Effects(**{k: float(v) for k, v in params.pixelwise_effects.items()})
-
-    def make(n, generator, device, w):
-        return pixelwise.generate(n, generator=generator, device=device, w=w, effects=effects,
-                                  sparse_fraction=params.pixelwise_sparse_fraction)
-
-    return make
+        return loop.train(params, data, data_dir / "train", key, info, device, init_state, init_sha,
+                          stop_after_step=_stop_after_step, until=until)

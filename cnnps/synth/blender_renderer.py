@@ -266,11 +266,25 @@ class BlenderRenderer:
 
     # ------------------------------------------------------------------ set-up
     def _setup(self) -> None:
+        """Factory settings, then the film and sampling, the world, the camera and the sun
+        (module docstring: the scene set-up)."""
         bpy = self._bpy
         with _quiet():
             bpy.ops.wm.read_factory_settings(use_empty=True)
-        scene = bpy.context.scene
-        self.scene = scene
+        self.scene = bpy.context.scene
+        self.view_layer = self.scene.view_layers[0]
+        self._setup_output()
+        self._setup_sampling()
+        self._set_device()
+        self._setup_world()
+        self._setup_camera()
+        self._setup_sun()
+        self.obj = None
+
+    def _setup_output(self) -> None:
+        """Resolution, transparent film (alpha = object coverage), float32 RGBA EXR files,
+        the Standard view transform."""
+        scene = self.scene
         r = scene.render
         r.engine = "CYCLES"
         r.resolution_x = r.resolution_y = self.size
@@ -290,9 +304,11 @@ class BlenderRenderer:
         scene.view_settings.look = "None"
         scene.view_settings.exposure = 0.0
         scene.view_settings.gamma = 1.0
-        self.view_layer = scene.view_layers[0]
 
-        c = scene.cycles
+    def _setup_sampling(self) -> None:
+        """Unbiased path tracing: fixed samples and seed, a 0.01 px Gaussian filter, no
+        denoiser, no clamping, ``max_bounces`` bounces of every kind, caustics on."""
+        c = self.scene.cycles
         c.samples = self.samples
         c.use_adaptive_sampling = False
         c.use_denoising = False
@@ -311,9 +327,10 @@ class BlenderRenderer:
         c.blur_glossy = 0.0
         c.caustics_reflective = True
         c.caustics_refractive = True
-        self._set_device()
 
-        world = bpy.data.worlds.new("black" if self.environment == 0 else "environment")
+    def _setup_world(self) -> None:
+        """A black world, or with ``environment`` E > 0 a uniform white one of radiance E."""
+        world = self._bpy.data.worlds.new("black" if self.environment == 0 else "environment")
         if world.node_tree is None:  # Blender 5 makes the tree already (use_nodes is deprecated)
             world.use_nodes = True
         for bg in world.node_tree.nodes:  # the default tree emits grey light: switch it off
@@ -325,8 +342,12 @@ class BlenderRenderer:
                     bg.inputs["Strength"].default_value = self.environment
                     bg.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
         world.color = (0.0, 0.0, 0.0)
-        scene.world = world
+        self.scene.world = world
 
+    def _setup_camera(self) -> None:
+        """The orthographic camera (``ortho_scale`` 2), or the pinhole one of ``camera``,
+        at :data:`CAMERA_ORIGIN` looking down -z."""
+        bpy = self._bpy
         cam_data = bpy.data.cameras.new("camera")
         if self.camera is None:
             cam_data.type = "ORTHO"
@@ -342,17 +363,18 @@ class BlenderRenderer:
         cam = bpy.data.objects.new("camera", cam_data)
         cam.location = CAMERA_ORIGIN
         cam.rotation_euler = (0.0, 0.0, 0.0)
-        scene.collection.objects.link(cam)
-        scene.camera = cam
+        self.scene.collection.objects.link(cam)
+        self.scene.camera = cam
 
-        sun_data = bpy.data.lights.new("sun", type="SUN")
+    def _setup_sun(self) -> None:
+        """The sun lamp: zero angle, turned by :meth:`render`."""
+        sun_data = self._bpy.data.lights.new("sun", type="SUN")
         sun_data.angle = 0.0
         sun_data.energy = math.pi
-        sun = bpy.data.objects.new("sun", sun_data)
+        sun = self._bpy.data.objects.new("sun", sun_data)
         sun.rotation_mode = "QUATERNION"
-        scene.collection.objects.link(sun)
+        self.scene.collection.objects.link(sun)
         self.sun = sun
-        self.obj = None
 
     def _set_device(self) -> None:
         c = self.scene.cycles

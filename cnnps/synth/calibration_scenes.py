@@ -126,7 +126,12 @@ def _check_lights(lights, intensities) -> tuple[np.ndarray, np.ndarray]:
 def _render(work: Path, name: str, mesh, material: dict, L: np.ndarray, size: int, samples: int, seed: int,
             max_bounces: int, environment: float, threads: int, device: str, progress: bool, extra: dict) -> Path:
     from cnnps.infra.hashing import bytes_sha256
-    from cnnps.synth.capture_render import capture_key, render_into
+    from cnnps.synth.capture_render import (
+        RenderSettings,
+        Scene,
+        capture_key,
+        render_into,
+    )
 
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
@@ -136,31 +141,34 @@ def _render(work: Path, name: str, mesh, material: dict, L: np.ndarray, size: in
                        "lights": np.round(L, 12).tolist(), "size": size, "samples": samples, "seed": seed,
                        "max_bounces": max_bounces, "v": VERSION, **extra}, environment)
     out = work / name
-    render_into(out, vertices, faces, material, key=key, lights=L, intensity=1.0, size=size, samples=samples,
-                seed=seed, max_bounces=max_bounces, device=device, threads=threads,
-                meta={"calibration_set": name, "mesh_sha256": mesh_hash}, progress=progress, desc=name,
-                environment=environment)
+    settings = RenderSettings(size=size, samples=samples, seed=seed, max_bounces=max_bounces, device=device,
+                              threads=threads)  # unit intensity; the lights are L
+    render_into(out, Scene(vertices, faces, material, L, environment=environment), settings, key=key,
+                meta={"calibration_set": name, "mesh_sha256": mesh_hash}, progress=progress, desc=name)
     return out
 
 
-def _scaled_folder(src: Path, dst: Path, E: np.ndarray, keep: tuple[str, ...], lights: np.ndarray | None) -> None:
-    """``dst`` = the images of ``src`` with image j's channels times E[j], plus the files in ``keep``."""
-    import shutil
+def _scaled_folder(src: Path, dst: Path, E: np.ndarray, lights: np.ndarray | None) -> None:
+    """``dst`` = the images of ``src`` with image j's channels times E[j], its mask and,
+    with ``lights`` (an object), its ground-truth normals and the light files; written at
+    once (:func:`cnnps.io.capture.write_capture`)."""
+    from cnnps.io.capture import (
+        Capture,
+        read_mask_file,
+        read_normal_gt,
+        scan_images,
+        write_capture,
+    )
+    from cnnps.io.images import read_exr
 
-    from cnnps.infra.atomic import atomic_dir
-    from cnnps.io.images import read_exr, write_exr
-
-    names = [n for n in (src / "filenames.txt").read_text().split() if n]
-    with atomic_dir(dst) as tmp:
-        for j, n in enumerate(names):
-            img = read_exr(src / n)
-            write_exr(tmp / n, (img * E[j].astype(np.float32)[None, None, :]).astype(np.float32))
-        (tmp / "filenames.txt").write_text("".join(n + "\n" for n in names))
-        for k in keep:
-            shutil.copyfile(src / k, tmp / k)
-        if lights is not None:
-            (tmp / "light_directions.txt").write_text("".join(f"{x:.9f} {y:.9f} {z:.9f}\n" for x, y, z in lights))
-            (tmp / "light_intensities.txt").write_text("".join(f"{r:.9g} {g:.9g} {b:.9g}\n" for r, g, b in E))
+    photos = scan_images(src)
+    mask = read_mask_file(src, None)
+    images = ((read_exr(path) * E[j].astype(np.float32)[None, None, :]).astype(np.float32)
+              for j, path in enumerate(photos.paths))
+    capture = Capture(filenames=photos.filenames, mask=mask, lights=lights,
+                      intensities=None if lights is None else E,
+                      normal_gt=None if lights is None else read_normal_gt(src, mask.shape))
+    write_capture(dst, capture, images, overwrite=True)
 
 
 def render_calibration_set(
@@ -219,14 +227,14 @@ def render_calibration_set(
         place = ball_placement(ball_radius_px, CHROME_OFFSET)
         src = _render(work, "chrome", ball_mesh(place), chrome_material(chrome_roughness), L, place["size"],
                       ball_samples, seed, environment=environment, extra={"roughness": chrome_roughness}, **common)
-        _scaled_folder(src, out_root / "chrome", E, ("mask.png",), None)
+        _scaled_folder(src, out_root / "chrome", E, None)
         truth["chrome_ball"] = {**place, "roughness": chrome_roughness, "environment": environment}
         result["chrome"] = out_root / "chrome"
     if "matte" in parts:
         place = ball_placement(ball_radius_px, MATTE_OFFSET)
         src = _render(work, "matte", ball_mesh(place), lambertian_material(1.0), L, place["size"], ball_samples,
                       seed + 1, environment=0.0, extra={}, **common)
-        _scaled_folder(src, out_root / "matte", E, ("mask.png",), None)
+        _scaled_folder(src, out_root / "matte", E, None)
         truth["matte_ball"] = {**place, "albedo": 1.0}
         result["matte"] = out_root / "matte"
     if "object" in parts:
@@ -234,7 +242,7 @@ def render_calibration_set(
         mat = object_material if object_material is not None else lambertian_material(np.asarray(OBJECT_ALBEDO))
         src = _render(work, "object", tm, mat, L, int(size), int(samples), seed + 2, environment=0.0,
                       extra={"mesh_arg": info.get("mesh")}, **common)
-        _scaled_folder(src, out_root / "object", E, ("mask.png", "normal_gt.npy"), L)
+        _scaled_folder(src, out_root / "object", E, L)
         truth["object"] = {"size": int(size), "samples": int(samples), **info}
         result["object"] = out_root / "object"
     write_text(out_root / "truth.json", json.dumps(truth, indent=2) + "\n")

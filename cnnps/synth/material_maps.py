@@ -18,6 +18,7 @@ import numpy as np
 
 from cnnps.infra.atomic import atomic_dir
 from cnnps.infra.errors import InputError
+from cnnps.io.capture import MASK_FILE
 from cnnps.synth.bsdf import (
     PARAM_NAMES,
     CategoryRanges,
@@ -129,8 +130,8 @@ def write_material_maps(out_dir: str | Path, maps: MaterialMaps, normal: np.ndar
         np.save(tmp / "labels.npy", maps.labels.astype(np.int32))
         if normal is not None:
             np.save(tmp / "normal.npy", np.asarray(normal, dtype=np.float32))
-        if not cv2.imwrite(str(tmp / "mask.png"), maps.mask.astype(np.uint8) * 255):
-            raise InputError(tmp / "mask.png", "cannot write image")
+        if not cv2.imwrite(str(tmp / MASK_FILE), maps.mask.astype(np.uint8) * 255):
+            raise InputError(tmp / MASK_FILE, "cannot write image")
         if not cv2.imwrite(str(tmp / "preview.png"), preview_image(maps)[..., ::-1]):
             raise InputError(tmp / "preview.png", "cannot write image")
         info = {

@@ -314,6 +314,19 @@ def microfiber_sheen(normals: torch.Tensor, L: torch.Tensor, roughness: float = 
     return R * d, R
 
 
+def _diffuse_lobe(diffuse_model: str, cnl, rough, cos_lh, cos_nv):
+    """(P, m) the diffuse lobe times cos: Lambert's ``cnl``, or Burley 2012's with its
+    retro-reflection (``rough`` (P,), ``cos_lh`` (P, m), ``cos_nv`` (P, 1))."""
+    if diffuse_model == "lambert":
+        return cnl
+    if diffuse_model == "burley":
+        fd90 = 0.5 + 2.0 * rough[:, None] * cos_lh * cos_lh
+        fl = (1.0 - cnl) ** 5
+        fv = (1.0 - cos_nv) ** 5
+        return cnl * (1.0 + (fd90 - 1.0) * fl) * (1.0 + (fd90 - 1.0) * fv)
+    raise ConfigError(f"diffuse_model must be 'lambert' or 'burley', got {diffuse_model!r}")
+
+
 def shade(
     normals: torch.Tensor,
     lights: torch.Tensor,
@@ -392,15 +405,7 @@ def shade(
     layer_albedo = torch.where(singular[:, 0] & has_spec, fresnel_dielectric(mu, eta), layer_albedo)
     diffuse_w = (1.0 - layer_albedo).clamp(0.0, 1.0)[:, None]  # (P, 1)
 
-    if diffuse_model == "lambert":
-        fd = cnl
-    elif diffuse_model == "burley":
-        fd90 = 0.5 + 2.0 * rough[:, None] * cos_lh * cos_lh
-        fl = (1.0 - cnl) ** 5
-        fv = (1.0 - cos_nv) ** 5
-        fd = cnl * (1.0 + (fd90 - 1.0) * fl) * (1.0 + (fd90 - 1.0) * fv)
-    else:
-        raise ConfigError(f"diffuse_model must be 'lambert' or 'burley', got {diffuse_model!r}")
+    fd = _diffuse_lobe(diffuse_model, cnl, rough, cos_lh, cos_nv)
     if sheen_model not in ("microfiber", "disney", "none"):
         raise ConfigError(f"sheen_model must be 'microfiber', 'disney' or 'none', got {sheen_model!r}")
     tint = 1.0 + sheen_tint * (base - 1.0)  # (P, 3)
@@ -684,6 +689,100 @@ def _diffuse_colour(params: dict[str, torch.Tensor]) -> torch.Tensor:
                        params["base_color"] * (1.0 - params["metallic"][:, None]))
 
 
+def _draw_effects(fx: Effects, L0, B: int, g: torch.Generator, rgb: bool):
+    """The draws every effect makes whether on or off (so turning one on changes no other
+    draw), in order: cast shadows (B, m) blocked, inter-reflection uniforms (B, 7), light
+    gains (m,), ambient levels (B, 1), noise levels (B, 2), the noise field (B, m[, 3]) or
+    None, and whether the later draws (camera, boundary mixing) are due."""
+    gdev = g.device
+    m = L0.shape[0]
+    blocked = cast_shadow_mask(L0, B, fx.cast_shadow, generator=g)
+    ir = torch.rand(B, 7, generator=g, device=gdev)
+    gains = torch.clamp(1.0 + fx.intensity_error * torch.randn(m, generator=g, device=gdev), min=0.0)
+    amb = fx.ambient * torch.rand(B, 1, generator=g, device=gdev)
+    s_noise = fx.noise * torch.rand(B, 2, generator=g, device=gdev)
+    later = fx.camera or bool(fx.boundary_mix)
+    chans = (3,) if rgb else ()
+    z_noise = torch.randn(B, m, *chans, generator=g, device=gdev) if (fx.noise or later) else None
+    return blocked, ir, gains, amb, s_noise, z_noise, later
+
+
+def _draw_camera_and_mix(B: int, g: torch.Generator, grazing_fraction: float, ranges, categories):
+    """The draws of the camera and boundary-mixing effects, in order: the camera's
+    uniforms (B, 5), the mixing uniforms (B, 2), the second surfaces' normals, materials
+    and categories."""
+    cam_u = torch.rand(B, 5, generator=g, device=g.device)
+    mix_u = torch.rand(B, 2, generator=g, device=g.device)
+    normals_b = sample_normals(B, generator=g, device=g.device, grazing_fraction=grazing_fraction)
+    params_b, cat_b = sample_materials(B, ranges=ranges, categories=categories, generator=g, device=g.device)
+    return cam_u, mix_u, normals_b, params_b, cat_b
+
+
+def _add_noise(I, mask, s, z, rgb: bool):
+    """I plus signal-dependent noise: variance (s0 peak)^2 + s1^2 peak I, ``peak`` each
+    pixel's brightest used value (grey), ``z`` the standard normal field; clamped at 0."""
+    grey = I.mean(-1) if rgb else I
+    peak = torch.where(mask, grey, torch.zeros_like(mask, dtype=I.dtype)).amax(1)
+    if rgb:
+        peak = peak[:, None, None]
+        var = (s[:, 0, None, None] * peak) ** 2 + (s[:, 1, None, None] ** 2 * peak) * I.clamp(min=0.0)
+    else:
+        var = (s[:, 0] * peak)[:, None] ** 2 + (s[:, 1] ** 2 * peak)[:, None] * I.clamp(min=0.0)
+    return (I + torch.sqrt(var) * z).clamp(min=0.0)
+
+
+def _mix_boundaries(I, L, share: float, mix_u, normals_b, params_b, cat_b, shading: dict):
+    """(I with a ``share`` of the pixels mixed with a second surface, the mix's details):
+    a pixel is mixed where ``mix_u[:, 0] < share``, with weight alpha drawn in
+    MIX_ALPHA_RANGE from ``mix_u[:, 1]`` on its own values and 1 - alpha on those of the
+    second surface (``normals_b``, ``params_b``) under the same lights ``L``."""
+    B = I.shape[0]
+    mixed = mix_u[:, 0] < share
+    a0, a1 = MIX_ALPHA_RANGE
+    alpha = torch.where(mixed, a0 + (a1 - a0) * mix_u[:, 1], torch.ones(B, device=I.device))
+    idx = torch.nonzero(mixed)[:, 0]
+    if idx.numel():
+        Ib = shade(normals_b[idx], L, {k: v[idx] for k, v in params_b.items()}, **shading)
+        a = alpha[idx].view(-1, *([1] * (I.ndim - 1)))
+        I = I.index_copy(0, idx, a * I[idx] + (1.0 - a) * Ib)
+    return I, {"mixed": mixed, "alpha": alpha, "normals": normals_b, "params": params_b, "category": cat_b}
+
+
+def _interreflect(I, L, normals, rho_pix, r, ir, rgb: bool):
+    """(I plus light bounced off a neighbour, the bounce's details): the neighbour's normal
+    is the pixel's turned by up to 90 degrees toward a random azimuth (``ir[:, 1:3]``), its
+    RGB albedo ``ir[:, 3:6]`` colours the bounce; ``r`` (B, 1) its strength, ``rho_pix``
+    (B, 3) the pixel's diffuse colour."""
+    az = 2.0 * math.pi * ir[:, 1]
+    tilt = 0.5 * math.pi * ir[:, 2]
+    t = torch.stack([torch.cos(az), torch.sin(az), torch.zeros_like(az)], 1)
+    t = t - (t * normals).sum(1, keepdim=True) * normals
+    t = t / t.norm(dim=1, keepdim=True).clamp(min=1e-6)
+    n2 = torch.cos(tilt)[:, None] * normals + torch.sin(tilt)[:, None] * t
+    rho2 = ir[:, 3:6]  # the neighbour's RGB albedo: the bounced light's colour
+    lit2 = (n2 @ L.T).clamp(min=0.0)  # (B, m)
+    if rgb:
+        I = I + (r * lit2)[..., None] * (rho_pix * rho2)[:, None, :]
+    else:
+        I = I + r * (rho_pix * rho2).mean(1, keepdim=True) * lit2
+    return I, {"strength": r[:, 0], "normal": n2, "colour": rho2, "reflectance": rho_pix}
+
+
+def _unit_lights(lights, device) -> torch.Tensor:
+    """(m, 3) float32 unit directions on ``device`` (the generator's, where draws are made)."""
+    L0 = lights if torch.is_tensor(lights) else torch.as_tensor(np.asarray(lights))
+    L0 = L0.to(device, torch.float32)
+    return L0 / L0.norm(dim=1, keepdim=True)
+
+
+def _maps(I, L, w: int, mask, rgb: bool) -> torch.Tensor:
+    """(B, 1, w, w) grey observation maps, or with ``rgb`` (B, 4, w, w): grey then R, G, B."""
+    if rgb:
+        return torch.cat([observation_maps_torch(I.mean(-1), L, w, light_mask=mask)[:, None],
+                          observation_maps_rgb_torch(I, L, w, light_mask=mask)], 1)
+    return observation_maps_torch(I, L, w, light_mask=mask)[:, None]
+
+
 def generate(
     batch_size: int,
     *,
@@ -754,32 +853,16 @@ def generate(
         raise ConfigError(f"batch_size must be >= 1, got {batch_size}")
     g = generator
     gdev = g.device
-    if lights is None:
-        lights = default_lights(g, n_lights)
-    L0 = lights if torch.is_tensor(lights) else torch.as_tensor(np.asarray(lights))
-    L0 = L0.to(gdev, torch.float32)  # on the generator's device, where the draws are made
-    L0 = L0 / L0.norm(dim=1, keepdim=True)
+    L0 = _unit_lights(default_lights(g, n_lights) if lights is None else lights, gdev)
     B = batch_size
     normals = sample_normals(B, generator=g, device=gdev, grazing_fraction=grazing_fraction)
     params, cat = sample_materials(B, ranges=ranges, categories=categories, generator=g, device=gdev)
     mask = light_subsets(L0, B, generator=g, min_lights=min_lights, max_lights=max_lights, cone_min_deg=cone_min_deg,
                          cone_max_deg=cone_max_deg, sparse_fraction=sparse_fraction, sparse_min_lights=sparse_min_lights)
     fx = effects
-    m = L0.shape[0]
-    # every effect draws from the generator whether on or off, so turning one on changes no other draw
-    blocked = cast_shadow_mask(L0, B, fx.cast_shadow, generator=g)
-    ir = torch.rand(B, 7, generator=g, device=gdev)
-    gains = torch.clamp(1.0 + fx.intensity_error * torch.randn(m, generator=g, device=gdev), min=0.0)
-    amb = fx.ambient * torch.rand(B, 1, generator=g, device=gdev)
-    s_noise = fx.noise * torch.rand(B, 2, generator=g, device=gdev)
-    later = fx.camera or bool(fx.boundary_mix)
-    chans = (3,) if rgb else ()
-    z_noise = torch.randn(B, m, *chans, generator=g, device=gdev) if (fx.noise or later) else None
+    blocked, ir, gains, amb, s_noise, z_noise, later = _draw_effects(fx, L0, B, g, rgb)
     if later:  # drawn only when one of these effects is on: at 0 they leave the generator as it was
-        cam_u = torch.rand(B, 5, generator=g, device=gdev)
-        mix_u = torch.rand(B, 2, generator=g, device=gdev)
-        normals_b = sample_normals(B, generator=g, device=gdev, grazing_fraction=grazing_fraction)
-        params_b, cat_b = sample_materials(B, ranges=ranges, categories=categories, generator=g, device=gdev)
+        cam_u, mix_u, normals_b, params_b, cat_b = _draw_camera_and_mix(B, g, grazing_fraction, ranges, categories)
 
     dev = torch.device(device)
     normals_d, L = normals.to(dev), L0.to(dev)
@@ -793,41 +876,19 @@ def generate(
     I = shade(normals_d, L, params_d, diffuse_model=diffuse_model, sheen_model=sheen_model, rgb=rgb)
     alpha = None
     if fx.boundary_mix:
-        mixed = (mix_u[:, 0] < fx.boundary_mix).to(dev)
-        a0, a1 = MIX_ALPHA_RANGE
-        alpha = torch.where(mixed, a0 + (a1 - a0) * mix_u[:, 1].to(dev), torch.ones(B, device=dev))
-        nb = normals_b.to(dev)
-        pb = {k: v.to(dev) for k, v in params_b.items()}
-        idx = torch.nonzero(mixed)[:, 0]
-        if idx.numel():
-            Ib = shade(nb[idx], L, {k: v[idx] for k, v in pb.items()}, diffuse_model=diffuse_model,
-                       sheen_model=sheen_model, rgb=rgb)
-            a = alpha[idx].view(-1, *([1] * (I.ndim - 1)))
-            I = I.index_copy(0, idx, a * I[idx] + (1.0 - a) * Ib)
-        details["mix"] = {"mixed": mixed, "alpha": alpha, "normals": nb, "params": pb, "category": cat_b}
+        shading = {"diffuse_model": diffuse_model, "sheen_model": sheen_model, "rgb": rgb}
+        I, details["mix"] = _mix_boundaries(I, L, fx.boundary_mix, mix_u.to(dev), normals_b.to(dev),
+                                            {k: v.to(dev) for k, v in params_b.items()}, cat_b, shading)
+        alpha = details["mix"]["alpha"]
     if fx.cast_shadow:
         I = torch.where(per_light(blocked.to(dev)), torch.zeros_like(I), I)
     if fx.interreflection:
-        ir = ir.to(dev)
-        r = fx.interreflection * ir[:, 0:1]
-        # neighbour normal: the pixel's normal turned by up to 90° towards a random azimuth
-        az = 2.0 * math.pi * ir[:, 1]
-        tilt = 0.5 * math.pi * ir[:, 2]
-        t = torch.stack([torch.cos(az), torch.sin(az), torch.zeros_like(az)], 1)
-        t = t - (t * normals_d).sum(1, keepdim=True) * normals_d
-        t = t / t.norm(dim=1, keepdim=True).clamp(min=1e-6)
-        n2 = torch.cos(tilt)[:, None] * normals_d + torch.sin(tilt)[:, None] * t
-        rho2 = ir[:, 3:6]  # the neighbour's RGB albedo: the bounced light's colour
         rho_pix = _diffuse_colour(params_d)
         if alpha is not None:
             al = alpha[:, None]
             rho_pix = al * rho_pix + (1.0 - al) * _diffuse_colour(details["mix"]["params"])
-        lit2 = (n2 @ L.T).clamp(min=0.0)  # (B, m)
-        details["interreflection"] = {"strength": r[:, 0], "normal": n2, "colour": rho2, "reflectance": rho_pix}
-        if rgb:
-            I = I + (r * lit2)[..., None] * (rho_pix * rho2)[:, None, :]
-        else:
-            I = I + r * (rho_pix * rho2).mean(1, keepdim=True) * lit2
+        I, details["interreflection"] = _interreflect(I, L, normals_d, rho_pix, fx.interreflection * ir[:, 0:1].to(dev),
+                                                      ir.to(dev), rgb)
     if fx.intensity_error:
         I = I * per_light(gains.to(dev)[None])
     grey = (lambda x: x.mean(-1)) if rgb else (lambda x: x)
@@ -835,22 +896,11 @@ def generate(
         top = torch.where(mask_d, grey(I), torch.zeros_like(mask_d, dtype=I.dtype)).amax(1, keepdim=True)
         I = I + per_light(amb.to(dev) * top)
     if fx.noise:
-        s = s_noise.to(dev)
-        peak = torch.where(mask_d, grey(I), torch.zeros_like(mask_d, dtype=I.dtype)).amax(1)
-        if rgb:
-            peak = peak[:, None, None]
-            var = (s[:, 0, None, None] * peak) ** 2 + (s[:, 1, None, None] ** 2 * peak) * I.clamp(min=0.0)
-        else:
-            var = (s[:, 0] * peak)[:, None] ** 2 + (s[:, 1] ** 2 * peak)[:, None] * I.clamp(min=0.0)
-        I = (I + torch.sqrt(var) * z_noise.to(dev)).clamp(min=0.0)
+        I = _add_noise(I, mask_d, s_noise.to(dev), z_noise.to(dev), rgb)
     if fx.camera:
         I, details["camera"] = camera_response(I, mask_d, cam_u.to(dev), saturation=fx.saturation,
                                                quantisation=fx.quantisation)
-    if rgb:
-        maps = torch.cat([observation_maps_torch(I.mean(-1), L, w, light_mask=mask_d)[:, None],
-                          observation_maps_rgb_torch(I, L, w, light_mask=mask_d)], 1)
-    else:
-        maps = observation_maps_torch(I, L, w, light_mask=mask_d)[:, None]
+    maps = _maps(I, L, w, mask_d, rgb)
     if return_details:
         details.update({"params": params_d, "category": cat, "mask": mask_d, "intensities": I, "lights": L})
         return maps, normals_d, details

@@ -28,7 +28,6 @@ into its view frame, the positions start the rounds of near-light prediction, an
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -69,9 +68,8 @@ def render_rig_capture(
     and return its path. Arguments as :func:`cnnps.synth.capture_render.render_capture`,
     plus ``fov_deg`` (the camera's field of view, in (0, 120)) and ``light_distance``
     (None: suns; else point lights that far from the object's centre, in (1, 5))."""
-    from cnnps.infra.atomic import atomic_dir
     from cnnps.infra.progress import progress_bar
-    from cnnps.io.images import write_exr, write_png
+    from cnnps.io.capture import Capture, write_capture
     from cnnps.synth.capture_render import (
         RenderSettings,
         capture_lights,
@@ -106,7 +104,7 @@ def render_rig_capture(
     names = image_names(len(L))
     t0 = time.perf_counter()
     with BlenderRenderer(p.size, p.samples, device=p.device, threads=p.threads, seed=seed,
-                         max_bounces=p.max_bounces, camera={"fov_deg": float(fov_deg)}) as r, atomic_dir(out) as tmp:
+                         max_bounces=p.max_bounces, camera={"fov_deg": float(fov_deg)}) as r:
         r.load_scene(np.asarray(tm.vertices, dtype=np.float64), np.asarray(tm.faces, dtype=np.int64),
                      lambertian_material())
         mask, normal = r.render_geometry()
@@ -115,26 +113,23 @@ def render_rig_capture(
         depth = r.render_depth()
         if callable(mat):
             r.set_material(mat(mask))
-        for i in progress_bar(range(len(L)), desc=out.name, unit="light", leave=False, disable=not progress):
-            img = (r.render(L[i], p.light_intensity) if positions is None
-                   else r.render_point(positions[i] + np.asarray(CAMERA_ORIGIN), p.light_intensity))
-            write_exr(tmp / names[i], img)
-        np.save(tmp / "normal_gt.npy", normal)
-        np.save(tmp / "depth_gt.npy", depth)
-        write_png(tmp / "mask.png", mask.astype(np.uint8) * 255)
-        (tmp / "filenames.txt").write_text("".join(n + "\n" for n in names))
-        np.savetxt(tmp / "light_intensities.txt", np.full((len(L), 3), p.light_intensity), fmt="%.9g")
-        if positions is None:
-            np.savetxt(tmp / "light_directions.txt", L, fmt="%.9f")
-        else:
-            np.savetxt(tmp / "light_positions.txt", positions, fmt="%.9f")
-        np.savetxt(tmp / "intrinsics.txt", r.intrinsics(), fmt="%.12g")
-        scene: dict[str, Any] = {
-            **info, "camera": {"model": "perspective", "fov_deg": float(fov_deg), "position": list(CAMERA_ORIGIN)},
-            "lights": ({"model": "sun"} if positions is None
-                       else {"model": "point", "distance_from_object_centre": float(light_distance)}),
-            "material": material, "superpixels": superpixels, **p.picture_params(), "device": device,
-            "median_depth": float(np.nanmedian(depth)), "render_seconds": round(time.perf_counter() - t0, 3),
-        }
-        (tmp / "scene.json").write_text(json.dumps(scene, indent=2) + "\n")
+
+        def images():
+            for i in progress_bar(range(len(L)), desc=out.name, unit="light", leave=False, disable=not progress):
+                yield (r.render(L[i], p.light_intensity) if positions is None
+                       else r.render_point(positions[i] + np.asarray(CAMERA_ORIGIN), p.light_intensity))
+
+        def scene() -> dict[str, Any]:
+            return {
+                **info, "camera": {"model": "perspective", "fov_deg": float(fov_deg), "position": list(CAMERA_ORIGIN)},
+                "lights": ({"model": "sun"} if positions is None
+                           else {"model": "point", "distance_from_object_centre": float(light_distance)}),
+                "material": material, "superpixels": superpixels, **p.picture_params(), "device": device,
+                "median_depth": float(np.nanmedian(depth)), "render_seconds": round(time.perf_counter() - t0, 3),
+            }
+
+        capture = Capture(filenames=names, lights=None if positions is not None else L, light_positions=positions,
+                          intensities=np.full((len(L), 3), p.light_intensity), intrinsics=r.intrinsics(), mask=mask,
+                          normal_gt=normal, depth_gt=depth)
+        write_capture(out, capture, images(), scene=scene, overwrite=True)  # out: absent or empty (checked above)
     return out

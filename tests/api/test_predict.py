@@ -130,7 +130,7 @@ def test_failure_leaves_no_output(sphere, tmp_path, monkeypatch):
 
 
 def test_missing_default_model_says_how_to_get_one(sphere, tmp_path, monkeypatch):
-    import cnnps.api.prediction as pred
+    import cnnps.models.network_solver as pred
 
     monkeypatch.setattr(pred, "default_model_path", lambda: tmp_path / "none.pt")
     cap, _ = sphere

@@ -21,12 +21,18 @@ REPO = long_run.REPO
 
 
 def test_continue_schedule_keeps_the_rest_of_the_plan():
-    base = {"max_steps": 100, "lr": 1e-3, "lr_milestones": [50, 80], "lr_gamma": 0.1, "batch_size": 128}
+    base = {"max_steps": 100, "optimiser": {"lr": 1e-3, "lr_milestones": [50, 80], "lr_gamma": 0.1},
+            "data": {"batch_size": 128}}
     out = long_run.continue_schedule(base, 60, "w.pt")
-    assert out == {**base, "max_steps": 40, "lr": pytest.approx(1e-4), "lr_milestones": [20], "init": "w.pt"}
-    assert long_run.continue_schedule(base, 10, "w.pt")["lr_milestones"] == [40, 70]
+    assert out == {**base, "max_steps": 40, "init": "w.pt",
+                   "optimiser": {"lr": pytest.approx(1e-4), "lr_milestones": [20], "lr_gamma": 0.1}}
+    assert long_run.continue_schedule(base, 10, "w.pt")["optimiser"]["lr_milestones"] == [40, 70]
     with pytest.raises(ValueError):
         long_run.continue_schedule(base, 100, "w.pt")
+    # a run of code from before the sections keeps its flat section: its code reads that
+    flat = {"max_steps": 100, "lr": 1e-3, "lr_milestones": [50, 80], "lr_gamma": 0.1, "batch_size": 128}
+    out = long_run.continue_schedule(flat, 60, "w.pt")
+    assert out == {**flat, "max_steps": 40, "lr": pytest.approx(1e-4), "lr_milestones": [20], "init": "w.pt"}
 
 
 def test_tree_cpu_seconds_counts_the_children():
@@ -83,13 +89,16 @@ def test_a_run_outside_the_work_tree(tmp_path):
     # the machine comes back bare: the clone and the data are gone, the weights of step 60 are in git
     shutil.rmtree(root)
     save_checkpoint(carried / "r" / "intermediate.pt", CNNPS(w=32), meta={"steps": 60})
-    rec["params"]["train"].update(max_steps=100, lr=1e-3, lr_milestones=[50, 80], lr_gamma=0.1)
+    # (in the layout of the clone's preset: HEAD's code reads that one)
+    rec["params"]["train"] = long_run.with_train_values(rec["params"]["train"], max_steps=100, lr=1e-3,
+                                                        lr_milestones=[50, 80], lr_gamma=0.1)
     (carried / "r" / "run.json").write_text(json.dumps(rec))
     notes = long_run.Run("r", root, carried).ensure()
     assert len(notes) == 2 and (root / "r" / "code" / ".git").is_dir()
     train = yaml.safe_load((root / "r" / "params.yaml").read_text())["train"]
     assert train["init"] == str(carried / "r" / "intermediate.pt") and train["max_steps"] == 40
-    assert train["lr_milestones"] == [20] and train["lr"] == pytest.approx(1e-4)
+    assert long_run.train_value(train, "lr_milestones") == [20]
+    assert long_run.train_value(train, "lr") == pytest.approx(1e-4)
 
 
 @pytest.mark.skipif(shutil.which("git") is None or not (REPO / ".git").exists(), reason="needs git and a clone")
@@ -133,12 +142,12 @@ def test_a_variant_study_runs_dvc_experiments_on_the_runs_data(tmp_path):
 
 
 def test_the_study_table_shows_each_variants_measures():
-    row = {"name": "ft", "changes": ["train.lr=1e-4", "train.pixelwise=0.25"], "cpu_hours": 0.41,
+    row = {"name": "ft", "changes": ["train.optimiser.lr=1e-4", "train.pixelwise.share=0.25"], "cpu_hours": 0.41,
            "val_mean_deg": 5.1234, "nonconvex_10_vs_ls": 0.6632, "nonconvex_17_vs_ls": 0.4916,
            "nonconvex_305_vs_ls": 0.1784, "ballPNG_deg": 2.061, "ballPNG-20_deg": 2.733, "ballPNG-10_deg": 4.598}
     table = long_run.format_study([row]).splitlines()
     assert len(table) == 3 and table[0].startswith("| variant |")
-    assert table[2] == ("| ft | `train.lr=1e-4` `train.pixelwise=0.25` | 0.41 | 5.12 | 0.663 / 0.492 / 0.178 "
+    assert table[2] == ("| ft | `train.optimiser.lr=1e-4` `train.pixelwise.share=0.25` | 0.41 | 5.12 | 0.663 / 0.492 / 0.178 "
                         "| 2.06 / 2.73 / 4.60 /  |")
 
 

@@ -77,7 +77,7 @@ REWRITE: dict[tuple[str, str], dict] = {
     ("render", "fills"): {"lights": 16},
     ("extract", "full"): {"rotations": 2},
     ("extract", "fills"): {"rotations": 2},
-    ("train", "full"): {"lr": 0.002},
+    ("train", "full"): {"optimiser": {"lr": 0.002}},
     ("train", "fills"): {"max_steps": 6},
     ("eval", "full"): {"samples": 2},
     ("eval", "fills"): {"samples": 2},

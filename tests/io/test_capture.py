@@ -16,10 +16,11 @@ TOL = {"exr": 1e-6, "png16": 2.0 / 65535 / 0.5, "tiff16": 2.0 / 65535 / 0.5, "pn
 def test_round_trip_every_format(tmp_path, fmt):
     truth = write_capture(tmp_path / "cap", fmt=fmt, m=6)
     cap = load_capture(tmp_path / "cap")
-    assert isinstance(cap, Capture) and cap.n_images == 6 and cap.images.dtype == np.float32
+    assert isinstance(cap, Capture) and cap.n_images == 6 and cap.grey_images().dtype == np.float32
+    assert cap.images.shape == (6,) + truth["mask"].shape + (3,)  # as stored
     np.testing.assert_array_equal(cap.mask, truth["mask"])
     np.testing.assert_allclose(cap.lights, truth["lights"], atol=1e-8)
-    np.testing.assert_allclose(cap.images, truth["grey_mean"], atol=TOL[fmt], rtol=1e-6)
+    np.testing.assert_allclose(cap.grey_images(), truth["grey_mean"], atol=TOL[fmt], rtol=1e-6)
     np.testing.assert_allclose(cap.normal_gt, truth["normals"], atol=1e-6)
 
 
@@ -27,7 +28,7 @@ def test_round_trip_every_format(tmp_path, fmt):
 def test_luminance_grey(tmp_path, fmt):
     truth = write_capture(tmp_path / "cap", fmt=fmt, m=4)
     cap = load_capture(tmp_path / "cap", grey="luminance")
-    np.testing.assert_allclose(cap.images, truth["grey_luminance"], atol=TOL[fmt], rtol=1e-6)
+    np.testing.assert_allclose(cap.grey_images(), truth["grey_luminance"], atol=TOL[fmt], rtol=1e-6)
     # the two greys differ for a coloured albedo: the test can tell them apart
     assert not np.allclose(truth["grey_luminance"], truth["grey_mean"], atol=10 * TOL[fmt])
 
@@ -41,9 +42,9 @@ def test_channel_order_and_per_channel_division(tmp_path):
     right = shade * (ALBEDO_RGB * E / E).mean()
     swapped = shade * (ALBEDO_RGB[::-1] * E[::-1] / E).mean()  # BGR read as RGB
     undivided = shade * (ALBEDO_RGB * E).mean()
-    np.testing.assert_allclose(cap.images, right, atol=TOL["png16"])
-    assert np.abs(cap.images - swapped).max() > 0.05
-    assert np.abs(cap.images - undivided).max() > 0.05
+    np.testing.assert_allclose(cap.grey_images(), right, atol=TOL["png16"])
+    assert np.abs(cap.grey_images() - swapped).max() > 0.05
+    assert np.abs(cap.grey_images() - undivided).max() > 0.05
 
 
 def test_grey_single_channel_images(tmp_path):
@@ -53,7 +54,7 @@ def test_grey_single_channel_images(tmp_path):
     for name, s in zip(truth["names"], truth["shading"] * truth["scale"]):
         write_png(tmp_path / "cap" / name, np.round(s * 65535).astype(np.uint16))
     cap = load_capture(tmp_path / "cap")
-    np.testing.assert_allclose(cap.images, truth["shading"] * truth["scale"] / 2.0, atol=TOL["png16"])
+    np.testing.assert_allclose(cap.grey_images(), truth["shading"] * truth["scale"] / 2.0, atol=TOL["png16"])
 
 
 def test_mat_ground_truth_and_lights_normalised(tmp_path):
@@ -93,19 +94,16 @@ def test_drop(tmp_path):
     assert cap.dropped == [0, 4] and cap.n_images == 4
     assert cap.filenames == [truth["names"][i] for i in (1, 2, 3, 5)]
     np.testing.assert_allclose(cap.lights, truth["lights"][[1, 2, 3, 5]], atol=1e-8)
-    np.testing.assert_allclose(cap.images, truth["grey_mean"][[1, 2, 3, 5]], atol=1e-6)
+    np.testing.assert_allclose(cap.grey_images(), truth["grey_mean"][[1, 2, 3, 5]], atol=1e-6)
     with pytest.raises(ConfigError, match="out of range"):
         load_capture(tmp_path / "cap", drop=[6])
     with pytest.raises(ConfigError, match="at least 3"):
         load_capture(tmp_path / "cap", drop=[0, 1, 2, 3])
 
 
-def test_bear_drops_first_20_by_default(tmp_path):
+def test_a_folder_named_bearPNG_is_read_like_any_other(tmp_path):
     write_capture(tmp_path / "bearPNG", fmt="png8", size=8, m=24)
     cap = load_capture(tmp_path / "bearPNG")
-    assert cap.dropped == list(range(20)) and cap.n_images == 4
-    assert len(cap.notes) == 1 and "first 20" in cap.notes[0]
-    cap = load_capture(tmp_path / "bearPNG", drop=[])
     assert cap.dropped == [] and cap.n_images == 24 and cap.notes == []
 
 
@@ -154,7 +152,7 @@ def test_read_pixels_equals_the_loaded_stack_bit_for_bit(tmp_path, fmt, grey):
         pix = scanned.read_pixels(k)
         assert pix.values.dtype == np.float32 and pix.saturated is None and pix.n_saturated == 0
         np.testing.assert_array_equal(pix.values, I[:, k])
-        np.testing.assert_array_equal(scanned.read_grey(k), loaded.images[k])
+        np.testing.assert_array_equal(scanned.read_grey(k), loaded.grey_images()[k])
     with pytest.raises(ValueError, match="read_pixels"):
         scanned.pixel_intensities()
 
@@ -204,17 +202,17 @@ def test_linearize_srgb_decodes_integer_images_only(tmp_path):
     truth = write_capture(tmp_path / "cap", fmt="png8", m=4, intensities=np.ones((4, 3)))
     plain = load_capture(tmp_path / "cap", linearize="none")
     same = load_capture(tmp_path / "cap")
-    np.testing.assert_array_equal(plain.images, same.images)  # None = "none" (no note here: predict adds it)
+    np.testing.assert_array_equal(plain.grey_images(), same.grey_images())  # None = "none" (no note here: predict adds it)
     dec = load_capture(tmp_path / "cap", linearize="srgb")
     assert dec.linearize == "srgb"
     # grey of decoded channels: mean over channels of EOTF(code / 255)
     from cnnps.io.images import read_image_raw
 
     raw = read_image_raw(tmp_path / "cap" / truth["names"][2]).astype(np.float64) / 255
-    np.testing.assert_allclose(dec.images[2], srgb_to_linear(raw).mean(axis=-1), atol=1e-6)
+    np.testing.assert_allclose(dec.grey_images()[2], srgb_to_linear(raw).mean(axis=-1), atol=1e-6)
     write_capture(tmp_path / "exr", fmt="exr", m=4)
-    np.testing.assert_array_equal(load_capture(tmp_path / "exr", linearize="srgb").images,
-                                  load_capture(tmp_path / "exr").images)
+    np.testing.assert_array_equal(load_capture(tmp_path / "exr", linearize="srgb").grey_images(),
+                                  load_capture(tmp_path / "exr").grey_images())
     with pytest.raises(ConfigError, match="linearize"):
         load_capture(tmp_path / "cap", linearize="gamma")
 
@@ -232,12 +230,12 @@ def test_jpeg_capture(tmp_path):
     (tmp_path / "cap" / "filenames.txt").write_text("\n".join(names) + "\n")
     cap = load_capture(tmp_path / "cap")
     assert cap.first_kind == "uint8"
-    diff = np.abs(cap.images - truth["grey_mean"])
+    diff = np.abs(cap.grey_images() - truth["grey_mean"])
     assert diff.mean() < 0.003 and diff.max() < 0.06  # JPEG's own loss, ringing at the shadow edges
 
 
 def test_read_workers_are_capped_by_memory(tmp_path, monkeypatch):
-    import cnnps.io.capture as capture_mod
+    import cnnps.io.capture.folder as capture_mod
     from cnnps.io.capture import read_workers, scan_capture
 
     write_capture(tmp_path / "cap", fmt="png16", size=16, m=3, gt=None)

@@ -124,7 +124,7 @@ def test_ranks_partition_row_groups(shards):
 def test_torch_dataset_batches(shards):
     torch = pytest.importorskip("torch")
 
-    from cnnps.models.shard_dataset import ShardDataset
+    from cnnps.train.shard_dataset import ShardDataset
 
     _, files = shards
     ds = ShardDataset(ShardStream(files, W, batch_size=16, seed=0, buffer_rows=64))

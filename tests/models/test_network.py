@@ -213,16 +213,6 @@ def test_16_bit_counter_masks_are_the_32_bit_streams_halves():
         counter_keep((16, 40), 0.2, key, bits=8)
 
 
-def test_the_train_stages_masks_set_the_models_mask_bits():
-    from cnnps.models.optimiser import make_model
-    from cnnps.stages.train import Params
-
-    assert Params().dropout_masks == "counter16"
-    for masks, bits in (("counter16", 16), ("counter", 32), ("torch", 32)):
-        model, _ = make_model(8, Params(dropout_masks=masks), torch.device("cpu"))
-        assert model.mask_bits == bits
-
-
 def test_counter_masks_apply_only_while_training_on_a_cpu_with_a_key():
     from cnnps.models.network import CNNPS
 

@@ -19,8 +19,8 @@ def tiny_params(mesh_dir: Path) -> dict:
         "materials": {"size": 16, "superpixels": 8, "categories": ["diffuse", "specular"], "workers": 1},
         "render": {"size": 16, "samples": 1, "lights": 12, "max_bounces": 2, "workers": 1},
         "extract": {"w": 32, "min_lights": 6, "max_lights": 12, "rotations": 1, "val_fraction": 0.5},
-        "train": {"epochs": 1, "max_steps": 4, "batch_size": 16, "val_every": 0, "val_max_rows": 200,
-                  "checkpoint_every": 2, "log_every": 1, "shuffle_buffer": 256, "progress": False},
+        "train": {"epochs": 1, "max_steps": 4, "val_every": 0, "val_max_rows": 200, "checkpoint_every": 2,
+                  "log_every": 1, "progress": False, "data": {"batch_size": 16, "shuffle_buffer": 256}},
         "eval": {"test_shapes": ["sphere"], "superpixels": 4, "categories": ["specular"], "light_sets": [8],
                  "size": 16, "samples": 1, "rotations": [1, 2]},
     }

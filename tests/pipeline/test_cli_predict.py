@@ -24,12 +24,16 @@ def test_predict_lambertian_synthetic(tmp_path, capsys):
     assert f"mean {metrics['mean_deg']:.2f} deg" in lines[0]
 
 
-def test_predict_drop_option_and_bear_note(tmp_path, capsys):
+def test_predict_drop_option_and_no_rule_by_folder_name(tmp_path, capsys):
     write_capture(tmp_path / "bearPNG", fmt="png8", size=12, m=24, gt=None)
     code, stdout, stderr = run_cli(["predict", str(tmp_path / "bearPNG"), "--out", str(tmp_path / "o"),
                                     "--method", "lambertian", "--no-progress"], capsys)
     assert code == 0, stderr
-    assert "note: bearPNG: dropped the first 20 images" in stdout and "4 images" in stdout
+    assert "24 images" in stdout and "note" not in stdout  # every image: a folder's name is no rule
+    assert json.loads((tmp_path / "o" / "prediction.json").read_text())["n_images"] == 24
+    code, stdout, _ = run_cli(["predict", str(tmp_path / "bearPNG"), "--out", str(tmp_path / "o"),
+                               "--method", "lambertian", "--drop", "0-19", "--no-progress"], capsys)
+    assert code == 0 and "4 images" in stdout  # DiLiGenT's rule for BEAR, asked for
     code, stdout, _ = run_cli(["predict", str(tmp_path / "bearPNG"), "--out", str(tmp_path / "o"),
                                "--method", "lambertian", "--drop", "0-2,5", "--no-progress"], capsys)
     assert code == 0 and "20 images" in stdout and "note" not in stdout

@@ -139,14 +139,36 @@ def test_image_subsets_are_scored_from_the_kept_images_only(tmp_path):
 
 
 def test_subset_drop_keeps_the_benchmark_drops_out(tmp_path):
-    from cnnps.io.capture import subset_drop
+    from cnnps.io.capture import DILIGENT_RULES, benchmark_drop, subset_drop
 
     cap = make_capture(tmp_path / "bearPNG", m=30)  # bearPNG's first 20 images are never drawn
-    drop = subset_drop(cap, 6)
+    rule = benchmark_drop(cap, DILIGENT_RULES)
+    drop = subset_drop(cap, 6, exclude=rule)
     kept = sorted(set(range(30)) - set(drop))
     assert len(kept) == 6 and min(kept) >= 20
     with pytest.raises(ConfigError, match="cannot keep 11 images of 10"):
-        subset_drop(cap, 11)
+        subset_drop(cap, 11, exclude=rule)
+
+
+def test_real_bear_is_scored_under_the_diligent_rule_and_only_real_ones(tmp_path):
+    """A real capture named bearPNG is scored without its first 20 images (the benchmark's
+    rule), whole and in subsets drawn from the others; a synthetic one of that name is not."""
+    bear = make_capture(tmp_path / "c" / "bearPNG", m=26)
+    params = ev.Params(synthetic=False, real_captures=(str(bear),), real_subsets=(4,))
+    captures = ev.real_capture_list(params)
+    assert [c[0] for c in captures] == ["bearPNG", "bearPNG-4"]
+    kept = sorted(set(range(26)) - set(captures[1][3]))
+    assert len(kept) == 4 and min(kept) >= 20
+    seen = []
+
+    def predict(I, L, k, views=None):
+        seen.append(L.shape[0])
+        return fake_predict(I, L, k)
+
+    metrics = ev.evaluate_all(captures + [("synthetic-bear", bear, "synthetic")], predict, params, tmp_path / "e", "m")
+    assert [metrics["captures"][n]["n_images"] for n in ("bearPNG", "bearPNG-4", "synthetic-bear")] == [6, 4, 26]
+    assert seen == [6, 6, 4, 4, 26, 26]
+    assert metrics["summary_real"] and not metrics["captures"]["bearPNG"].get("subset_of")
 
 
 @pytest.mark.parametrize("capture, counts", [("diligent/ballPNG", (20, 10, 6)), ("diligent-crop8/cowPNG", (10, 6)),

@@ -139,7 +139,7 @@ def test_rows_match_recomputation(extracted):
     # map of rotation r equals observation_maps(I, lights turned by angle_r) with that subset
     cone = t.column("cone_deg").to_numpy()
     k = t.column("n_lights").to_numpy()
-    I = cap.images[:, rows, cols].T  # (n, m)
+    I = cap.grey_images()[:, rows, cols].T  # (n, m)
     for i in range(0, len(rows), 37):
         # infer the subset from the map is impossible; check instead that the map cells
         # only hold lights inside the cone: a cell is non-zero only if a lit in-cone light falls in it

@@ -181,7 +181,8 @@ def test_stage_run_renders_scenes_skips_current_and_redoes_changed(tmp_path):
     (scene,) = (data / "materials").iterdir()
     out = data / "render" / scene.name
     cap = _load(out)
-    assert cap.images.shape == (4, 16, 16) and np.all(cap.images >= 0) and cap.images[:, cap.mask].max() > 0.05
+    grey = cap.grey_images()
+    assert grey.shape == (4, 16, 16) and np.all(grey >= 0) and grey[:, cap.mask].max() > 0.05
     meta = json.loads((out / "scene.json").read_text())
     assert meta["view_id"] and meta["category"] == "specular" and meta["pose"] is not None
     # Blender's mask and the materials stage's rasterised mask agree (same pixel centres)

@@ -218,7 +218,7 @@ def test_ray_materials_and_extract_match_local(materials_dir, ray_ex, tmp_path, 
 
 def test_extract_and_train_at_an_fsspec_url(local_render, tmp_path):
     """extract.output = memory://... (fsspec's in-memory filesystem: one process only),
-    train.shards = the same URL: same shards as on disk, the loader streams them."""
+    train.data.shards = the same URL: same shards as on disk, the loader streams them."""
     fsspec = pytest.importorskip("fsspec")
     import pyarrow.parquet as pq
 
@@ -249,8 +249,8 @@ def test_extract_and_train_at_an_fsspec_url(local_render, tmp_path):
         for (ma, na), (mb, nb) in zip(s_url, s_disk):
             assert np.array_equal(ma, mb) and np.array_equal(na, nb)
         # train reads its shards from the URL (outputs stay in data_dir/train)
-        m = train.run(train.Params(max_steps=3, batch_size=16, shuffle_buffer=64, progress=False, threads=1,
-                                   val_every=0, shards=url), tmp_path / "t")
+        m = train.run(train.Params(max_steps=3, data={"batch_size": 16, "shuffle_buffer": 64, "shards": url},
+                                   progress=False, cpu={"threads": 1}, val_every=0), tmp_path / "t")
         assert m["steps"] == 3 and m["train_rows"] == sum(s["rows"] for s in man["shards"] if s["split"] == "train")
         assert (tmp_path / "t" / "train" / "model.pt").is_file()
         # a rerun finds every scene cached at the URL; a removed scene's shards go away

@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
+from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
 
 from cnnps.infra.errors import ConfigError
-from cnnps.models import training
-from cnnps.models.optimiser import lr_at, make_model, train_step
 from cnnps.stages import extract, train
+from cnnps.train import loop
+from cnnps.train.optimiser import lr_at, make_model, train_step
 from tests.support.renders import make_render_dir
 
 
@@ -30,14 +33,23 @@ def fresh_copy(src, dst):
     return dst
 
 
-BASE = dict(batch_size=32, shuffle_buffer=1000, progress=False, threads=1, log_every=10)
+REPO = Path(__file__).resolve().parents[2]
+BASE = dict(data={"batch_size": 32, "shuffle_buffer": 1000}, cpu={"threads": 1}, progress=False, log_every=10)
+
+
+def params(base=BASE, **keys) -> train.Params:
+    """``train.Params`` of ``base`` with ``keys``; a section's keys join ``base``'s:
+    ``params(cpu={"step_processes": 2})`` keeps ``cpu.threads: 1``."""
+    keys = {k: {**base[k], **v} if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+            for k, v in keys.items()}
+    return train.Params(**{**base, **keys})
 
 
 def test_training_lowers_loss_and_val_error(dataset, tmp_path):
     d = fresh_copy(dataset, tmp_path)
-    m0 = train.run(train.Params(max_steps=1, lr=1e-3, **BASE), d)  # ~untrained reference
+    m0 = train.run(params(max_steps=1, optimiser={"lr": 1e-3}), d)  # ~untrained reference
     shutil.rmtree(d / "train")
-    m = train.run(train.Params(max_steps=150, lr=1e-3, val_every=50, **BASE), d)
+    m = train.run(params(max_steps=150, optimiser={"lr": 1e-3}, val_every=50), d)
     assert m["steps"] == 150 and m["samples"] == 150 * 32
     # an untrained net (or one predicting the mean normal) is ~40 deg off on these spheres;
     # 150 steps reach ~12 deg
@@ -64,7 +76,7 @@ def test_training_lowers_loss_and_val_error(dataset, tmp_path):
 
 
 def test_fewest_lights_reads_the_sparse_minimum_when_sparse_pixels_were_drawn():
-    from cnnps.models.training import fewest_lights
+    from cnnps.train.loop import fewest_lights
 
     assert fewest_lights({"params": {"min_lights": 50}}) == 50
     assert fewest_lights({"params": {"min_lights": 50, "sparse_fraction": 0.3, "sparse_min_lights": 6}}) == 6
@@ -83,16 +95,16 @@ def _weights(d):
 
 def test_resume_equals_uninterrupted(dataset, tmp_path):
     # straight: 14 steps, across an epoch boundary (test_epoch_boundary_crossed)
-    params = train.Params(max_steps=14, checkpoint_every=5, batch_size=256, shuffle_buffer=1000, progress=False,
-                          threads=1, log_every=5, val_every=0, keep_checkpoints=3)
+    p = params(max_steps=14, checkpoint_every=5, data={"batch_size": 256}, log_every=5, val_every=0,
+               keep_checkpoints=3)
     a = fresh_copy(dataset, tmp_path / "a")
     b = fresh_copy(dataset, tmp_path / "b")
-    ma = train.run(params, a)
+    ma = train.run(p, a)
     # killed after step 8: the last checkpoint is step 5; resume runs 5 -> 14
     with pytest.raises(KeyboardInterrupt):
-        train.run(params, b, _stop_after_step=8)
-    assert sorted(p.name for p in (b / "train/checkpoints").glob("*.pt")) == ["step-00000005.pt"]
-    mb = train.run(params, b)
+        train.run(p, b, _stop_after_step=8)
+    assert sorted(f.name for f in (b / "train/checkpoints").glob("*.pt")) == ["step-00000005.pt"]
+    mb = train.run(p, b)
     sa, sb = _weights(a), _weights(b)
     assert sa["step"] == sb["step"] == 14
     for k in sa["model"]:
@@ -126,28 +138,140 @@ def test_bad_params(dataset, tmp_path):
 
 
 def test_lr_schedule_is_a_step_function_of_the_step():
-    p = train.Params(lr=1e-3, lr_milestones=[10, 20], lr_gamma=0.5)
-    assert [lr_at(p, s) for s in (0, 9, 10, 19, 20, 1000)] == pytest.approx(
+    p = train.Params(optimiser=train.OptimiserParams(lr=1e-3, lr_milestones=[10, 20], lr_gamma=0.5))
+    assert [lr_at(p.optimiser, s) for s in (0, 9, 10, 19, 20, 1000)] == pytest.approx(
         [1e-3, 1e-3, 5e-4, 5e-4, 2.5e-4, 2.5e-4]
     )
-    assert lr_at(train.Params(lr=2e-3), 10**6) == 2e-3
+    assert lr_at(train.Params(optimiser={"lr": 2e-3}).optimiser, 10**6) == 2e-3
     from cnnps.infra.errors import ConfigError
 
-    for bad in (dict(lr_milestones=[20, 10]), dict(lr_milestones=[0]), dict(lr_milestones=[5, 5]),
-                dict(lr_gamma=0), dict(lr_gamma=1.5), dict(init="")):
+    for bad in (dict(optimiser={"lr_milestones": [20, 10]}), dict(optimiser={"lr_milestones": [0]}),
+                dict(optimiser={"lr_milestones": [5, 5]}), dict(optimiser={"lr_gamma": 0}),
+                dict(optimiser={"lr_gamma": 1.5}), dict(init="")):
         with pytest.raises(ConfigError):
             train.Params(**bad)
     # the schedule changes the weights, so it is part of the resume key; max_steps is not
-    assert p.result_key() != train.Params(lr=1e-3).result_key()
+    assert p.result_key() != train.Params(optimiser={"lr": 1e-3}).result_key()
+    assert train.Params(max_steps=5).result_key() == train.Params(max_steps=6).result_key()
+
+
+@pytest.mark.parametrize("flat, value, new", [
+    ("lr", 0.001, "optimiser.lr"), ("batch_size", 64, "data.batch_size"), ("shards", "x", "data.shards"),
+    ("pixelwise", 0.5, "pixelwise.share"), ("pixelwise_effects", {"ambient": 0.05}, "pixelwise.effects"),
+    ("w", 16, "pixelwise.w"), ("threads", 1, "cpu.threads"), ("cpu_layers", "fused", "cpu.layers"),
+    ("keep_freed_memory", False, "cpu.keep_freed_memory"),
+])
+def test_a_flat_train_key_names_its_new_place(tmp_path, capsys, flat, value, new):
+    """params.yaml of the flat train section (``train: {lr: 0.001}``): one line naming the
+    key's place in its section, from the config reader and from the command line."""
+    import yaml
+
+    from cnnps.pipeline.config import build_params, config_from_dict
+    from tests.support.cli import run_cli
+
+    config = config_from_dict({"train": {"max_steps": 5, flat: value}}, "params.yaml")
+    with pytest.raises(ConfigError) as exc:
+        build_params(config, "train")
+    assert str(exc.value) == f"params.yaml: train.{flat} moved to train.{new}"
+    # every flat key that is not a top-level key now has a new place
+    top = {f.name for f in dataclasses.fields(train.Params)} - set(train.SECTIONS)
+    assert set(train.MOVED_KEYS) == {f.name for f in dataclasses.fields(OldFlatParams)} - top
+    path = tmp_path / "params.yaml"
+    # run-stage validates every stage first: the meshes stage needs something to do
+    path.write_text(yaml.safe_dump({"meshes": {"procedural": 1}, "train": {flat: value}}))
+    code, _, err = run_cli(["run-stage", "train", "--params", str(path), "--data-dir", str(tmp_path / "d")], capsys)
+    assert code == 2 and err.strip() == f"cnnps: error: {path}: train.{flat} moved to train.{new}"
+    # the same key in its section is read
+    section, key = new.split(".")
+    nested = build_params(config_from_dict({"train": {"max_steps": 5, section: {key: value}}}), "train")
+    assert getattr(getattr(nested, section), key) == value
+
+
+@dataclasses.dataclass
+class OldFlatParams:
+    """The keys of the flat train section, before the sections."""
+
+    epochs: int = 10
+    max_steps: int = 0
+    batch_size: int = 128
+    lr: float = 1e-3
+    lr_milestones: tuple = ()
+    lr_gamma: float = 0.1
+    init: str | None = None
+    weight_decay: float = 0.0
+    dropout: float = 0.2
+    seed: int = 0
+    shuffle_buffer: int = 65536
+    val_every: int = 2000
+    val_max_rows: int = 50000
+    checkpoint_every: int = 1000
+    keep_checkpoints: int = 2
+    log_every: int = 50
+    device: str = "auto"
+    precision: str = "auto"
+    threads: int = 0
+    channels_last: bool = True
+    fused_adam: bool = True
+    compile: bool = False
+    dropout_masks: str = "counter16"
+    cpu_layers: str = "fused"
+    keep_freed_memory: bool = True
+    pixelwise: float = 0.0
+    pixelwise_effects: dict = dataclasses.field(default_factory=dict)
+    pixelwise_sparse_fraction: float = 0.0
+    w: int = 32
+    pixelwise_ahead: int = 1
+    step_processes: int = 0
+    num_workers: int = 0
+    prefetch: int = 2
+    progress: bool = True
+    shards: str | None = None
+
+
+def test_a_flat_record_maps_into_the_sections_with_the_same_run_key():
+    """A model file's ``meta["params"]`` written before the sections (flat), read back; the
+    run key of its params is that of the same params in sections (the key hashes the flat
+    names: a run started before the sections resumes after them)."""
+    flat = {"max_steps": 10, "lr": 1e-4, "lr_milestones": [5], "batch_size": 64, "pixelwise": 0.5, "w": 16,
+            "pixelwise_effects": {"ambient": 0.05}, "cpu_layers": "reference", "threads": 2, "precision": "fp32"}
+    p = train.Params.from_record(flat)
+    assert (p.optimiser.lr, p.optimiser.lr_milestones, p.data.batch_size) == (1e-4, (5,), 64)
+    assert (p.pixelwise.share, p.pixelwise.w, p.pixelwise.effects) == (0.5, 16, {"ambient": 0.05})
+    assert (p.cpu.layers, p.cpu.threads, p.max_steps, p.precision) == ("reference", 2, 10, "fp32")
+    assert train.Params.from_record(dataclasses.asdict(p)) == p  # what a model file records now: sections
+    assert p.flat() == {**dataclasses.asdict(OldFlatParams()), **flat, "lr_milestones": (5,)}
+    # the key of the same params written flat before the sections (their result_key, hashed the same way)
+    from cnnps.infra.hashing import stable_hash
+
+    old = dataclasses.asdict(OldFlatParams(**flat))
+    for k in ("epochs", "max_steps", "val_every", "val_max_rows", "checkpoint_every", "keep_checkpoints",
+              "log_every", "threads", "num_workers", "prefetch", "progress", "shards", "init",
+              "keep_freed_memory", "pixelwise_ahead", "step_processes"):
+        old.pop(k)
+    old.update(lr_milestones=[5], precision="fp32")
+    assert train.run_key(p, "m") == stable_hash([old, "m"], compact=False)
+    # the shipped weights' provenance nests the records of the models they came from (flat)
+    provenance = json.loads((REPO / "cnnps/models/weights/cnnps_default.json").read_text())
+    records = []
+
+    def walk(node):
+        if isinstance(node, dict):
+            if isinstance(node.get("params"), dict) and "lr" in node["params"]:
+                records.append(node["params"])
+            for v in node.values():
+                walk(v)
+
+    walk(provenance)
+    assert records and all(train.Params.from_record(r).optimiser.lr == r["lr"] for r in records)
 
 
 def test_lr_milestones_reach_the_optimiser(dataset, tmp_path):
     d = fresh_copy(dataset, tmp_path)
-    train.run(train.Params(max_steps=6, lr=1e-3, lr_milestones=[4], lr_gamma=0.25, val_every=0, **BASE), d)
+    train.run(params(max_steps=6, optimiser={"lr": 1e-3, "lr_milestones": [4], "lr_gamma": 0.25}, val_every=0), d)
     state = _weights(d)
     assert state["optim"]["param_groups"][0]["lr"] == pytest.approx(2.5e-4)
     d2 = fresh_copy(dataset, tmp_path / "const")
-    train.run(train.Params(max_steps=6, lr=1e-3, val_every=0, **BASE), d2)
+    train.run(params(max_steps=6, optimiser={"lr": 1e-3}, val_every=0), d2)
     assert _weights(d2)["optim"]["param_groups"][0]["lr"] == pytest.approx(1e-3)
 
 
@@ -156,25 +280,25 @@ def test_init_starts_from_given_weights(dataset, tmp_path, capsys):
     from cnnps.models.checkpoint import load_checkpoint, read_checkpoint
 
     a = fresh_copy(dataset, tmp_path / "a")
-    ma = train.run(train.Params(max_steps=120, lr=1e-3, val_every=0, **BASE), a)
+    ma = train.run(params(max_steps=120, optimiser={"lr": 1e-3}, val_every=0), a)
     # one step at a negligible learning rate from a's weights: a's validation error, not
     # the ~40 deg of a fresh network (test_training_lowers_loss_and_val_error)
     b = fresh_copy(dataset, tmp_path / "b")
-    mb = train.run(train.Params(max_steps=1, lr=1e-9, val_every=0, init=str(a / "train/model.pt"), **BASE), b)
+    mb = train.run(params(max_steps=1, optimiser={"lr": 1e-9}, val_every=0, init=str(a / "train/model.pt")), b)
     assert ma["val_mean_deg"] < 25
     assert mb["val_mean_deg"] == pytest.approx(ma["val_mean_deg"], abs=0.05)
     _, _, meta = load_checkpoint(b / "train/model.pt")
     assert meta["init_weights_sha256"] == read_checkpoint(a / "train/model.pt")["weights_sha256"]
     # a checkpoint of a run from scratch is not resumed into a run with init (other run key)
     c = fresh_copy(dataset, tmp_path / "c")
-    train.run(train.Params(max_steps=1, lr=1e-9, val_every=0, **BASE), c)
+    train.run(params(max_steps=1, optimiser={"lr": 1e-9}, val_every=0), c)
     capsys.readouterr()
-    mc = train.run(train.Params(max_steps=1, lr=1e-9, val_every=0, init=str(a / "train/model.pt"), **BASE), c)
+    mc = train.run(params(max_steps=1, optimiser={"lr": 1e-9}, val_every=0, init=str(a / "train/model.pt")), c)
     assert mc["val_mean_deg"] == pytest.approx(ma["val_mean_deg"], abs=0.05)
     # the removed checkpoint is named, not dropped in silence
     assert "step-00000001.pt: a checkpoint of other settings or data (its run key differs): removed" in capsys.readouterr().err
     with pytest.raises(InputError, match="missing.pt"):
-        train.run(train.Params(max_steps=1, init=str(tmp_path / "missing.pt"), **BASE), c)
+        train.run(params(max_steps=1, init=str(tmp_path / "missing.pt")), c)
 
 
 def test_stage_modules_do_not_import_torch(repo_root):
@@ -182,7 +306,7 @@ def test_stage_modules_do_not_import_torch(repo_root):
     import subprocess
     import sys
 
-    code = "import sys, cnnps.stages.train, cnnps.io.shards, cnnps.models.openmp; print('torch' in sys.modules)"
+    code = "import sys, cnnps.stages.train, cnnps.io.shards, cnnps.train.openmp; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], cwd=repo_root, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
@@ -192,7 +316,7 @@ def test_passive_openmp_only_before_torch_loads(repo_root):
     import subprocess
     import sys
 
-    code = ("import os, sys, cnnps.models.openmp as t; a = t.prefer_passive_openmp(); import torch; "
+    code = ("import os, sys, cnnps.train.openmp as t; a = t.prefer_passive_openmp(); import torch; "
             "b = t.prefer_passive_openmp(); print(a, b, os.environ['OMP_WAIT_POLICY'])")
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
     out = subprocess.run([sys.executable, "-c", code], cwd=repo_root, env=env, capture_output=True, text=True, check=True)
@@ -202,8 +326,8 @@ def test_passive_openmp_only_before_torch_loads(repo_root):
     assert out.stdout.split() == ["False", "False", "ACTIVE"]
 
 
-SHORT = dict(max_steps=4, batch_size=64, shuffle_buffer=1000, progress=False, threads=1, log_every=2,
-             val_every=0, checkpoint_every=100)
+SHORT = dict(BASE, max_steps=4, data={"batch_size": 64, "shuffle_buffer": 1000}, log_every=2, val_every=0,
+             checkpoint_every=100)
 
 
 def test_channels_last_and_fused_adam_match_plain():
@@ -224,7 +348,7 @@ def test_channels_last_and_fused_adam_match_plain():
     lr, steps = 1e-3, 3
     out = {}
     for fast in (False, True):
-        p = train.Params(dropout=0.0, channels_last=fast, fused_adam=fast, lr=lr)
+        p = train.Params(dropout=0.0, channels_last=fast, optimiser={"fused_adam": fast, "lr": lr})
         model, opt = make_model(16, p, cpu)
         before = {k: v.clone() for k, v in model.state_dict().items()}
         losses = [float(train_step(model, opt, x, y, cpu, "fp32", fast)) for _ in range(steps)]
@@ -261,8 +385,8 @@ def test_compile_failure_falls_back_to_eager(dataset, tmp_path, monkeypatch, cap
             torch.rand(100)  # like a dropout mask drawn before the failure: the fallback restores the RNG
             raise RuntimeError("inductor exploded")
 
-    monkeypatch.setattr(training, "compile_model", lambda model, params: Broken())
-    got = train.run(train.Params(compile=True, **SHORT), fresh_copy(dataset, tmp_path / "got"))
+    monkeypatch.setattr(loop, "compile_model", lambda model, params: Broken())
+    got = train.run(params(SHORT, compile=True), fresh_copy(dataset, tmp_path / "got"))
     assert "torch.compile failed" in capsys.readouterr().err
     # the failed attempt consumed nothing: the same weights as a plain eager run (same
     # process, same kernels and thread count: bit for bit)
@@ -273,16 +397,16 @@ def test_compile_failure_falls_back_to_eager(dataset, tmp_path, monkeypatch, cap
 
 
 def test_per_pixel_maps_only_train_without_shards_and_resume_exactly(tmp_path):
-    """train.pixelwise: 1 needs no renders or shards (a core install or a GPU machine
+    """train.pixelwise.share: 1 needs no renders or shards (a core install or a GPU machine
     trains); each step's maps come from a generator seeded by the step, so a killed run
     resumes to the weights of an uninterrupted one; validation is a fixed per-pixel set."""
-    params = train.Params(pixelwise=1.0, w=16, max_steps=6, checkpoint_every=3, val_every=0, val_max_rows=200,
-                          pixelwise_effects={"ambient": 0.05, "cast_shadow": 0.2}, **BASE)
+    p = params(pixelwise={"share": 1.0, "w": 16, "effects": {"ambient": 0.05, "cast_shadow": 0.2}}, max_steps=6,
+               checkpoint_every=3, val_every=0, val_max_rows=200)
     a, b = tmp_path / "a", tmp_path / "b"
-    ma = train.run(params, a)
+    ma = train.run(p, a)
     with pytest.raises(KeyboardInterrupt):
-        train.run(params, b, _stop_after_step=4)
-    mb = train.run(params, b)
+        train.run(p, b, _stop_after_step=4)
+    mb = train.run(p, b)
     sa, sb = _weights(a), _weights(b)
     assert sa["step"] == sb["step"] == 6
     for k in sa["model"]:
@@ -293,19 +417,18 @@ def test_per_pixel_maps_only_train_without_shards_and_resume_exactly(tmp_path):
     from cnnps.models.checkpoint import load_checkpoint
 
     _model, config, meta = load_checkpoint(a / "train/model.pt")
-    assert config["w"] == 16 and meta["min_lights"] == training.PIXELWISE_MIN_LIGHTS  # cnnps predict warns below it
+    assert config["w"] == 16 and meta["min_lights"] == loop.PIXELWISE_MIN_LIGHTS  # cnnps predict warns below it
     with pytest.raises(Exception, match="train.max_steps"):
-        train.Params(pixelwise=1.0)
+        train.Params(pixelwise={"share": 1.0})
 
 
 def test_a_share_of_per_pixel_maps_joins_the_shard_batches(dataset, tmp_path):
-    """train.pixelwise: 0.25 of each batch is made per pixel, the rest read from the shards
+    """train.pixelwise.share: 0.25 of each batch is made per pixel, the rest read from the shards
     (fewer shard rows a step); the run is reproducible, and differs from shards alone."""
-    params = dict(max_steps=5, val_every=0, **BASE)
-    mixed = train.Params(pixelwise=0.25, **params)
+    mixed = params(pixelwise={"share": 0.25}, max_steps=5, val_every=0)
     r1 = train.run(mixed, fresh_copy(dataset, tmp_path / "m1"))
     r2 = train.run(mixed, fresh_copy(dataset, tmp_path / "m2"))
-    plain = train.run(train.Params(**params), fresh_copy(dataset, tmp_path / "p"))
+    plain = train.run(params(max_steps=5, val_every=0), fresh_copy(dataset, tmp_path / "p"))
     assert r1["pixelwise_share"] == 0.25 and plain["pixelwise_share"] == 0.0
     assert r1["train_loss"] == r2["train_loss"] and r1["val_mean_deg"] == r2["val_mean_deg"]
     assert r1["train_loss"] != plain["train_loss"]
@@ -317,15 +440,14 @@ def test_a_share_of_per_pixel_maps_joins_the_shard_batches(dataset, tmp_path):
 
 @pytest.mark.parametrize("share", [1.0, 0.25])
 def test_per_pixel_maps_made_ahead_are_the_maps_made_in_the_step(dataset, tmp_path, share):
-    """pixelwise_ahead (a background thread making the next step's maps) changes when the
+    """pixelwise.ahead (a background thread making the next step's maps) changes when the
     maps are made, not what they are: the weights equal those of maps made in the step."""
-    extra = dict(w=16) if share == 1.0 else {}
+    w = dict(w=16) if share == 1.0 else {}
     runs = {}
     for ahead in (0, 1):
         d = tmp_path / f"a{ahead}" if share == 1.0 else fresh_copy(dataset, tmp_path / f"a{ahead}")
-        runs[ahead] = train.run(train.Params(pixelwise=share, pixelwise_ahead=ahead, max_steps=5, val_every=0,
-                                             val_max_rows=100, pixelwise_effects={"cast_shadow": 0.3}, **extra,
-                                             **BASE), d)
+        runs[ahead] = train.run(params(pixelwise={"share": share, "ahead": ahead, "effects": {"cast_shadow": 0.3}, **w},
+                                       max_steps=5, val_every=0, val_max_rows=100), d)
     w0, w1 = _weights(tmp_path / "a0"), _weights(tmp_path / "a1")
     assert w0["step"] == w1["step"] == 5
     for k in w0["model"]:
@@ -337,9 +459,9 @@ def test_until_ends_the_run_early_and_normally(dataset, tmp_path):
     """``until(step)``, asked after each step, ends the run there as max_steps would: the
     model, checkpoint and metrics of that step, the weights of a run of that many steps."""
     asked = []
-    m = train.run(train.Params(max_steps=50, val_every=0, **BASE), fresh_copy(dataset, tmp_path / "u"),
+    m = train.run(params(max_steps=50, val_every=0), fresh_copy(dataset, tmp_path / "u"),
                   until=lambda step: asked.append(step) or step >= 3)
-    ref = train.run(train.Params(max_steps=3, val_every=0, **BASE), fresh_copy(dataset, tmp_path / "r"))
+    ref = train.run(params(max_steps=3, val_every=0), fresh_copy(dataset, tmp_path / "r"))
     assert asked == [1, 2, 3] and m["steps"] == ref["steps"] == 3
     assert (tmp_path / "u/train/model.pt").is_file() and m["val_mean_deg"] == ref["val_mean_deg"]
     wu, wr = _weights(tmp_path / "u"), _weights(tmp_path / "r")
@@ -349,7 +471,7 @@ def test_until_ends_the_run_early_and_normally(dataset, tmp_path):
 
 
 def test_step_processes_share_each_step_and_resume_exactly(dataset, tmp_path):
-    """train.step_processes: 2 processes sharing each step train the weights of one
+    """train.cpu.step_processes: 2 processes sharing each step train the weights of one
     process up to float rounding (the setting is not in the run key); a run killed
     after step 6 and resumed from its checkpoint at step 4 ends with the uninterrupted
     run's weights, and no helper process outlives a run."""
@@ -358,17 +480,17 @@ def test_step_processes_share_each_step_and_resume_exactly(dataset, tmp_path):
     def helpers():
         return [p for p in multiprocessing.active_children() if p.name.startswith("cnnps-step-")]
 
-    params = dict(max_steps=8, checkpoint_every=4, val_every=4, val_max_rows=100, **BASE)
-    one = train.run(train.Params(**params), fresh_copy(dataset, tmp_path / "one"))
-    two = train.run(train.Params(step_processes=2, **params), fresh_copy(dataset, tmp_path / "two"))
+    base = dict(BASE, max_steps=8, checkpoint_every=4, val_every=4, val_max_rows=100)
+    one = train.run(params(base), fresh_copy(dataset, tmp_path / "one"))
+    two = train.run(params(base, cpu={"step_processes": 2}), fresh_copy(dataset, tmp_path / "two"))
     assert (one["step_processes"], two["step_processes"]) == (1, 2)  # auto, on 1 thread: 1
     assert one["step_process_seconds"] is None and two["step_process_seconds"]["own_rows"] > 0
     assert not helpers()
     b = fresh_copy(dataset, tmp_path / "b")
     with pytest.raises(KeyboardInterrupt):
-        train.run(train.Params(step_processes=2, **params), b, _stop_after_step=6)
+        train.run(params(base, cpu={"step_processes": 2}), b, _stop_after_step=6)
     assert not helpers()
-    resumed = train.run(train.Params(step_processes=2, **params), b)
+    resumed = train.run(params(base, cpu={"step_processes": 2}), b)
     w1, w2, wb = _weights(tmp_path / "one"), _weights(tmp_path / "two"), _weights(b)
     assert w1["step"] == w2["step"] == wb["step"] == 8
     for k in w1["model"]:
@@ -380,15 +502,15 @@ def test_step_processes_share_each_step_and_resume_exactly(dataset, tmp_path):
     assert [r[0] for r in w2["history"]["val"]] == [r[0] for r in w1["history"]["val"]] == [4]
     assert w2["history"]["val"][0][1] == pytest.approx(w1["history"]["val"][0][1], abs=0.05)
     with pytest.raises(ConfigError, match="step_processes"):
-        train.Params(step_processes=2, compile=True)
+        train.Params(cpu={"step_processes": 2}, compile=True)
 
 
 def test_step_processes_take_mixed_batches(dataset, tmp_path):
     """Batches with per-pixel rows made a step ahead are split between the step processes
     as shard batches are: the weights of one process, up to float rounding."""
-    params = dict(pixelwise=0.25, max_steps=3, val_every=0, val_max_rows=100, **BASE)
-    one = train.run(train.Params(step_processes=1, **params), fresh_copy(dataset, tmp_path / "one"))
-    two = train.run(train.Params(step_processes=2, **params), fresh_copy(dataset, tmp_path / "two"))
+    base = dict(BASE, pixelwise={"share": 0.25}, max_steps=3, val_every=0, val_max_rows=100)
+    one = train.run(params(base, cpu={"step_processes": 1}), fresh_copy(dataset, tmp_path / "one"))
+    two = train.run(params(base, cpu={"step_processes": 2}), fresh_copy(dataset, tmp_path / "two"))
     assert (one["step_processes"], two["step_processes"]) == (1, 2)
     w1, w2 = _weights(tmp_path / "one"), _weights(tmp_path / "two")
     for k in w1["model"]:
@@ -398,31 +520,31 @@ def test_step_processes_take_mixed_batches(dataset, tmp_path):
 def test_auto_step_processes_start_for_long_runs_only(dataset, tmp_path, monkeypatch):
     """step_processes: 0 (auto) on 2 threads: two processes for a run of AUTO_MIN_STEPS
     steps (lowered here to 12), one for a shorter run."""
-    from cnnps.models import step_processes
+    from cnnps.train import step_processes
 
     monkeypatch.setattr(step_processes, "AUTO_MIN_STEPS", 12)
-    params = dict(BASE, threads=2, epochs=1000, val_every=0, val_max_rows=100)
-    short = train.run(train.Params(**dict(params, max_steps=11)), fresh_copy(dataset, tmp_path / "s"))
-    long = train.run(train.Params(**dict(params, max_steps=12)), fresh_copy(dataset, tmp_path / "l"))
+    base = dict(BASE, cpu={"threads": 2}, epochs=1000, val_every=0, val_max_rows=100)
+    short = train.run(params(base, max_steps=11), fresh_copy(dataset, tmp_path / "s"))
+    long = train.run(params(base, max_steps=12), fresh_copy(dataset, tmp_path / "l"))
     assert (short["step_processes"], long["step_processes"]) == (1, 2)
 
 
 def test_auto_precision_is_recorded_and_a_resume_in_another_precision_says_so(dataset, tmp_path, monkeypatch,
                                                                               capsys):
-    from cnnps.models import train_precision
+    from cnnps.train import precision
 
-    params = train.Params(max_steps=12, checkpoint_every=5, val_every=0, **BASE)
-    assert params.precision == "auto"
+    p = params(max_steps=12, checkpoint_every=5, val_every=0)
+    assert p.precision == "auto"
     d = fresh_copy(dataset, tmp_path / "d")
     picks = iter(["fp32", "bf16"])  # the first machine picks fp32, the one that resumes bf16
-    monkeypatch.setattr(train_precision, "choose_train_precision", lambda model, p, device, rows: (
-        train_precision.TrainChoice(next(picks), "probe (test)")))
+    monkeypatch.setattr(precision, "choose_train_precision", lambda model, p, device, rows: (
+        precision.TrainChoice(next(picks), "probe (test)")))
     with pytest.raises(KeyboardInterrupt):
-        train.run(params, d, _stop_after_step=7)
+        train.run(p, d, _stop_after_step=7)
     assert capsys.readouterr().err.count("train: resuming") == 0
     state = torch.load(d / "train/checkpoints/step-00000005.pt", weights_only=True)
     assert state["precision"] == "fp32" and state["precision_segments"] == [[0, "fp32"]]
-    metrics = train.run(params, d)
+    metrics = train.run(p, d)
     err = capsys.readouterr().err
     assert err.count("train: resuming at step 5 in bf16; the checkpoint stepped in fp32 (probe (test))") == 1, err
     assert metrics["precision"] == "bf16" and metrics["precision_requested"] == "auto"
@@ -431,15 +553,15 @@ def test_auto_precision_is_recorded_and_a_resume_in_another_precision_says_so(da
     saved = json.loads((d / "train/metrics.json").read_text())
     assert saved["precision_segments"] == [[0, "fp32"], [5, "bf16"]]
     # auto shares the fp32 run key: an explicit fp32 run resumes these checkpoints
-    assert train.run_key(params, "m") == train.run_key(train.Params(**{**params.__dict__, "precision": "fp32"}), "m")
-    assert train.run_key(params, "m") != train.run_key(train.Params(**{**params.__dict__, "precision": "bf16"}), "m")
+    assert train.run_key(p, "m") == train.run_key(replace(p, precision="fp32"), "m")
+    assert train.run_key(p, "m") != train.run_key(replace(p, precision="bf16"), "m")
 
 
 def test_a_finished_auto_run_finished_again_keeps_its_precision_record(dataset, tmp_path):
-    params = train.Params(max_steps=6, checkpoint_every=3, val_every=0, **BASE)
+    p = params(max_steps=6, checkpoint_every=3, val_every=0)
     d = fresh_copy(dataset, tmp_path / "f")
-    first = train.run(params, d)
-    again = train.run(params, d)  # nothing left to step: no probe, the checkpoint's record
+    first = train.run(p, d)
+    again = train.run(p, d)  # nothing left to step: no probe, the checkpoint's record
     for key in ("precision", "precision_requested", "precision_choice", "precision_segments"):
         assert again[key] == first[key], key
     assert first["precision_choice"]["precision"] == first["precision"]

@@ -30,18 +30,23 @@ import pytest
 import torch
 
 from cnnps.infra.errors import ConfigError
-from cnnps.models.distributed import DistInfo, dist_env, rank_steps_per_epoch
-from cnnps.models.optimiser import make_model, train_step
 from cnnps.stages import extract, train
+from cnnps.train.distributed import DistInfo, dist_env, rank_steps_per_epoch
+from cnnps.train.optimiser import make_model, train_step
 
 REPO = Path(__file__).resolve().parents[2]
 W = 16
 BATCH = 128  # global: 64 rows per rank
 STEPS = 14  # crosses an epoch boundary (asserted below)
 TRAIN = dict(
-    max_steps=STEPS, batch_size=BATCH, shuffle_buffer=1000, dropout=0.0, lr=1e-3, seed=0, threads=1,
-    log_every=1, val_every=0, checkpoint_every=5, keep_checkpoints=3, progress=False,
+    max_steps=STEPS, dropout=0.0, seed=0, log_every=1, val_every=0, checkpoint_every=5, keep_checkpoints=3,
+    progress=False, data={"batch_size": BATCH, "shuffle_buffer": 1000}, optimiser={"lr": 1e-3}, cpu={"threads": 1},
 )
+
+
+def _reading(shards_url: str) -> dict:
+    """TRAIN reading the shards at ``shards_url`` (params.yaml's train section, as a dict)."""
+    return {**TRAIN, "data": {**TRAIN["data"], "shards": shards_url}}
 
 
 def _torchrun(args: list[str], cwd: Path = REPO) -> subprocess.CompletedProcess:
@@ -128,7 +133,7 @@ def ddp_run(shards_url, tmp_path_factory) -> Path:
 
     d = tmp_path_factory.mktemp("ddp_a")
     # run-stage validates every stage first: the meshes stage needs something to do
-    (d / "params.yaml").write_text(yaml.safe_dump({"meshes": {"procedural": 1}, "train": {**TRAIN, "shards": shards_url}}))
+    (d / "params.yaml").write_text(yaml.safe_dump({"meshes": {"procedural": 1}, "train": _reading(shards_url)}))
     _torchrun(["-m", "cnnps", "run-stage", "train", "--params", str(d / "params.yaml"),
                      "--data-dir", str(d / "data")])
     return d / "data"
@@ -149,7 +154,7 @@ def test_ddp_matches_one_process_with_the_same_global_batch(ddp_run, shards_url)
     # on another) was a measurement, not a bound. Such elements are rare and hardly
     # move the loss (their gradient is ~0). Measured: update difference 2.5e-5 to 4e-4
     # of the update's size, no element off by more than 1e-4 on an AMD EPYC.
-    lr = TRAIN["lr"]
+    lr = TRAIN["optimiser"]["lr"]
     init = make_model(W, train.Params(**TRAIN), torch.device("cpu"))[0].state_dict()
     delta = {k: (state["model"][k] - v).abs() for k, v in weights.items()}
     diff = sum(float(d.norm() ** 2) for d in delta.values()) ** 0.5
@@ -166,7 +171,7 @@ def test_ddp_matches_one_process_with_the_same_global_batch(ddp_run, shards_url)
     # the weight bounds above allow (measured 2.5e-5 deg)
     from cnnps.io.shards import load_manifest, manifest_files
     from cnnps.models.checkpoint import load_checkpoint
-    from cnnps.models.validation import load_val, val_errors
+    from cnnps.train.validation import load_val, val_errors
 
     val = load_val(manifest_files(shards_url, load_manifest(shards_url), "val"), W, train.Params().val_max_rows, 0)
     assert metrics["val_rows"] == len(val[0]) > 0
@@ -184,7 +189,7 @@ def test_ddp_matches_one_process_with_the_same_global_batch(ddp_run, shards_url)
 
 def test_ddp_resume_equals_uninterrupted(ddp_run, shards_url, tmp_path):
     d = tmp_path / "data"
-    res = _torchrun(["-m", "tests.stages.test_train_ddp", str(d), json.dumps({**TRAIN, "shards": shards_url}), "8"])
+    res = _torchrun(["-m", "tests.stages.test_train_ddp", str(d), json.dumps(_reading(shards_url)), "8"])
     # stopped after step 8, the last checkpoint was step 5; the resumed run went 5 -> 14
     assert res.stderr.count("resumed from step 5") == 2, res.stderr[-2000:]  # both ranks
     a, b = _final(ddp_run), _final(d)
@@ -203,7 +208,7 @@ def test_dist_env_and_global_batch(monkeypatch, tmp_path):
     monkeypatch.setenv("WORLD_SIZE", "2")
     monkeypatch.setenv("RANK", "0")
     with pytest.raises(ConfigError, match="multiple of the 2 processes"):
-        train.run(train.Params(batch_size=33), tmp_path)
+        train.run(train.Params(data={"batch_size": 33}), tmp_path)
 
 
 if __name__ == "__main__":  # torchrun driver: DATA_DIR PARAMS_JSON STOP_AFTER_STEP

@@ -69,9 +69,10 @@ def test_new_effects_are_validated_and_named_in_train():
         with pytest.raises(ConfigError):
             px.Effects(**{name: 1.5})
     assert px.EFFECT_NAMES == tuple(px.Effects.__dataclass_fields__)
-    train.Params(pixelwise_effects={k: 0.1 for k in px.EFFECT_NAMES})
+    assert train.PIXELWISE_EFFECTS == px.EFFECT_NAMES
+    train.Params(pixelwise={"effects": {k: 0.1 for k in px.EFFECT_NAMES}})
     with pytest.raises(ConfigError, match="boundary_mix"):
-        train.Params(pixelwise_effects={"glare": 0.1})
+        train.Params(pixelwise={"effects": {"glare": 0.1}})
 
 
 # --------------------------------------------------------------------------- seeds

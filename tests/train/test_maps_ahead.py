@@ -7,7 +7,7 @@ import threading
 import pytest
 import torch
 
-from cnnps.models.maps_ahead import made_ahead
+from cnnps.train.maps_ahead import made_ahead
 
 
 def _make(log):

@@ -8,7 +8,7 @@ transfer (a copy from pageable memory makes the host wait). Before a buffer is r
 the host waits for the event recorded after its copy, so a copy never reads a buffer that
 is being refilled (batches a DataLoader already pinned are sent as they are); with 3 slots the host can run at most 3 batches ahead of the GPU.
 Batches keep their dtype: float16 maps cross the bus at half the bytes and the step
-converts them on the device (:func:`cnnps.models.optimiser.train_step`).
+converts them on the device (:func:`cnnps.train.optimiser.train_step`).
 """
 
 from __future__ import annotations

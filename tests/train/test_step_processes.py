@@ -9,10 +9,10 @@ import torch.nn.functional as F
 
 from cnnps.infra.errors import CnnpsError
 from cnnps.models.network import counter_dropout
-from cnnps.models.optimiser import make_model, train_step
-from cnnps.models.step_processes import StepProcesses, row_shares
 from cnnps.models.train_layers import MASK_BLOCK_ROWS, counter_keep
 from cnnps.stages.train import Params
+from cnnps.train.optimiser import make_model, train_step
+from cnnps.train.step_processes import StepProcesses, row_shares
 
 CPU = torch.device("cpu")
 
@@ -72,7 +72,7 @@ def test_two_processes_train_as_one():
     step's up to float rounding (checked tightly at the first step, where the weights
     are equal), and four Adam steps end with its weights and losses (Adam scales each
     step to ~lr, so the weights are compared to a fraction of the four steps' move)."""
-    p = Params(batch_size=48, threads=1)
+    p = Params(data={"batch_size": 48}, cpu={"threads": 1})
     w = 16
     one, opt_one = make_model(w, p, CPU)
     two, opt_two = make_model(w, p, CPU)
@@ -115,7 +115,7 @@ def test_two_processes_in_bf16_autocast_compute_the_one_process_bf16_gradients()
     """In bf16 autocast every process runs its rows in bf16: the two-process gradients are
     the one-process bf16 ones to well within what bf16 changes against float32 (so a
     helper running its rows in float32 fails)."""
-    p = Params(batch_size=48, threads=1)
+    p = Params(data={"batch_size": 48}, cpu={"threads": 1})
     w = 16
     maps, normals = _batch(48, w, seed=3)
     threads = torch.get_num_threads()
@@ -135,7 +135,7 @@ def test_two_processes_in_bf16_autocast_compute_the_one_process_bf16_gradients()
 
 
 def test_a_step_process_that_dies_ends_the_step_with_an_error():
-    p = Params(batch_size=32, threads=1)
+    p = Params(data={"batch_size": 32}, cpu={"threads": 1})
     model, opt = make_model(16, p, CPU)
     maps, normals = _batch(32, 16)
     with StepProcesses(model, 2, max_rows=32, w=16, threads=1) as procs:
@@ -148,7 +148,7 @@ def test_a_step_process_that_dies_ends_the_step_with_an_error():
 
 
 def test_auto_is_one_process_per_thread_at_most_one_per_mask_block_for_long_runs():
-    from cnnps.models.step_processes import auto_processes
+    from cnnps.train.step_processes import auto_processes
 
     assert auto_processes(2, 128, 1000) == 2
     assert auto_processes(1, 128, 1000) == 1

@@ -1,5 +1,5 @@
 """An iterator that can read its next item early: the training loop reads its next batch
-while the step's helper processes finish their rows (:mod:`cnnps.models.step_processes`).
+while the step's helper processes finish their rows (:mod:`cnnps.train.step_processes`).
 
 The items and their order are those of the wrapped iterator; only *when* each is read
 changes. Example::

@@ -1,4 +1,4 @@
-"""Batches to the training device (cnnps.models.device_feed) and the loop's time split (step_clock)."""
+"""Batches to the training device (cnnps.train.device_feed) and the loop's time split (step_clock)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import time
 import pytest
 import torch
 
-from cnnps.models.device_feed import PinnedRing, fed
-from cnnps.models.step_clock import StepClock
+from cnnps.train.device_feed import PinnedRing, fed
+from cnnps.train.step_clock import StepClock
 
 
 def _batches(n=5, b=4, w=8):

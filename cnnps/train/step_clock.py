@@ -17,7 +17,7 @@ from contextlib import contextmanager
 
 import torch
 
-# pixelwise: making the per-pixel rows of mixed batches (train.pixelwise < 1; with per-pixel maps
+# pixelwise: making the per-pixel rows of mixed batches (train.pixelwise.share < 1; with per-pixel maps
 # only, making a batch is what the loop waits for: data_wait)
 PARTS = ("data_wait", "pixelwise", "validation", "checkpoints")
 

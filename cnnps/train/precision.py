@@ -11,7 +11,7 @@ its own step once at its start, :func:`choose_train_precision`:
 2. **Timing**: each candidate steps a copy of the run's model with its own Adam (the run's
    model, optimiser and the global RNG are untouched) on one batch of the run's size of
    the inference probe's seeded maps (:func:`cnnps.models.precision_probe.probe_maps`),
-   through :func:`cnnps.models.optimiser.train_step`, the function the run steps with
+   through :func:`cnnps.train.optimiser.train_step`, the function the run steps with
    (counter masks keyed by the step where the run uses them): :data:`WARM_STEPS` untimed
    steps (kernel creation), then :data:`TIMED_STEPS` timed ones, the median deciding.
 3. **Trains as well**: bf16's first-step loss must be within :data:`LOSS_RTOL` of fp32's
@@ -69,13 +69,13 @@ def time_steps(model, params, device: torch.device, precision: str, maps: torch.
                normals: torch.Tensor) -> tuple[float, float]:
     """(steps/s, the first step's loss) of ``precision`` on a copy of ``model`` with its own
     Adam (see the module docstring, step 2)."""
-    from cnnps.models.optimiser import train_step
+    from cnnps.train.optimiser import train_step
 
     net = copy.deepcopy(model)
     net.train()
-    opt = torch.optim.Adam(net.parameters(), lr=float(params.lr),
-                           fused=True if getattr(params, "fused_adam", False) else None)
-    counter = hasattr(net, "set_mask_key") and getattr(params, "dropout_masks", "torch") != "torch"
+    opt = torch.optim.Adam(net.parameters(), lr=float(params.optimiser.lr),
+                           fused=True if params.optimiser.fused_adam else None)
+    counter = hasattr(net, "set_mask_key") and params.cpu.dropout_masks != "torch"
     first, walls = None, []
     for i in range(WARM_STEPS + TIMED_STEPS):
         if counter:

@@ -48,7 +48,7 @@ def read_training_state(path: Path) -> dict:
 def load_training_state(ckpt_dir: Path, run_key: str) -> dict | None:
     """The newest readable checkpoint of this run key; others are deleted, each with one
     line on stderr naming it (a checkpoint of other settings, data or code version: say a
-    changed default such as ``train.dropout_masks``; the run starts from its beginning)."""
+    changed default such as ``train.cpu.dropout_masks``; the run starts from its beginning)."""
     for path in reversed(list_checkpoints(ckpt_dir)):
         try:
             state = read_training_state(path)

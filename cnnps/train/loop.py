@@ -12,9 +12,10 @@ shard stream), :meth:`~Trainer.resume` (newest checkpoint of this run key),
 :meth:`~Trainer.load_validation`, :meth:`~Trainer.run_steps` (the step loop: logging,
 validation, checkpoints), :meth:`~Trainer.finish` (last validation, model file, metrics).
 
-``params`` is the stage's ``Params`` dataclass, read by attribute (this layer does not
-import the stage). The stage's module docstring describes the behaviour: batch order,
-resuming, several processes, outputs.
+``params`` is the stage's ``Params`` dataclass (:class:`cnnps.stages.train.Params`: top-level
+keys and the sections ``optimiser``, ``data``, ``pixelwise``, ``cpu``), read by attribute
+(this layer does not import the stage). The stage's module docstring describes the
+behaviour: batch order, resuming, several processes, outputs.
 """
 
 from __future__ import annotations
@@ -45,16 +46,17 @@ from cnnps.io.shards import (
     shard_path,
     verify_shards,
 )
-from cnnps.models.allocator import keep_freed_memory
-from cnnps.models.batch_lookahead import Lookahead
 from cnnps.models.checkpoint import (
     load_checkpoint,
     read_checkpoint,
     save_checkpoint,
     write_sha256_file,
 )
-from cnnps.models.device_feed import fed
-from cnnps.models.distributed import (
+from cnnps.models.train_layers import COUNTER_MASK_BITS
+from cnnps.train.allocator import keep_freed_memory
+from cnnps.train.batch_lookahead import Lookahead
+from cnnps.train.device_feed import fed
+from cnnps.train.distributed import (
     DistInfo,
     all_gather,
     barrier,
@@ -66,12 +68,9 @@ from cnnps.models.distributed import (
     rank_steps_per_epoch,
     set_threads,
 )
-from cnnps.models.maps_ahead import made_ahead
-from cnnps.models.optimiser import compile_model, lr_at, make_model, set_lr, train_step
-from cnnps.models.shard_dataset import ShardDataset
-from cnnps.models.step_clock import StepClock
-from cnnps.models.train_layers import COUNTER_MASK_BITS
-from cnnps.models.train_state import (
+from cnnps.train.maps_ahead import made_ahead
+from cnnps.train.optimiser import compile_model, lr_at, make_model, set_lr, train_step
+from cnnps.train.resume import (
     CKPT_FORMAT,
     checkpoint_path,
     list_checkpoints,
@@ -81,7 +80,9 @@ from cnnps.models.train_state import (
     save_training_state,
     set_rng_states,
 )
-from cnnps.models.validation import load_val, no_val, val_errors
+from cnnps.train.shard_dataset import ShardDataset
+from cnnps.train.step_clock import StepClock
+from cnnps.train.validation import load_val, no_val, val_errors
 
 # -- set-up -----------------------------------------------------------------------------
 
@@ -89,16 +90,16 @@ from cnnps.models.validation import load_val, no_val, val_errors
 @contextmanager
 def training_processes(params) -> Iterator[tuple[DistInfo, torch.device]]:
     """(this process's place in a torchrun job, its device), with torch's threads set and,
-    under torchrun, the process group up for the duration (see :mod:`cnnps.models.distributed`)."""
+    under torchrun, the process group up for the duration (see :mod:`cnnps.train.distributed`)."""
     info = dist_env()
-    if info.enabled and params.batch_size % info.world_size:
+    if info.enabled and params.data.batch_size % info.world_size:
         raise ConfigError(
-            f"train.batch_size {params.batch_size} (the global batch) must be a multiple of the "
+            f"train.data.batch_size {params.data.batch_size} (the global batch) must be a multiple of the "
             f"{info.world_size} processes"
         )
-    set_threads(params.threads, info)
+    set_threads(params.cpu.threads, info)
     device = process_device(params.device, info)
-    if device.type == "cpu" and getattr(params, "keep_freed_memory", True):
+    if device.type == "cpu" and params.cpu.keep_freed_memory:
         keep_freed_memory()  # every step's activations reuse the last step's pages
     with process_group(info, device):
         yield info, device
@@ -168,7 +169,7 @@ PIXELWISE_VAL_ROWS = 10000  # per-pixel validation maps when there are no val sh
 
 
 def pixelwise_only_data(w: int) -> TrainingData:
-    """What training reads when every map is made per pixel (``train.pixelwise: 1``): no
+    """What training reads when every map is made per pixel (``train.pixelwise.share: 1``): no
     manifest, no shards; ``w`` is the maps' width."""
     return TrainingData({}, "", "pixelwise", int(w), [], [])
 
@@ -190,8 +191,26 @@ class GeneratedBatches:
         self.skip = int(batches)
 
     def __iter__(self):
-        # made ahead of the step in a background thread (cnnps.models.maps_ahead) when ``ahead``
+        # made ahead of the step in a background thread (cnnps.train.maps_ahead) when ``ahead``
         yield from made_ahead(self.make, range(self.skip, self.steps), self.device, self.ahead)
+
+
+def pixelwise_maker(params):
+    """``(n, generator, device, w) -> (maps (n, 1, w, w), normals (n, 3))``: per-pixel
+    training maps (:func:`cnnps.synth.pixelwise.generate`) with ``params.pixelwise``'s
+    effects and sparse fraction; None when its share is 0."""
+    if not params.pixelwise.share:
+        return None
+    from cnnps.synth import pixelwise
+
+    effects = pixelwise.Effects(**{k: float(v) for k, v in params.pixelwise.effects.items()})
+    sparse_fraction = params.pixelwise.sparse_fraction
+
+    def make(n, generator, device, w):
+        return pixelwise.generate(n, generator=generator, device=device, w=w, effects=effects,
+                                  sparse_fraction=sparse_fraction)
+
+    return make
 
 
 def load_init_weights(init: str | None, w: int) -> tuple[dict | None, str | None]:
@@ -224,13 +243,13 @@ def train(params, data: TrainingData, out_dir: Path, run_key: str, info: DistInf
     """Train (resuming the newest checkpoint of ``run_key``); returns the final metrics.
     ``stop_after_step`` (tests only) raises ``KeyboardInterrupt`` after that step, like a
     killed run. ``make_pixelwise(n, generator, device, w) -> (maps (n, 1, w, w), normals
-    (n, 3))`` makes the per-pixel rows of ``params.pixelwise``. ``until(step) -> bool``,
-    asked after every step, ends the run there, normally (last validation, checkpoint,
-    ``model.pt``): a budget of time, say. The steps it allows then depend on the clock,
+    (n, 3))`` makes the per-pixel rows of ``params.pixelwise`` (default:
+    :func:`pixelwise_maker`). ``until(step) -> bool``, asked after every step, ends the
+    run there, normally (last validation, checkpoint, ``model.pt``): a budget of time, say. The steps it allows then depend on the clock,
     so such a run is not reproducible from its params alone (under torchrun every rank
     must answer alike)."""
     trainer = Trainer(params, data, out_dir, run_key, info, device, init_state, init_sha)
-    trainer.make_pixelwise = make_pixelwise
+    trainer.make_pixelwise = make_pixelwise or pixelwise_maker(params)
     trainer.resume()
     trainer.choose_precision()
     trainer.load_validation()
@@ -284,16 +303,16 @@ class Trainer:
         """This rank's share of the training shards, its steps per epoch and the run's total;
         with ``pixelwise`` the share of each batch made per pixel (all of it: no stream)."""
         params, info, data = self.params, self.info, self.data
-        rank_batch = params.batch_size // info.world_size
-        share = float(getattr(params, "pixelwise", 0.0))
+        rank_batch = params.data.batch_size // info.world_size
+        share = float(params.pixelwise.share)
         self.generated = rank_batch if not data.train_files else min(rank_batch - 1, round(share * rank_batch))
         if not data.train_files:
             self.stream = None
             self.steps_per_epoch = self.total_steps = int(params.max_steps)
             return
         self.stream = ShardStream(data.train_files, data.w, rank_batch - self.generated, seed=params.seed,
-                                  buffer_rows=params.shuffle_buffer, rank=info.rank, world_size=info.world_size,
-                                  prefetch=params.prefetch)
+                                  buffer_rows=params.data.shuffle_buffer, rank=info.rank, world_size=info.world_size,
+                                  prefetch=params.data.prefetch)
         self.steps_per_epoch = rank_steps_per_epoch(self.stream)
         if self.steps_per_epoch == 0:
             if info.enabled and len(self.stream.units) < info.world_size:
@@ -301,7 +320,7 @@ class Trainer:
                     f"train: {len(self.stream.units)} training row groups for {info.world_size} processes; "
                     "use fewer processes or a smaller extract.rows_per_group"
                 )
-            raise ConfigError(f"train.batch_size {params.batch_size} is larger than the {self.stream.rows()} "
+            raise ConfigError(f"train.data.batch_size {params.data.batch_size} is larger than the {self.stream.rows()} "
                               "training rows" + (" of a rank's share" if info.enabled else ""))
         self.total_steps = params.epochs * self.steps_per_epoch
         if params.max_steps:
@@ -345,17 +364,17 @@ class Trainer:
 
     def choose_precision(self) -> None:
         """The precision of this call's steps: ``train.precision``, or with ``auto`` the pick
-        of :func:`cnnps.models.train_precision.choose_train_precision` (rank 0 probes, every
+        of :func:`cnnps.train.precision.choose_train_precision` (rank 0 probes, every
         rank takes its answer). A resume in another precision than its checkpoint's says so
         in one line and goes on; each change starts a segment."""
         p = self.params
         if p.precision == "auto" and self.step < self.total_steps:
             choice = None
             if self.main:
-                from cnnps.models.train_precision import choose_train_precision
+                from cnnps.train.precision import choose_train_precision
 
                 choice = choose_train_precision(self.raw, p, self.device,
-                                                p.batch_size // self.info.world_size).as_dict()
+                                                p.data.batch_size // self.info.world_size).as_dict()
             choice = broadcast(choice, self.info)
             self.precision, self.precision_choice = choice["precision"], choice
             if self.main and p.progress:
@@ -420,19 +439,19 @@ class Trainer:
     # -- the step loop -----------------------------------------------------------------
 
     def _loader(self, ds):
-        if not self.params.num_workers:
+        if not self.params.data.num_workers:
             return ds  # main-process loading: no DataLoader machinery needed
         # its own generator: creating a DataLoader iterator must not draw from the global
         # torch RNG (that would shift the dropout masks of a resumed run)
         return torch.utils.data.DataLoader(
-            ds, batch_size=None, num_workers=self.params.num_workers, pin_memory=self.device.type == "cuda",
+            ds, batch_size=None, num_workers=self.params.data.num_workers, pin_memory=self.device.type == "cuda",
             generator=torch.Generator().manual_seed(self.params.seed),
         )
 
     def _train_step(self, step_model, maps, normals, meanwhile=None):
         """(loss, the model to step next): a compiled model's first step compiles; when
         that fails, this step is redone eagerly (RNG restored) and training stays eager.
-        With step processes, they share the step (:mod:`cnnps.models.step_processes`) and
+        With step processes, they share the step (:mod:`cnnps.train.step_processes`) and
         ``meanwhile`` runs while the helpers finish their rows."""
         p = self.params
         if self.procs is not None:
@@ -460,7 +479,7 @@ class Trainer:
         (:func:`cnnps.models.network.counter_dropout`); a compiled model keeps torch's
         generator."""
         p = self.params
-        counter = eager and getattr(p, "dropout_masks", "torch") in COUNTER_MASK_BITS
+        counter = eager and p.cpu.dropout_masks in COUNTER_MASK_BITS
         net = getattr(self.model, "module", self.model)  # DistributedDataParallel wraps the network
         net.set_mask_key((p.seed, self.info.rank, self.step) if counter else None)
 
@@ -471,7 +490,7 @@ class Trainer:
         from cnnps.infra.hashing import derive_seed64
 
         if self.make_pixelwise is None:
-            raise ConfigError("train.pixelwise needs a per-pixel map maker (the train stage passes one)")
+            raise ConfigError("train.pixelwise.share needs a per-pixel map maker (train() makes one)")
         device = device or self.device
         # draws on the device that makes the maps: a CPU generator would feed a GPU too slowly
         gen = torch.Generator(device=device if device.type == "cuda" else "cpu")
@@ -496,7 +515,7 @@ class Trainer:
         the run ends there): log the loss every ``log_every`` steps, validate every
         ``val_every``, checkpoint every ``checkpoint_every`` and at the end."""
         p = self.params
-        ahead = int(getattr(p, "pixelwise_ahead", 0))
+        ahead = int(p.pixelwise.ahead)
         made = None  # the per-pixel rows of a mixed batch, step by step
         if self.stream is None:  # per-pixel maps only, made on the training device
             ds = loader = GeneratedBatches(self._step_maps, self.total_steps, self.device, ahead)
@@ -519,29 +538,29 @@ class Trainer:
                 torch.set_num_threads(self.all_threads)
 
     def _start_step_processes(self) -> None:
-        """With ``step_processes`` N > 1 (0: :func:`cnnps.models.step_processes.auto_processes`
+        """With ``step_processes`` N > 1 (0: :func:`cnnps.train.step_processes.auto_processes`
         where the step allows it, else 1), start the N - 1 helpers that share each step
-        (:class:`cnnps.models.step_processes.StepProcesses`) and give each process, this
+        (:class:`cnnps.train.step_processes.StepProcesses`) and give each process, this
         one included, 1/N of torch's threads (all of them again for validation)."""
-        from cnnps.models.step_processes import StepProcesses, auto_processes
+        from cnnps.train.step_processes import StepProcesses, auto_processes
 
         p = self.params
-        n = int(getattr(p, "step_processes", 1))
+        n = int(p.cpu.step_processes)
         self.all_threads = torch.get_num_threads()
         eligible = (self.device.type == "cpu" and not self.info.enabled and not p.compile
-                    and getattr(p, "dropout_masks", "torch") in COUNTER_MASK_BITS)
+                    and p.cpu.dropout_masks in COUNTER_MASK_BITS)
         if n == 0:  # auto
-            n = auto_processes(self.all_threads, p.batch_size, self.total_steps - self.step) if eligible else 1
+            n = auto_processes(self.all_threads, p.data.batch_size, self.total_steps - self.step) if eligible else 1
         self.step_processes = max(1, n)
         if n < 2:
             return
         if not eligible:
-            raise ConfigError("train.step_processes > 1 is for eager training with counter dropout masks on a CPU "
+            raise ConfigError("train.cpu.step_processes > 1 is for eager training with counter dropout masks on a CPU "
                               "in one process (not on CUDA, not under torchrun, not compiled: there use 1)")
         per = max(1, self.all_threads // n)
-        self.procs = StepProcesses(self.raw, n, max_rows=self.params.batch_size, w=self.data.w, threads=per,
+        self.procs = StepProcesses(self.raw, n, max_rows=self.params.data.batch_size, w=self.data.w, threads=per,
                                    channels_last=self.params.channels_last,
-                                   keep_freed_memory=getattr(self.params, "keep_freed_memory", True),
+                                   keep_freed_memory=self.params.cpu.keep_freed_memory,
                                    precision=self.precision)
         torch.set_num_threads(per)
 
@@ -558,7 +577,8 @@ class Trainer:
 
     def _loop(self, ds, loader, made, stop_after_step, until) -> None:
         p, info = self.params, self.info
-        bar = progress_bar(total=self.total_steps * p.batch_size, initial=self.step * p.batch_size,
+        batch = p.data.batch_size
+        bar = progress_bar(total=self.total_steps * batch, initial=self.step * batch,
                            desc="train" if not info.enabled else f"train ({info.world_size} processes)",
                            unit="sample", unit_scale=True, disable=not p.progress or not self.main, leave=True)
         step_model = compile_model(self.model, p)
@@ -566,7 +586,7 @@ class Trainer:
         clock = self.clock = StepClock(self.device)
         loss_acc, loss_n = torch.zeros((), device=self.device), 0  # summed on the device: no wait per step
         while self.step < self.total_steps:
-            set_lr(self.opt, lr_at(p, self.step))
+            set_lr(self.opt, lr_at(p.optimiser, self.step))
             epoch, skip = divmod(self.step, self.steps_per_epoch)
             ds.set_epoch(epoch)
             ds.set_skip(skip)
@@ -582,13 +602,13 @@ class Trainer:
                     loss, step_model = self._train_step(step_model, maps, normals, feed.pull if ahead else None)
                     self.step += 1
                     step = self.step
-                    if step in p.lr_milestones:
-                        set_lr(self.opt, lr_at(p, step))
+                    if step in p.optimiser.lr_milestones:
+                        set_lr(self.opt, lr_at(p.optimiser, step))
                     if until is not None and until(step):
                         self.total_steps = step  # ends here: the loss, the checkpoint and the loop below see the end
                     loss_acc += loss.float()
                     loss_n += 1
-                    bar.update(p.batch_size)
+                    bar.update(batch)
                     if step % p.log_every == 0 or step == self.total_steps:
                         self.history["loss"].append([step, self._mean_loss(loss_acc, loss_n)])
                         bar.set_postfix(loss=f"{self.history['loss'][-1][1]:.4f}")
@@ -618,7 +638,7 @@ class Trainer:
         """The fewest lights of any training map (shards' and per-pixel ones)."""
         fewest = [fewest_lights(self.data.manifest)] if self.stream is not None else []
         if self.generated:
-            sparse = float(getattr(self.params, "pixelwise_sparse_fraction", 0.0)) > 0
+            sparse = float(self.params.pixelwise.sparse_fraction) > 0
             fewest.append(SPARSE_MIN_LIGHTS_DEFAULT if sparse else PIXELWISE_MIN_LIGHTS)
         fewest = [f for f in fewest if f is not None]
         return min(fewest) if fewest else None
@@ -638,13 +658,13 @@ class Trainer:
         metrics = {
             "steps": step,
             "epochs": round(step / self.steps_per_epoch, 3),
-            "samples": step * p.batch_size,
+            "samples": step * p.data.batch_size,
             "train_loss": self.history["loss"][-1][1] if self.history["loss"] else None,
             **v,
             "val_rows": len(self.val_maps),
             "train_rows": int(sum(u[2] for u in self.stream.units)) if self.stream is not None else 0,  # all ranks
-            "pixelwise_share": round(self.generated / max(1, p.batch_size // info.world_size), 4),
-            "samples_per_s": round(ran * p.batch_size / self.seconds, 1) if ran > 0 and self.seconds > 0 else None,
+            "pixelwise_share": round(self.generated / max(1, p.data.batch_size // info.world_size), 4),
+            "samples_per_s": round(ran * p.data.batch_size / self.seconds, 1) if ran > 0 and self.seconds > 0 else None,
             "seconds": self.clock.summary(self.seconds) if self.clock is not None else None,
             "device": str(self.device),
             "precision": self.precision,  # what this call's steps ran in

@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from cnnps.models import train_precision as tp
 from cnnps.models.network import CNNPS
 from cnnps.stages.train import Params
+from cnnps.train import precision as tp
 
 
 def _fake_steps(monkeypatch, rates: dict, losses: dict, available: bool = True) -> list:
@@ -52,7 +52,7 @@ def test_the_probe_steps_a_copy_and_leaves_the_model_and_the_rng_as_they_were(mo
     model = CNNPS(w=8).to(memory_format=torch.channels_last)
     before = {k: v.clone() for k, v in model.state_dict().items()}
     rng = torch.random.get_rng_state()
-    choice = tp.choose_train_precision(model, Params(batch_size=16), torch.device("cpu"), 16)
+    choice = tp.choose_train_precision(model, Params(data={"batch_size": 16}), torch.device("cpu"), 16)
     assert torch.equal(torch.random.get_rng_state(), rng)
     for k, v in model.state_dict().items():
         assert torch.equal(v, before[k]), k

@@ -17,7 +17,7 @@ class ShardDataset(IterableDataset):
     """torch ``IterableDataset`` of ready batches ``(maps (B,1,w,w) float32, normals (B,3))``.
 
     ``float32=False`` keeps the maps float16 (half the bytes to copy to a GPU, which
-    converts them; :func:`cnnps.models.optimiser.train_step` does). The float32
+    converts them; :func:`cnnps.train.optimiser.train_step` does). The float32
     conversion is torch's (vectorised: ~12 M maps/s on 2 cores, numpy 1.26's
     ``astype`` ~0.44 M). Use with ``DataLoader(ds, batch_size=None)``. Call :meth:`set_epoch` before each
     epoch and :meth:`set_skip` to resume mid-epoch. With DataLoader workers, each

@@ -1,13 +1,14 @@
 """Training a CNN-PS: the model and its Adam optimiser, the learning-rate schedule, one step.
 
-``params`` here is the train stage's ``Params`` (:class:`cnnps.stages.train.Params`),
-read by attribute only, so this layer does not depend on the stage.
+``params`` here is the train stage's ``Params`` (:class:`cnnps.stages.train.Params`,
+its ``optimiser`` and ``cpu`` sections included), read by attribute only, so this layer
+does not depend on the stage.
 
 None of the speed settings changes the model or the loss: ``channels_last`` (NHWC
-activations, ~1.3x on CPU), ``fused_adam`` (torch's fused kernel: the same algorithm,
+activations, ~1.3x on CPU), ``optimiser.fused_adam`` (torch's fused kernel: the same algorithm,
 one pass per tensor), ``precision: bf16`` (autocast) and ``compile`` (torch.compile)
 change the float rounding (and, for channels_last or compile, which elements a dropout
-mask draws). Used by :mod:`cnnps.models.training` and benchmarks/bench_train.py.
+mask draws). Used by :mod:`cnnps.train.loop` and benchmarks/bench_train.py.
 """
 
 from __future__ import annotations
@@ -21,11 +22,17 @@ from cnnps.models.network import CNNPS
 from cnnps.models.train_layers import COUNTER_MASK_BITS
 
 
-def lr_at(params, step: int) -> float:
+def lr_at(optimiser, step: int) -> float:
     """The learning rate of optimiser step ``step + 1`` (``step`` steps done): ``lr``
-    times ``lr_gamma`` for every milestone already reached. A step schedule does not
-    depend on ``max_steps``, so raising ``max_steps`` still continues a finished run."""
-    return params.lr * params.lr_gamma ** sum(step >= m for m in params.lr_milestones)
+    times ``lr_gamma`` for every milestone already reached, of ``optimiser`` (the
+    ``train.optimiser`` section). A step schedule does not depend on ``max_steps``, so
+    raising ``max_steps`` still continues a finished run.
+
+    >>> from types import SimpleNamespace
+    >>> lr_at(SimpleNamespace(lr=1e-3, lr_gamma=0.5, lr_milestones=(10,)), 10)
+    0.0005
+    """
+    return optimiser.lr * optimiser.lr_gamma ** sum(step >= m for m in optimiser.lr_milestones)
 
 
 def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
@@ -35,7 +42,7 @@ def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
 
 def autocast(device: torch.device, precision: str):
     """bf16 autocast on ``device`` for ``precision == "bf16"``, nothing for "fp32" (a run's
-    ``auto`` is resolved before a step: :mod:`cnnps.models.train_precision`)."""
+    ``auto`` is resolved before a step: :mod:`cnnps.train.precision`)."""
     if precision == "bf16":
         return torch.autocast(device.type, dtype=torch.bfloat16)
     if precision != "fp32":
@@ -48,19 +55,20 @@ def make_model(w: int, params, device: torch.device) -> tuple[CNNPS, torch.optim
     ``device``, channels_last if asked, and its Adam optimiser."""
     torch.manual_seed(params.seed)
     model = CNNPS(w=w, dropout=params.dropout).to(device)
-    model.fused_cpu_layers = getattr(params, "cpu_layers", "fused") == "fused"
-    model.mask_bits = COUNTER_MASK_BITS.get(getattr(params, "dropout_masks", "counter"), 32)
+    model.fused_cpu_layers = params.cpu.layers == "fused"
+    model.mask_bits = COUNTER_MASK_BITS.get(params.cpu.dropout_masks, 32)
     if params.channels_last:
         model = model.to(memory_format=torch.channels_last)
-    opt = torch.optim.Adam(model.parameters(), lr=params.lr, weight_decay=params.weight_decay,
-                           fused=True if params.fused_adam else None)
+    o = params.optimiser
+    opt = torch.optim.Adam(model.parameters(), lr=o.lr, weight_decay=o.weight_decay,
+                           fused=True if o.fused_adam else None)
     return model, opt
 
 
 def compile_model(model, params):
     """``torch.compile(model)`` when ``params.compile``, else ``model``.
 
-    Compilation happens lazily on the first call; :mod:`cnnps.models.training` falls back
+    Compilation happens lazily on the first call; :mod:`cnnps.train.loop` falls back
     to the eager model (with a warning) when that first compiled step fails.
     """
     if not params.compile:

@@ -1,6 +1,6 @@
 from __future__ import annotations
 
-from cnnps.models.batch_lookahead import Lookahead
+from cnnps.train.batch_lookahead import Lookahead
 
 
 def _counted(items, reads):

@@ -1,4 +1,4 @@
-"""One CPU training step shared by several processes of one machine (``train.step_processes``).
+"""One CPU training step shared by several processes of one machine (``train.cpu.step_processes``).
 
 On a CPU, torch runs each operator of a step on all its threads and waits for them at the
 end; CNN-PS's layers are small (16 output channels), its dropout masks are drawn by one
@@ -21,7 +21,7 @@ gradients of their share of the rows:
    without a copy.
 
 The result is the single-process step's, up to float rounding (the sum of the shares'
-gradients is the whole batch's gradient; ``tests/models/test_step_processes.py`` compares
+gradients is the whole batch's gradient; ``tests/train/test_step_processes.py`` compares
 the weights after several steps; in bf16 autocast, up to bf16 rounding). It needs eager
 steps with counter dropout masks (``dropout_masks: counter16`` or ``counter``, no ``compile``), in float32
 or bf16 autocast (``precision``), on a CPU, in one process (not under torchrun).
@@ -44,8 +44,8 @@ import torch
 import torch.nn.functional as F
 
 from cnnps.infra.errors import CnnpsError, ConfigError
-from cnnps.models.optimiser import autocast
 from cnnps.models.train_layers import MASK_BLOCK_ROWS
+from cnnps.train.optimiser import autocast
 
 WAIT_POLL_S = 0.5  # how often a waiting process checks that the other side is alive
 CPU = torch.device("cpu")
@@ -116,7 +116,7 @@ def _rows_backward(model, maps, normals, key, row0: int, batch: int, channels_la
                    precision: str = "fp32") -> torch.Tensor:
     """Forward and backward of a batch's rows ``row0..`` (``maps``, ``normals``) with their
     masks of ``key``, the forward in ``precision`` (fp32, or bf16 autocast as
-    :func:`cnnps.models.optimiser.train_step` runs it), the loss scaled by their share of
+    :func:`cnnps.train.optimiser.train_step` runs it), the loss scaled by their share of
     the ``batch`` rows, so the shares' gradients add up to the batch's; the scaled loss
     (detached)."""
     if channels_last:
@@ -137,7 +137,7 @@ def _helper(model, maps, normals, head, grads, go, done, threads, channels_last,
     gone, return."""
     import multiprocessing as mp
 
-    from cnnps.models.allocator import keep_freed_memory
+    from cnnps.train.allocator import keep_freed_memory
 
     torch.set_num_threads(threads)
     if keep_heap:
@@ -187,7 +187,7 @@ class StepProcesses:
         try:
             model.share_memory()  # the weights: Adam's in-place updates reach every helper
         except RuntimeError as exc:  # e.g. a container's small /dev/shm
-            raise ConfigError(f"train.step_processes: {4 * nparam / 2**20:.0f} MB of weights could not go to shared "
+            raise ConfigError(f"train.cpu.step_processes: {4 * nparam / 2**20:.0f} MB of weights could not go to shared "
                               f"memory ({str(exc).splitlines()[0][:160]}); use step_processes: 1") from None
         ctx = multiprocessing.get_context("spawn")  # fork would copy torch's thread pools
         helper_rows = max(rows for _, rows in row_shares(max_rows, processes)[1:])
@@ -206,7 +206,7 @@ class StepProcesses:
                                           views=_grad_views(model, bufs["grads"])))
         except RuntimeError as exc:  # shared memory full
             self.close()
-            raise ConfigError(f"train.step_processes: a helper's {4 * nparam / 2**20:.0f} MB gradient buffer could not "
+            raise ConfigError(f"train.cpu.step_processes: a helper's {4 * nparam / 2**20:.0f} MB gradient buffer could not "
                               f"go to shared memory ({str(exc).splitlines()[0][:160]}); use fewer step processes") from None
         except BaseException:
             self.close()

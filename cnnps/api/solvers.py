@@ -1,0 +1,61 @@
+"""The registry of normal solvers: ``method`` name -> solver class (:mod:`cnnps.ps.solver`).
+
+Adding a solver is one module that subclasses :class:`cnnps.ps.solver.Solver` and one
+entry here (or one :func:`register` call, e.g. from a plug-in or a test). Classes are
+named by import path and imported on first use, so listing the methods imports nothing
+heavy (the network's solver imports torch only when it prepares).
+
+>>> sorted(SOLVERS)
+['cnn', 'lambertian']
+>>> solver_class("lambertian").__name__
+'LeastSquaresSolver'
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from cnnps.infra.errors import ConfigError
+from cnnps.infra.options import label
+from cnnps.ps.solver import Solver
+
+SOLVERS: dict[str, str | type[Solver]] = {
+    "cnn": "cnnps.models.network_solver:NetworkSolver",  # CNN-PS, the network
+    "lambertian": "cnnps.ps.least_squares:LeastSquaresSolver",  # least squares, the classic baseline
+}
+
+
+def register(name: str, solver: str | type[Solver]) -> None:
+    """Make ``solver`` (a class or ``"module:Class"``) the method ``name``."""
+    SOLVERS[name] = solver
+
+
+def solver_class(name: str) -> type[Solver]:
+    """The class of method ``name``; a ConfigError listing the methods when it is unknown."""
+    if name not in SOLVERS:
+        raise ConfigError(f"{label('method')} must be one of {', '.join(SOLVERS)}, got {name!r}")
+    entry = SOLVERS[name]
+    if isinstance(entry, str):
+        module, _, attr = entry.partition(":")
+        entry = SOLVERS[name] = getattr(importlib.import_module(module), attr)
+    return entry
+
+
+def check_solver_options(options: dict) -> None:
+    """``options["method"]`` is a known method, and no option another method owns
+    (:attr:`Solver.only_options`) is set for it."""
+    method = options.get("method")
+    if not isinstance(method, str):
+        raise ConfigError(f"{label('method')} must be one of {', '.join(SOLVERS)}, got {method!r}")
+    solver_class(method)
+    for name in SOLVERS:
+        if name == method:
+            continue
+        for option in solver_class(name).only_options:
+            if options.get(option) is not None:
+                raise ConfigError(f"{label(option)} applies to {label('method')} {name} only")
+
+
+def prepare_solver(options: dict) -> Solver:
+    """The solver of ``options["method"]``, prepared for one capture."""
+    return solver_class(options["method"]).prepare(options)

@@ -1,0 +1,193 @@
+"""CNN-PS as a normal solver (``method="cnn"``, :mod:`cnnps.ps.solver`).
+
+Prepared once per capture (:meth:`NetworkSolver.prepare`): the checkpoint resolved (the
+shipped model, its SHA-256 checked, when none is given), loaded onto its device, in the
+precision ``precision`` asks for (``auto``: the probe's cached pick for this machine and
+model, :func:`cnnps.models.precision_probe.choose_precision`, at the batch size the probe
+found fastest unless ``batch_size`` is given). Per tile: each pixel's observation map
+under K test-time rotations, averaged (:func:`cnnps.models.inference.rotated_normals`),
+with missing observations left out of the map, each pixel's view turned to +z under a
+pinhole camera, and, with the sparse fill on and shared lights, the virtual Lambertian
+observations of :func:`cnnps.ps.sparse_fill.lambertian_fill`.
+
+Options read: ``model``, ``rotations``, ``device``, ``precision``, ``batch_size``,
+``sparse_fill``.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+
+from cnnps.infra.errors import CnnpsError, ConfigError, InputError
+from cnnps.ps.solver import Solver, Tile
+
+RATE_MIN_SECONDS = 5.0  # shorter runs say too little about the machine's speed
+
+
+def default_model_path() -> Path:
+    """Where the shipped model lives: ``cnnps/models/weights/cnnps_default.pt``."""
+    from cnnps.models.shipped import weights_path
+
+    return weights_path()
+
+
+def resolve_model(model) -> Path:
+    """The checkpoint to run: ``model`` when it is a file (InputError otherwise), else the
+    shipped model, its SHA-256 checked (CnnpsError saying how to get one when absent)."""
+    if model is not None:
+        path = Path(model)
+        if not path.is_file():
+            raise InputError(path, "model file not found")
+        return path
+    path = default_model_path()
+    if not path.is_file():
+        raise CnnpsError(
+            f"no model given and no shipped model at {path}: train one with "
+            "`cnnps run-stage train` (or `dvc repro`) and pass --model data/train/model.pt, "
+            "pass --model PATH to a checkpoint, or use --method lambertian"
+        )
+    from cnnps.models.shipped import verify_shipped
+
+    return verify_shipped(path)  # checks the SHA-256 recorded next to it
+
+
+def torch_device(device: str) -> str:
+    """The torch device ``--device`` names (:func:`cnnps.models.devices.resolve_device`:
+    ``auto`` = CUDA when available); a ConfigError naming the option when it cannot be had."""
+    try:
+        from cnnps.models.devices import resolve_device
+    except ImportError as exc:  # pragma: no cover - torch is a dependency
+        raise ConfigError(f"--method cnn needs PyTorch, which failed to import ({exc})") from exc
+    try:
+        return str(resolve_device(device))
+    except CnnpsError as exc:
+        raise ConfigError(f"--device {device}: {exc}") from None
+
+
+def load_predictor(model_path: Path, device: str, precision: str, batch_size: int | None):
+    """(MapPredictor, checkpoint meta, how the precision was chosen): the network prepared
+    once for every tile (see the module docstring)."""
+    from cnnps.models.checkpoint import load_checkpoint
+    from cnnps.models.inference import MapPredictor
+
+    dev = torch_device(device)
+    net, _config, meta = load_checkpoint(model_path, dev)  # InputError naming the file
+    if precision == "auto":
+        import torch
+
+        from cnnps.infra.hashing import file_sha256
+        from cnnps.models.precision_probe import choose_precision
+
+        choice = choose_precision(net, torch.device(dev), file_sha256(model_path), batch_size)
+        how = {"requested": "auto", "reason": choice.reason, "cached": choice.cached,
+               "age_seconds": None if choice.age_seconds is None else round(choice.age_seconds, 1),
+               "under_load": choice.under_load, "probe_seconds": choice.probe_seconds, "key": choice.key}
+        precision = choice.precision
+        how["threads"] = choice.threads
+        if batch_size is None and choice.batch_size:
+            batch_size = how["batch_size"] = choice.batch_size  # the pick's fastest batch
+    else:
+        how = {"requested": precision, "reason": f"--precision {precision} given"}
+        if dev == "cpu":
+            from cnnps.models.inference import set_cpu_threads
+
+            how["threads"] = set_cpu_threads()  # every CPU the affinity allows
+    return MapPredictor(net, device=dev, precision=precision, batch_size=batch_size), meta, how
+
+
+class NetworkSolver(Solver):
+    """CNN-PS per tile (see the module docstring)."""
+
+    name = "cnn"
+
+    def __init__(self, predictor, rotations: int, model_path: Path, meta: dict | None = None,
+                 precision_how: dict | None = None, precision: str | None = None, sparse_fill: str = "auto"):
+        self.predictor, self.rotations, self.model_path = predictor, int(rotations), Path(model_path)
+        self.meta, self.precision_how, self.precision, self.sparse_fill = meta, precision_how, precision, sparse_fill
+
+    @classmethod
+    def check(cls, options: dict) -> None:
+        """The model file and the device, checked before any capture is read."""
+        resolve_model(options.get("model"))
+        torch_device(options.get("device", "auto"))
+
+    @classmethod
+    def prepare(cls, options: dict) -> "NetworkSolver":
+        model_path = resolve_model(options.get("model"))
+        precision = options.get("precision", "auto")
+        predictor, meta, how = load_predictor(model_path, options.get("device", "auto"), precision,
+                                              options.get("batch_size"))
+        return cls(predictor, options.get("rotations", 10), model_path, meta, how, precision,
+                   options.get("sparse_fill", "auto"))
+
+    def quick(self) -> "NetworkSolver":
+        """One rotation instead of K: the intermediate rounds under point lights."""
+        if self.rotations == 1:
+            return self
+        quick = copy.copy(self)
+        quick.rotations = 1
+        return quick
+
+    def fills(self, n_images: int, shared_lights: bool = True) -> bool:
+        """Whether the sparse fill runs for ``n_images`` images (shared lights only)."""
+        from cnnps.ps.sparse_fill import should_fill
+
+        return shared_lights and should_fill(self.sparse_fill, n_images)
+
+    def solve(self, tile: Tile, bar=None) -> tuple[np.ndarray, dict[str, int]]:
+        from cnnps.models.inference import PIXEL_CHUNK, rotated_normals
+
+        I, lights = tile.values, tile.lights
+        present = None if tile.missing is None else ~tile.missing
+        filled = 0
+        if self.fills(I.shape[1], lights.ndim == 2):
+            from cnnps.ps.sparse_fill import lambertian_fill
+
+            f = lambertian_fill(I, lights, light_mask=present, w=self.predictor.w)
+            I, lights, present, filled = f.intensities, f.lights, f.light_mask, int(f.filled.sum())
+        N = np.asarray(rotated_normals(self.predictor, I, lights, self.rotations, light_mask=present, progress=bar,
+                                       pixel_chunk=PIXEL_CHUNK, views=tile.views), dtype=np.float64)
+        if N.shape != (tile.n, 3) or not np.all(np.isfinite(N)):
+            raise CnnpsError(f"the model returned invalid normals (shape {N.shape} or NaN values)")
+        return N, {"filled": filled}
+
+    def progress_bar(self, n_pixels: int):
+        from cnnps.infra.progress import progress_bar
+
+        return progress_bar(total=n_pixels * self.rotations, unit="map", unit_scale=True, desc="cnn-ps")
+
+    def warnings(self, n_images: int) -> list[str]:
+        """One line when the capture has fewer images than the model's sparsest training maps."""
+        from cnnps.models.shipped import trained_min_lights
+
+        fewest = trained_min_lights(self.model_path, self.meta)
+        if fewest is None or n_images >= fewest:
+            return []
+        how = ("the Lambertian fill is on: see --sparse-fill" if self.fills(n_images)
+               else "try --sparse-fill on, --method lambertian, or a model trained with sparse lights")
+        return [f"{n_images} images, but this model was trained on maps of {fewest} or more lights: "
+                f"expect larger errors ({how})"]
+
+    def record(self, counts: dict[str, int], n_images: int, shared_lights: bool) -> dict:
+        return {"model": str(self.model_path), "rotations": self.rotations,
+                "precision": getattr(self.predictor, "precision", self.precision),
+                "precision_choice": self.precision_how,
+                "sparse_fill": {"mode": self.sparse_fill, "used": self.fills(n_images, shared_lights),
+                                "filled_pixels": int(counts.get("filled", 0))},
+                "shadow_threshold": None}
+
+    def finish(self, n_pixels: int, seconds: float) -> None:
+        """Tell the precision probe how fast this run went (maps per second), so a cached
+        choice far slower than its probe is measured again next time
+        (:func:`cnnps.models.precision_probe.report_rate`); only for ``precision="auto"``."""
+        how = self.precision_how or {}
+        if how.get("requested") != "auto" or not how.get("key") or seconds < RATE_MIN_SECONDS:
+            return
+        from cnnps.models.precision_probe import report_rate
+
+        rate = n_pixels * self.rotations / seconds
+        how["run_maps_per_second"] = round(rate, 1)
+        how["cache_dropped"] = bool(report_rate(how["key"], rate))

@@ -1,0 +1,121 @@
+"""What a normal solver is: the interface every method of ``cnnps predict`` implements.
+
+A capture is solved tile by tile (consecutive mask pixels, :mod:`cnnps.api.normals`). For
+each tile the loop asks the light model for the tile's lights, wraps them with the
+observations and the camera in a :class:`Tile`, and hands it to the solver, which returns
+one normal per pixel. The loop itself knows nothing of the method, the camera or the lights.
+
+A solver is a class with a registry name (:mod:`cnnps.api.solvers` lists them):
+
+- ``check(options)`` (class method): refuse bad options cheaply, before any capture is read;
+- ``prepare(options)`` (class method): the solver, ready for every tile (a network is
+  loaded here, once);
+- ``solve(tile, bar)``: (n, 3) normals for the tile's n pixels, and counts to add up;
+- optional: ``quick()`` a cheaper copy for the intermediate rounds under point lights,
+  ``progress_bar``, ``notes``, ``warnings``, ``record`` and ``finish``.
+
+``options`` is the dict of :func:`cnnps.predict`'s checked options (``model``,
+``rotations``, ``device``, ``precision``, ``batch_size``, ``shadow_threshold``,
+``sparse_fill``, ...); a solver reads the ones it needs.
+
+Frame: lights, views and normals in the capture frame (x right, y up, z toward the camera).
+
+>>> import numpy as np
+>>> class Facing(Solver):
+...     name = "facing"
+...     def solve(self, tile, bar=None):
+...         return np.tile([0.0, 0.0, 1.0], (tile.n, 1)), {}
+>>> tile = Tile(np.ones((2, 3), np.float32), None, np.eye(3), np.zeros(2), np.arange(2.0))
+>>> Facing.prepare({}).solve(tile)[0].shape
+(2, 3)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, ClassVar
+
+import numpy as np
+
+
+@dataclass
+class Tile:
+    """One tile of mask pixels, as a solver sees it.
+
+    values: (n, m) float32 observations, each divided by its light's intensity (and, under
+        point lights, by the light's 1 / r^2 at the pixel).
+    missing: (n, m) bool, True where an observation is missing (saturated), or None.
+    lights: (m, 3) unit directions shared by the tile, or (n, m, 3) each pixel's own.
+    rows, cols: (n,) the pixels' image coordinates (row 0 on top).
+    view_of: the camera's ``views(rows, cols)``: (n, 3) unit view directions toward the
+        camera, or None for an orthographic camera (every view +z).
+    """
+
+    values: np.ndarray
+    missing: np.ndarray | None
+    lights: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+    view_of: Callable | None = None
+    _views: np.ndarray | None = field(default=None, init=False, repr=False)
+
+    @property
+    def n(self) -> int:
+        return int(self.values.shape[0])
+
+    @property
+    def views(self) -> np.ndarray | None:
+        """(n, 3) view directions under a pinhole camera, None under an orthographic one;
+        computed on first use."""
+        if self._views is None and self.view_of is not None:
+            self._views = self.view_of(self.rows, self.cols)
+        return self._views
+
+
+class Solver:
+    """A normal solver (see the module docstring). Subclasses set ``name`` and implement
+    :meth:`solve`; the rest has defaults that suit a per-pixel method."""
+
+    name: ClassVar[str] = ""
+    only_options: ClassVar[tuple[str, ...]] = ()  # options no other solver accepts
+
+    @classmethod
+    def check(cls, options: dict) -> None:
+        """Refuse bad options before any work (a ConfigError or InputError naming them)."""
+
+    @classmethod
+    def prepare(cls, options: dict) -> "Solver":
+        """The solver, ready for every tile of one capture."""
+        return cls()
+
+    def solve(self, tile: Tile, bar=None) -> tuple[np.ndarray, dict[str, int]]:
+        """((n, 3) normals of the tile's pixels, any float dtype, not necessarily unit;
+        counts to add up over the tiles, e.g. ``{"invalid": 3}``). ``bar``: a progress bar
+        (:meth:`progress_bar`) or None."""
+        raise NotImplementedError
+
+    def quick(self) -> "Solver":
+        """A cheaper solver for the intermediate rounds under point lights (itself by default)."""
+        return self
+
+    def progress_bar(self, n_pixels: int):
+        """A progress bar for ``n_pixels`` pixels; :meth:`solve` advances it."""
+        from cnnps.infra.progress import progress_bar
+
+        return progress_bar(total=n_pixels, unit="px", unit_scale=True, desc=self.name)
+
+    def notes(self, counts: dict[str, int]) -> list[str]:
+        """Lines for the record's ``notes`` from the summed counts."""
+        return []
+
+    def warnings(self, n_images: int) -> list[str]:
+        """Lines for the record's ``warnings`` about this capture (e.g. too few images)."""
+        return []
+
+    def record(self, counts: dict[str, int], n_images: int, shared_lights: bool) -> dict:
+        """What ``prediction.json`` records about the solver (``shared_lights``: every
+        pixel saw the same light directions)."""
+        return {}
+
+    def finish(self, n_pixels: int, seconds: float) -> None:
+        """Called after the last tile of a capture with its pixel count and seconds."""
