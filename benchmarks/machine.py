@@ -1,5 +1,6 @@
-"""The machine a benchmark ran on, recorded next to its results (``"cpu"`` in
-``benchmarks/results/*.json``)."""
+"""The machine a benchmark ran on (``machine.cpu`` of a result file,
+:func:`benchmarks.harness.machine`), a file-name slug for its kind of CPU, and its GEMM
+peaks (what a roofline states rates against)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,18 @@ def cpu_info() -> dict:
     return info
 
 
+def cpu_kind(info: dict | None = None) -> str:
+    """A file-name slug for the CPU kind: model words and the widest vector extension
+    (``amd-epyc_avx2``, ``intel-xeon_avx512-bf16``), so one kind's numbers never overwrite
+    another's."""
+    info = cpu_info() if info is None else info
+    words = [w for w in info["model"].lower().replace("(r)", " ").replace("(tm)", " ").replace("-", " ").split()
+             if w not in ("processor", "cpu", "core") and not w.startswith("@")]
+    flags = set(info.get("flags", []))
+    ext = next((f for f in ("amx_bf16", "avx512_bf16", "avx512f", "avx2") if f in flags), "novec")
+    return "-".join(words[:3]) + "_" + ext.replace("_", "-")
+
+
 def gemm_peaks(repeat: int = 5, n: int = 2048) -> dict:
     """The best GEMM rate of this process's torch threads, in GFLOP/s, for each precision
     the network can run in: ``fp32`` (n x n float32 matmuls) and ``bf16`` (n x n bfloat16
@@ -28,38 +41,16 @@ def gemm_peaks(repeat: int = 5, n: int = 2048) -> dict:
     fraction of fp32's rate, and ``bf16_kernels`` False says so). Each is the fastest of
     ``repeat`` products after one untimed product (kernel creation). A roofline states a
     rate against the peak of the precision that ran: rate x FLOP per item / peak."""
-    import time
-
     import torch
 
+    from benchmarks.harness import measure
     from cnnps.models.train_layers import mkldnn_bf16_available
 
     def best(dtype, size) -> float:
         a, b = torch.rand(size, size).to(dtype), torch.rand(size, size).to(dtype)
-        torch.mm(a, b)
-        fastest = float("inf")
-        for _ in range(repeat):
-            t0 = time.perf_counter()
-            torch.mm(a, b)
-            fastest = min(fastest, time.perf_counter() - t0)
+        fastest = measure(lambda: torch.mm(a, b), repeat=repeat, warmup=1).min
         return round(2 * size**3 / fastest / 1e9, 1)
 
     kernels = mkldnn_bf16_available()
     return {"fp32": best(torch.float32, n), "bf16": best(torch.bfloat16, n if kernels else 512),
             "bf16_kernels": kernels, "threads": torch.get_num_threads(), "n": n}
-
-
-def run_record(script: str, argv: list[str] | None = None) -> dict:
-    """What a benchmark's result file records of its run: ``date`` (UTC), ``cpu``
-    (:func:`cpu_info`), ``commit`` (of the checkout the script is in) and ``command``
-    (``script`` and its arguments, ``sys.argv[1:]`` unless given)."""
-    import datetime
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    repo = Path(__file__).resolve().parents[1]
-    commit = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-    args = sys.argv[1:] if argv is None else argv
-    return {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "cpu": cpu_info(),
-            "commit": commit, "command": " ".join([script, *args])}

@@ -19,13 +19,11 @@ Every progress bar of the package is made by :func:`progress_bar`. It returns a
 ``$CNNPS_PROGRESS`` (``auto`` (default), ``tty``, ``plain`` or ``off``) overrides the
 choice for every bar; any other value is read as ``auto``. ``disable=True`` always wins.
 
-Measured for a bar of 10,000 steps of about 1 ms (10.7 s) writing into a pipe: a plain
-``tqdm`` (its ``mininterval`` is 0.1 s) wrote 109 redraws joined by ``\\r``, 6,564
-characters, and with ``leave=False`` ended on a blank line (the bar cleared);
-:class:`PlainBar` wrote one line, 61 characters
-(``cnn-ps: 100%|...| 10.0k/10.0k [00:10<00:00, 932map/s]``). Over a simulated
-500 s the same bar is 287,994 characters as a plain ``tqdm`` against 9 lines, 558
-characters. ``tests/infra/test_progress.py`` holds the bounds.
+Why: in a pipe a plain ``tqdm`` writes a redraw joined by ``\\r`` every ``mininterval``
+(0.1 s), so a long bar fills a log, and with ``leave=False`` it ends on a blank line;
+:class:`PlainBar` writes one line a minute and keeps the summary
+(``cnn-ps: 100%|...| 10.0k/10.0k [00:10<00:00, 932map/s]``). How much each writes:
+docs/performance.md#other-commands; ``tests/infra/test_progress.py`` holds the bounds.
 """
 
 from __future__ import annotations

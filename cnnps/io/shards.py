@@ -9,9 +9,9 @@ Columns (see :func:`shard_schema`):
   row-major, indexed ``[row = y cell, col = x cell]`` exactly like
   :func:`cnnps.ps.obsmap.observation_maps` (the field metadata says so). A binary column
   is used instead of ``fixed_size_list<halffloat>[w*w]`` because Parquet stores a
-  repetition/definition level per list element: measured here, the list column wrote
-  5x slower (about 20k against 110k rows/s) and read 3x slower than raw bytes, for the
-  same file size. Decoding is one ``np.frombuffer``.
+  repetition/definition level per list element, which makes the list column slower to
+  write and to read for the same file size (docs/performance.md#shards-and-the-loader).
+  Decoding is one ``np.frombuffer``.
 - ``normal``: ``fixed_size_list<float>[3]`` unit normal (x right, y up, z to camera).
 - ``scene``: dictionary-encoded string scene id; ``row``, ``col``: the pixel (int32);
   ``n_lights``: lights used for this map (int16); ``cone_deg``: half-angle (degrees) of
@@ -70,10 +70,9 @@ MANIFEST = "manifest.json"
 MANIFEST_INDENT = 1  # manifest.json is json.dumps(..., indent=1): its checksum hashes that form
 FIX_EXTRACT = "rerun `cnnps run-stage extract` (it redoes the damaged scenes and rewrites the manifest)"
 MAP_DTYPE = np.dtype("<f2")
-# Row groups decoded ahead by ShardStream's background thread: on 2 cores (AMD EPYC, AVX2)
-# the loader alone gives 314k samples/s with it, 245k without (benchmarks/bench_loader.py)
+# Row groups decoded ahead by ShardStream's background thread (docs/performance.md#shards-and-the-loader)
 PREFETCH_DEFAULT = 2
-ZSTD_LEVEL = 1  # level 1: 110k rows/s written vs 85k at the default 3, same size here
+ZSTD_LEVEL = 1  # faster to write than zstd's default 3, the same size for these maps
 
 
 def shard_schema(w: int) -> pa.Schema:
@@ -421,7 +420,7 @@ def check_finite(path: str | Path, group: int, maps: np.ndarray, normals: np.nda
     """InputError naming the shard when row group ``group`` holds a NaN or infinite map
     cell or normal (never written by the extract stage: such a file is damaged or foreign)."""
     if maps.dtype == np.float16:
-        # all-ones exponent = Inf or NaN; 6x faster than np.isfinite, which has no float16 fast path
+        # all-ones exponent = Inf or NaN; np.isfinite has no float16 fast path
         finite = maps.size == 0 or int(np.bitwise_and(maps.view(np.uint16), 0x7C00).max()) != 0x7C00
     else:
         finite = bool(np.isfinite(maps).all())

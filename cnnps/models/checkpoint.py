@@ -14,7 +14,7 @@ objects, so a checkpoint from an untrusted source cannot run code. ``config`` an
 ``meta`` must therefore be JSON-like (dict, list, str, int, float, bool, None); this is
 checked when saving. The zip container torch writes does not verify its CRCs on load,
 so the weights carry their own SHA-256 and :func:`read_checkpoint` also checks every
-member's CRC-32 (``zipfile``: ~10 ms for 10 MB), which covers the pickled config and
+member's CRC-32 (``zipfile``), which covers the pickled config and
 meta: flipped bytes are reported, not silently used. A ``<file>.sha256`` next to the
 checkpoint (``sha256sum`` format; :func:`write_sha256_file`, written by the train stage
 for ``model.pt``) is verified too, when present: it covers every byte of the file.

@@ -6,7 +6,7 @@ the network in small batches, and finally rotates each prediction back by -theta
 averages (``cnnps.ps.rotation.average_rotated_predictions``). Only one chunk's maps exist
 at a time, so memory stays bounded for any image size.
 
-Speed (see ``benchmarks/bench_inference.py``): a CNNPS model is never run as trained.
+Speed (``docs/performance.md``): a CNNPS model is never run as trained.
 On CPU it runs as ``cnnps.models.network.FastCNNPS`` (linear layers folded: ~20 % fewer
 operations; no dropout; no concatenations; ReLU and partial sums fused into oneDNN
 convolutions), in fp32 or with its own bf16 weights (precision="bf16"; no autocast); on
@@ -36,9 +36,7 @@ PRECISIONS = ("fp32", "bf16")
 # Maps built at once (all K rotations of PIXEL_CHUNK // K pixels): 4096 x 32 x 32 float32 = 16 MB.
 PIXEL_CHUNK = 4096
 # Network batch sizes: small batches keep the activations in the CPU caches, which is
-# worth more than the per-call overhead. Measured on a 2-core Xeon with the shipped model
-# (predict_normals, 16,000 px, K=1, maps included): 64 -> 3,700-3,900 maps/s, 256 ->
-# 3,800-4,400, 1024 -> 2,600-2,800, 4096 -> 1,800-2,100. GPUs want large batches.
+# worth more than the per-call overhead (docs/performance.md#inference). GPUs want large batches.
 DEFAULT_BATCH_CPU = 256
 DEFAULT_BATCH_CUDA = 4096
 

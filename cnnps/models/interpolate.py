@@ -6,7 +6,8 @@
 fine-tuned from A (Wortsman et al., "Robust fine-tuning of zero-shot models", CVPR 2022):
 both then lie in one basin of the loss, and the mid-point often keeps most of what the
 fine-tune gained while giving back less of what it cost. Model v3.1 is such a mid-point of
-v2 and v3 (README, "Model v3"); the measurements chose alpha, not this module.
+v2 and v3 (docs/models.md#v31-the-mid-point-of-v2-and-v3); the measurements chose alpha,
+not this module.
 
 The output's ``meta`` records alpha and each end's file, SHA-256 and meta; ``min_lights``
 (what ``cnnps predict`` warns below) is the larger of the two ends' values, the fewest

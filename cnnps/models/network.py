@@ -138,9 +138,9 @@ def counter_dropout(t: torch.Tensor, p: float, key: tuple[int, ...], row0: int =
     with 16), and kept elements are scaled by 1 / (1 - that rate),
     as :class:`torch.nn.Dropout` does. The masks follow from ``key`` alone: a run resumed
     at step k draws what the uninterrupted run drew, with no generator state to save, and
-    a batch split between processes draws what it draws whole. Drawing them is ~4x
-    cheaper on a CPU than torch's ``bernoulli_`` (which took a third of a training step
-    on 2 cores; ``benchmarks/bench_train.py``). The layout follows ``t``'s memory order
+    a batch split between processes draws what it draws whole. Drawing them is cheaper on
+    a CPU than torch's ``bernoulli_`` (docs/performance.md#the-training-step-on-a-cpu).
+    The layout follows ``t``'s memory order
     (channels_last included), so the multiply streams.
 
     Example: for a batch ``b`` and a key ``k`` (say (seed, 0, step, layer)),
@@ -237,7 +237,7 @@ class FastCNNPS(nn.Module):
     dense-block convolution is split by input group and the partial results are added
     inside the convolution (oneDNN "add" post-op, fused with the ReLU); the transition
     and the first dense layer are split the same way. Nothing is ever copied into a
-    growing concatenated tensor, which on a 2-core Xeon was a quarter of the run time.
+    growing concatenated tensor (docs/performance.md#inference).
     The first dense layer reads the channels_last features in their memory order (its
     weight columns are permuted to match), so flattening copies nothing either.
 

@@ -38,10 +38,9 @@ measured, once per machine:
    answer comes from the cache). Inter-op threads are not tuned: the network is one chain
    of operators, with nothing to run side by side.
 
-6. **Load**: timings taken while other work shares the CPUs decide wrongly (a probe
-   measured beside another job once found 1 thread faster than 2, 1,957 against 1,153
-   maps/s, where the quiet machine gives 2 threads 2,987, and the cached pick halved every
-   later run's speed). Every timed call records the process's CPU time beside its wall
+6. **Load**: timings taken while other work shares the CPUs decide wrongly, and a cached
+   wrong pick slows every later run (docs/performance.md#inference has a probe misled by
+   load). Every timed call records the process's CPU time beside its wall
    time (:class:`TimedPass`); :func:`judge_load` calls the probe *under load* when, at
    some thread count, the threads got less than :data:`LOAD_SHARE` of their CPUs' time
    (CPU seconds / (wall seconds x threads): a quiet machine gives about 1, since the
@@ -56,7 +55,7 @@ measured, once per machine:
    job on a hyperthread sibling (the threads keep their CPU time but run slower): a run
    that is then far slower than the probe is the second guard (:func:`report_rate`).
 
-The probe takes about a second. Its answer is cached per (CPU model and flags, logical
+Its answer is cached per (CPU model and flags, logical
 CPUs, torch version, device, model SHA-256) in ``$CNNPS_CACHE_DIR`` or
 ``$XDG_CACHE_HOME/cnnps`` (default ``~/.cache/cnnps``), file ``precision.json``, written
 atomically; a cache that cannot be read or written is ignored (the probe just runs

@@ -8,7 +8,7 @@ with a float64 reference); only the order of the arithmetic changes:
 
 - **first convolution** (1 input channel): oneDNN has no fast kernel for a single input
   channel in NHWC, so the 3x3 neighbourhoods are gathered (9 columns) and multiplied by
-  the (9, 16) weights in one GEMM (~2.4x cheaper forward and backward on 2 EPYC cores);
+  the (9, 16) weights in one GEMM, forward and backward;
 - **dense-block layers** ``relu(drop(conv(x)))``: one autograd node. The convolution
   runs with oneDNN's fused ReLU and the mask is multiplied in place; since the mask is
   non-negative, ``relu(drop(z)) = drop(relu(z))`` and the backward needs only the output
@@ -20,7 +20,9 @@ with a float64 reference); only the order of the arithmetic changes:
 - **last 1x1 convolution**: a batched GEMM that writes its output directly in the
   (channel, pixel) order the first dense layer reads, so flattening copies nothing;
 - **bias gradients** are column sums of the NHWC output gradient, outside oneDNN's
-  ``convolution_backward``, which computed them slowly.
+  ``convolution_backward``, which computes them slowly.
+
+What each costs and saves: docs/performance.md#fused-layers-and-a-kept-heap.
 
 All activations are NHWC (channels_last). The masks are those of
 :func:`cnnps.models.network.counter_dropout` for the same key and layer.
@@ -60,8 +62,7 @@ def counter_keep(shape: tuple[int, ...], p: float, key: tuple[int, ...], row0: i
     masks the whole batch has there. An element is kept when its bits, read as a signed
     integer, are >= -2^(bits-1) + round(p 2^bits): the drop rate is p to within
     2^-(bits+1) (16 bits: 0.2 is 13107 / 65536, 0.19999695), and the scale is 1 / (1 -
-    that rate). 16 bits draw half the random numbers (~2 ms less a step of 64 rows on one
-    AMD EPYC core)."""
+    that rate). 16 bits draw half the random numbers."""
     if bits not in COUNTER_MASK_BITS.values():
         raise ValueError(f"mask bits must be one of {sorted(COUNTER_MASK_BITS.values())}, got {bits!r}")
     rows, per_row = int(shape[0]), int(np.prod(shape[1:], dtype=np.int64))
@@ -118,8 +119,8 @@ def _conv3x3_relu(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor) -> torch.Te
 
 def bias_grad(gz: torch.Tensor) -> torch.Tensor:
     """The bias gradient of a convolution, ``gz.sum((0, 2, 3))``, read as the column sums
-    of the (B*H*W, C) matrix a channels_last ``gz`` is: a third to a half of what oneDNN
-    took for it inside ``convolution_backward`` (~10 ms a step on 2 EPYC cores)."""
+    of the (B*H*W, C) matrix a channels_last ``gz`` is, cheaper than oneDNN's sum inside
+    ``convolution_backward``."""
     if gz.is_contiguous(memory_format=torch.channels_last):
         return gz.permute(0, 2, 3, 1).reshape(-1, gz.shape[1]).sum(0, dtype=torch.float32).to(gz.dtype)
     return gz.sum((0, 2, 3), dtype=torch.float32).to(gz.dtype)

@@ -28,7 +28,10 @@ from cnnps.infra.errors import CnnpsError, ConfigError
 from cnnps.pipeline.app import app
 
 PARAMS_HELP = "Params file (default: params.yaml in the current folder)."
-PRESET_HELP = "Use cnnps/presets/NAME.yaml instead of params.yaml (demo, full, cpu-train, ...; `cnnps stages` lists them)."
+PRESET_HELP = (
+    "Use cnnps/presets/NAME.yaml instead of params.yaml (demo, full, cpu-train, ...; `cnnps stages` lists them), "
+    "or a params file by its path (docs/recipes/cpu-train-v4.yaml)."
+)
 DATA_HELP = "Folder for stage outputs (default: data_dir from the params file, else data)."
 
 

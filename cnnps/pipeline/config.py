@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import inspect
+import os
 import re
 import types
 import typing
@@ -78,6 +79,14 @@ def list_presets() -> list[str]:
 
 
 def preset_path(name: str) -> Path:
+    """The params file of ``--preset NAME``: ``cnnps/presets/NAME.yaml``, or, when ``name``
+    ends in ``.yaml``/``.yml`` or names a folder (``docs/recipes/cpu-train-v4.yaml``), that
+    file, relative to the current folder."""
+    if name.endswith((".yaml", ".yml")) or "/" in name or os.sep in name:
+        path = Path(name)
+        if not path.is_file():
+            raise ConfigError(f"{path}: preset file not found")
+        return path
     path = PRESETS_DIR / f"{name}.yaml"
     if not path.is_file():
         raise ConfigError(f"unknown preset {name!r}; presets are: {', '.join(list_presets()) or '(none)'}")

@@ -28,11 +28,9 @@ Brooks, discretised on the mask as in Quéau, Durou & Aujol's survey:
   multigrid on the pixel grid (2 x 2 aggregates, whose Galerkin coarse operators stay
   grid graph Laplacians; damped-Jacobi smoothing, weight 2/3; coarse corrections scaled
   by 1.8, the over-correction that plain aggregation needs, after Braess; a direct solve
-  (SuperLU) at the coarsest level), all matrix-free: :mod:`cnnps.ps.grid_poisson`. A
-  1-megapixel mask takes a few seconds on one core (``benchmarks/bench_integrate.py``),
-  and the whole ``cnnps integrate`` command about 120 bytes a mask pixel at peak
-  (``benchmarks/bench_integrate_memory.py``), where a sparse direct factorisation takes
-  15 s or more and gigabytes of fill-in.
+  (SuperLU) at the coarsest level), all matrix-free: :mod:`cnnps.ps.grid_poisson`, where
+  a sparse direct factorisation needs gigabytes of fill-in at megapixel masks (time and
+  memory: docs/performance.md#other-commands).
 * Perspective (``intrinsics=K``). A pinhole camera sees the surface point
   X(u, v) = d(u, v) r(u, v) at pixel (u, v), where d > 0 is the depth (distance along the
   optical axis) and r = diag(1, -1, -1) K^-1 (u, v, 1) the pixel's ray in the capture frame
@@ -46,10 +44,9 @@ Brooks, discretised on the mask as in Quéau, Durou & Aujol's survey:
   median depth of ``distance`` (default 1: shape up to scale). With ``discontinuities``,
   ``sigma`` keeps its unit, pixels of height per pixel: a height step of s pixel
   footprints at depth d is a log-depth step of s / f (f = sqrt(fx fy), the focal length in
-  pixels), so the log-depth residuals are weighted with sigma / f. (Taken as log-depth
-  units, the default 0.1 would cut only jumps of 10 % of the depth, and a step surface
-  under a 40 or 70 degree lens kept 23-25 % of its neighbour pairs distorted, as plain
-  least squares does; scaled, 0.2 %, as orthographic.) The grazing test uses
+  pixels), so the log-depth residuals are weighted with sigma / f (taken as log-depth
+  units, the default 0.1 would cut only jumps of 10 % of the depth; docs/calibration.md
+  has what that costs). The grazing test uses
   the cosine between the normal and the pixel's view, -n . r / |r|, in place of n_z.
 * Grazing normals. n_z is clamped to ``nz_min`` (slopes of at most 1 / nz_min pixels
   per pixel), and equations touching a pixel with n_z < nz_min are down-weighted in

@@ -1,8 +1,8 @@
 """Lambertian fill: virtual observations that densify a sparse observation map.
 
 A map built from 6-20 images holds 6-20 cells of 1,024; the network reads such maps far
-worse than dense ones (on BALL's 10-image list, even on exactly Lambertian values it was
-8.6° at K=1 where least squares gets ~0°). For a pixel whose observations a Lambertian
+worse than dense ones, even on exactly Lambertian values (docs/results.md#few-images-the-lambertian-fill).
+For a pixel whose observations a Lambertian
 model explains, more cells can be made: fit b = albedo x normal by least squares to its
 lit observations, then add ``count`` *virtual* lights at empty cells inside the cone of
 the real ones, with the values max(b . l, 0) the fit predicts. The real observations stay
@@ -13,11 +13,11 @@ its values fill the map (the bright observation stays in the map as measured). A
 neither fit explains (metallic, shadowed, inter-reflections: what least squares gets
 wrong) gets no virtual observations at all, so the network alone decides there.
 
-Used only below ``FILL_BELOW`` images (:func:`should_fill`); measured choices (README,
-"Sparse images: the Lambertian fill"): 90 virtual lights (with ~10 real ones, a map about
-as full as DiLiGenT's 96), a residual gate of 0.1 and the second chance (both chosen on the
-eval stage's synthetic captures, not on BALL). Filling every cell of the cone instead (~300) made every figure
-worse: the training maps never hold more than ~200 lights.
+Used only below ``FILL_BELOW`` images (:func:`should_fill`). The defaults were chosen by
+measurement on the eval stage's synthetic captures, not on BALL
+(docs/results.md#few-images-the-lambertian-fill): 90 virtual lights (with ~10 real ones, a
+map about as full as DiLiGenT's 96), a residual gate of 0.1 and the second chance. Filling
+every cell of the cone instead is worse: the training maps never hold more than ~200 lights.
 
 All arrays follow :func:`cnnps.ps.obsmap.observation_maps`: intensities (P, m) already
 divided by the light intensities, lights (m, 3) unit vectors (x right, y up, z to the

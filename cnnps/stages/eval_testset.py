@@ -12,8 +12,6 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.infra.atomic import write_text
-
 TEST_SEED_OFFSET = 1_000_003  # test shapes' seeds never coincide with the training shapes'
 SPHERE = "sphere"
 
@@ -69,43 +67,32 @@ def twin_size(size: int, rig) -> int:
     return int(round(size * CAMERA_ORIGIN[2] * np.tan(np.radians(rig.fov_deg) / 2)))
 
 
-RIG_KEY = "rig_key.json"  # beside a rig twin's files: the settings it was rendered with
-
-
 def build_rig_twins(params, data_dir: Path) -> list[Path]:
     """The test captures rendered again through ``params.rig`` (same shape, pose, material
-    category, seed and light directions; :func:`cnnps.synth.rig_render.render_rig_capture`)
-    under ``data_dir/eval/testset/<capture>-<rig>/``, reused while their settings hold.
-    Call after :func:`build_testset` (which prunes the folders of older plans)."""
-    import json
-    import shutil
-
-    from cnnps.synth.rig_render import render_rig_capture
+    category, seed and light directions) under ``data_dir/eval/testset/<capture>-<rig>/``:
+    :func:`cnnps.synth.capture_render.render_capture` with the rig's ``fov_deg`` and
+    ``light_distance`` at :func:`twin_size`, so a twin is content-keyed and resumed like
+    every rendered capture (reused while its settings hold, rendered again when the rig
+    changes, a killed render finished). Call after :func:`build_testset` (which prunes the
+    folders of older plans)."""
+    from cnnps.synth.capture_render import render_capture
 
     root = Path(data_dir) / "eval" / "testset"
     rig = params.rig
     out = []
     meshes: dict[str, object] = {}
     for c in testset_plan(params):
-        folder = root / rig_name(c["name"], rig)
-        size = twin_size(params.size, rig)
-        key = {"fov_deg": rig.fov_deg, "light_distance": rig.light_distance, "lights": c["lights"],
-               "size": size, "samples": params.samples, "material": c["category"],
-               "superpixels": params.superpixels, "seed": c["seed"], "shape": c["shape"], "shape_seed": c["shape_seed"]}
-        done = folder / RIG_KEY
-        if done.is_file() and json.loads(done.read_text()) == key:
-            out.append(folder)
-            continue
-        if folder.exists():
-            shutil.rmtree(folder)  # another rig, or killed before its key was written
         if c["shape"] not in meshes:
-            meshes.clear()
+            meshes.clear()  # twins of one shape are consecutive
             meshes[c["shape"]] = test_mesh(c["shape"], c["shape_seed"])
-        render_rig_capture(meshes[c["shape"]], folder, fov_deg=rig.fov_deg, light_distance=rig.light_distance,
-                           lights=c["lights"], size=size, samples=params.samples, material=c["category"],
-                           superpixels=params.superpixels, seed=c["seed"], progress=False)
-        write_text(done, json.dumps(key, indent=1) + "\n")
-        out.append(folder)
+        out.append(
+            render_capture(
+                meshes[c["shape"]], root / rig_name(c["name"], rig), lights=c["lights"],
+                size=twin_size(params.size, rig), samples=params.samples, material=c["category"],
+                superpixels=params.superpixels, seed=c["seed"], jitter_deg=0.0, fov_deg=rig.fov_deg,
+                light_distance=rig.light_distance, progress=False,
+            )
+        )
     return out
 
 

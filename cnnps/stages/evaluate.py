@@ -71,7 +71,6 @@ from cnnps.stages.eval_report import (  # noqa: F401 (format_table: part of this
     write_report,
 )
 from cnnps.stages.eval_testset import (  # noqa: F401 (part of this stage's API)
-    RIG_KEY,
     SPHERE,
     TEST_SEED_OFFSET,
     build_rig_twins,

@@ -1,110 +1,68 @@
 """Stage ``train``: fit CNN-PS on the extracted shards.
 
-Reads ``data_dir/extract/manifest.json`` and streams the ``train`` shards through
+Reads ``data_dir/extract/manifest.json`` (or ``data.shards``: a path or an fsspec URL, the
+extract stage's ``output``) and streams the ``train`` shards through
 :class:`cnnps.io.shards.ShardStream` (row groups shuffled per epoch, a shuffle buffer;
 the data never has to fit in memory). Loss: MSE between the predicted and the true unit
 normal; Adam. Validation (mean / median angular error in degrees over up to
 ``val_max_rows`` maps of the ``val`` scenes, each map on its own, no rotation
-averaging, through the batched inference of ``cnnps predict``) runs every
+averaging, through the batched inference of ``cnnps predict``, always in fp32) runs every
 ``val_every`` steps and at the end.
 
 This module holds the stage's ``Params`` (nested: ``optimiser``, ``data``, ``pixelwise``,
 ``cpu``; see :class:`Params`), its run key and :func:`run`; the machinery is in
-:mod:`cnnps.train`: :mod:`cnnps.train.loop` (the loop: data set-up, resume, step
-loop, finish), :mod:`cnnps.train.optimiser` (model and Adam, learning rate, one step),
-:mod:`cnnps.train.resume` (resumable checkpoints, RNG states),
-:mod:`cnnps.train.validation`, :mod:`cnnps.train.distributed` (torchrun) and
-:mod:`cnnps.train.openmp`.
+:mod:`cnnps.train` (:mod:`~cnnps.train.loop`, :mod:`~cnnps.train.optimiser`,
+:mod:`~cnnps.train.resume`, :mod:`~cnnps.train.validation`,
+:mod:`~cnnps.train.distributed`, and the CPU and GPU speed modules named below).
 
 Resuming: every ``checkpoint_every`` steps (and at the end) ``data_dir/train/
 checkpoints/step-NNNNNNNN.pt`` is written atomically with model, optimiser, torch RNG
-states, the step (= loader position: epoch and batches consumed; the batch order of an
-epoch is a function of (seed, epoch)) and the metric history. ``run`` continues from the
-newest checkpoint whose run key (:func:`run_key`: the params that change the result +
-the manifest hash) matches, so a killed run resumed to N steps ends with the same weights as an
-uninterrupted run (tests/stages/test_train.py checks it). ``epochs``, ``max_steps`` and
-the logging/checkpoint intervals are not part of the key: raising ``max_steps`` or
-``epochs`` continues a finished run.
+states, the step (= loader position: the batch order of an epoch is a function of
+(seed, epoch)) and the metric history. :func:`run` continues from the newest checkpoint
+whose run key (:func:`run_key`: the params that change the result, the manifest hash and
+the ``init`` weights' SHA-256) matches, so a killed run resumed to N steps ends with the
+weights of an uninterrupted one. ``epochs``, ``max_steps`` and the logging/checkpoint
+intervals are not part of the key: raising ``max_steps`` or ``epochs`` continues a
+finished run.
 
-Learning rate: ``optimiser.lr``, multiplied by ``optimiser.lr_gamma`` at each step in
-``optimiser.lr_milestones``
-(:func:`cnnps.train.optimiser.lr_at`; a step schedule, independent of ``max_steps``). Fine-tuning: ``init``
-names a cnnps checkpoint (e.g. a shipped model) whose weights replace the random
-initialisation; the SHA-256 of those weights, not the path, is part of the run key and
-is recorded in the model's meta (``init_weights_sha256``).
+Learning rate: ``optimiser.lr`` times ``optimiser.lr_gamma`` at each step of
+``optimiser.lr_milestones`` (:func:`cnnps.train.optimiser.lr_at`, independent of
+``max_steps``). ``init`` names a cnnps checkpoint whose weights replace the random
+initialisation (fine-tuning); its weights' SHA-256 is recorded in the model's meta
+(``init_weights_sha256``).
 
-Shards: read from ``data.shards`` (a path or an fsspec URL, the extract stage's ``output``),
-by default ``data_dir/extract``.
-
-Several processes (DistributedDataParallel). Under ``torchrun`` (which sets
-``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK``), e.g.
+Several processes: under ``torchrun`` (``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK``), e.g.
 ``torchrun --standalone --nproc-per-node 4 -m cnnps run-stage train``, every process
-trains a replica: NCCL on GPUs (process ``LOCAL_RANK`` uses ``cuda:LOCAL_RANK``), gloo on
-CPU. ``data.batch_size`` stays the *global* batch: each of the N ranks takes
-``batch_size / N`` rows a step (it must divide), from its own disjoint share of the row
-groups of every epoch (``ShardStream(rank, world_size)``), and DDP averages the
-gradients, so a step sees ``batch_size`` rows as in one process. Every rank runs the
-same number of steps per epoch: the rows the smallest possible share holds (sum of the
-``groups // N`` smallest row groups) / ``batch_size / N``. Only rank 0 validates and
-writes checkpoints, plots, metrics and the model; a checkpoint also holds every rank's
-RNG state, so a resumed run with the same number of processes ends with the same
-weights as an uninterrupted one (resuming with another number continues from the
-checkpoint, with a different data order from there). The logged loss is the mean over
-all ranks.
+trains a DistributedDataParallel replica (NCCL on GPUs, ``cuda:LOCAL_RANK``; gloo on CPU).
+``data.batch_size`` stays the global batch: each of the N ranks takes ``batch_size / N``
+rows a step (it must divide) from its own disjoint share of every epoch's row groups, and
+every rank runs the same number of steps per epoch. Only rank 0 validates and writes
+checkpoints, plots, metrics and the model; a checkpoint holds every rank's RNG state, so a
+resume with the same number of processes is exact. The logged loss is the mean over ranks.
 
-Speed on CPU (benchmarks/bench_train.py, benchmarks/results/train.json): activations
-are channels_last (``channels_last``, ~1.3x), Adam uses torch's fused kernel
-(``optimiser.fused_adam``), batches are decoded float16 -> float32 by torch, and :func:`run` sets
-``OMP_WAIT_POLICY=PASSIVE`` before torch loads unless the environment sets a policy
-(with another busy process on a 2-core machine, spinning OpenMP threads made training
-2.7x slower); dropout masks are drawn from a counter-based stream keyed by the step
-(``cpu.dropout_masks: counter16``, 16 random bits an element; ``counter`` draws 32; torch's
-``bernoulli_`` took a third of a step on 2 cores);
-with those masks the layers run as :mod:`cnnps.models.train_layers` (``cpu.layers:
-fused``: fewer passes over memory, the same results up to float rounding); and glibc
-keeps freed memory for the next step instead of page-faulting it back in
-(``cpu.keep_freed_memory``, :mod:`cnnps.train.allocator`; docs/performance.md).
-``precision: auto`` (the default) times a few steps in fp32 and in bf16 (autocast) at the
-run's start and steps in bf16 where it is clearly faster and its loss agrees
-(:mod:`cnnps.train.precision`; bf16 is not even tried where the CPU has no bf16
-kernels); ``fp32`` and ``bf16`` fix it. ``metrics.json`` records the choice and the
-precision of each segment of a resumed run; validation always runs in fp32.
-``compile: true`` (torch.compile; slower than eager here, ~40 s to compile; falls back to
-eager with a warning when compilation fails) is opt-in. None of these changes the model or the loss;
-they change float rounding (and, for channels_last or compile, which elements a dropout
-mask draws), so they are part of the resume key, except that ``auto`` enters it as fp32
-(an auto run and an fp32 run resume each other's checkpoints; a resume in another
-precision than the checkpoint's says so in one line and goes on). ``cpu.threads: 1`` is faster than 2 threads
-when another job keeps a core busy.
-
-Processes sharing each step (``cpu.step_processes``; 0, the default, means one per thread
-where it applies: eager steps (float32 or bf16 autocast) with counter masks on a CPU, one training process,
-200 steps or more to go).
-The run's process computes its rows of every batch and ``step_processes - 1`` helper
-processes, started for the run, the rest, each on ``threads / step_processes`` threads
-(:mod:`cnnps.train.step_processes`); it adds their gradients and steps Adam on weights
-kept in shared memory. The dropout masks are drawn per block of 16 rows of a batch, so a
-process's rows draw what they draw in one process: the weights are those of one process
-up to float rounding, and the setting is not part of the resume key. Two 1-thread
-processes made 1.1x the steps of one 2-thread process on 2 AMD EPYC cores, with AVX2 and
-with AVX-512 alike (docs/performance.md).
-
-Feeding a GPU: Parquet row groups are decoded ``data.prefetch`` groups ahead in a background
-thread; on CUDA the float16 batches go through a ring of pinned host buffers with
-non-blocking copies (:mod:`cnnps.train.device_feed`) and are converted on the device,
-and the logged loss is summed on the device and read every ``log_every`` steps only, so
-no step waits for the one before. Per-pixel maps (``pixelwise.share``) are made
-``pixelwise.ahead`` steps ahead in a background thread, on CUDA on a stream of their own
-(:mod:`cnnps.train.maps_ahead`); each step's maps come from a generator seeded by the
-step, so they are the same made ahead or in the step. ``metrics.json`` (``seconds``,
-:mod:`cnnps.train.step_clock`) splits the step loop's wall time: waiting for data,
-validation, checkpoints (benchmarks/bench_stage.py compares the stage with the bare step).
+How a step runs (none of these changes the model or the loss; they change float
+rounding): ``precision`` (``auto`` times fp32 and bf16 steps at the run's start where the
+device has bf16 kernels, :mod:`cnnps.train.precision`; it enters the run key as fp32, and
+``metrics.json`` records the choice and each resumed segment's precision),
+``channels_last``, ``compile`` (opt-in torch.compile, eager with a warning when it fails),
+``optimiser.fused_adam``; on a CPU :func:`run` sets ``OMP_WAIT_POLICY=PASSIVE`` before
+torch loads unless the environment sets a policy (:mod:`cnnps.train.openmp`), and
+``cpu.dropout_masks`` (counter-based masks keyed by the step: resume-exact with no RNG
+state), ``cpu.layers`` (:mod:`cnnps.models.train_layers`), ``cpu.keep_freed_memory``
+(:mod:`cnnps.train.allocator`) and ``cpu.step_processes`` (helper processes computing
+part of each batch's rows, :mod:`cnnps.train.step_processes`; masks drawn per 16-row
+block, so the weights are one process's up to float rounding and the setting is not in
+the run key) apply. On CUDA, batches go through pinned buffers
+(:mod:`cnnps.train.device_feed`) and the loss is read every ``log_every`` steps only.
+Per-pixel maps (``pixelwise.share``) are made ``pixelwise.ahead`` steps ahead
+(:mod:`cnnps.train.maps_ahead`) from a generator seeded by the step, so they are the same
+made ahead or in the step. What each setting costs or gains: ``docs/performance.md``.
 
 Outputs: ``data_dir/train/model.pt`` (``cnnps.models.checkpoint.save_checkpoint``; config w,
 dropout; meta steps, val error, manifest hash), ``metrics.json`` (with the loop's time
-split), ``plots/loss.csv``
-(step, loss) and ``plots/val.csv`` (step, val_mean_deg, val_median_deg) for
-``dvc plots``.
+split, :mod:`cnnps.train.step_clock`: waiting for data, validation, checkpoints),
+``plots/loss.csv`` (step, loss) and ``plots/val.csv`` (step, val_mean_deg,
+val_median_deg) for ``dvc plots``.
 """
 
 from __future__ import annotations
@@ -207,16 +165,16 @@ class CpuParams:
     # that applies and the run has 200 steps or more to go, else 1. The weights do not change.
     step_processes: Annotated[int, Range(ge=0, le=64)] = 0
     # dropout masks: "counter16" = drawn from a stream keyed by (seed, rank, step, layer, 16-row block),
-    # 16 bits an element (the drop rate to 2^-17), ~4x cheaper than torch's and resume-exact with no RNG
+    # 16 bits an element (the drop rate to 2^-17), cheaper than torch's and resume-exact with no RNG
     # state (cnnps.models.network.counter_dropout); "counter" = the same with 32 bits an element (rate to
-    # 2^-33; ~2 ms more a 64-row step, and what runs before counter16 drew); "torch" = torch's generator.
+    # 2^-33; what runs started with counter keep); "torch" = torch's generator.
     # CUDA and compiled models always use torch's.
     dropout_masks: Literal["counter16", "counter", "torch"] = "counter16"
     # eager float32 CPU steps with counter masks: "fused" = the layers of cnnps.models.train_layers
     # (fewer passes over memory, the same results up to float rounding); "reference" = torch's layers
     layers: Literal["fused", "reference"] = "fused"
     # glibc keeps freed memory for the next step instead of returning it to the kernel
-    # (cnnps.train.allocator: a tenth of the machine's time went to page faults); process-wide
+    # (cnnps.train.allocator: no page faults on every step's large blocks); process-wide
     keep_freed_memory: bool = True
 
     def __post_init__(self):
@@ -286,7 +244,7 @@ class Params:
     # auto = the faster of fp32 and bf16 on this machine, timed at the run's start
     # (cnnps.train.precision; bf16 only where the CPU or GPU has bf16 units); fp32 | bf16 (autocast)
     precision: Literal["auto", "fp32", "bf16"] = "auto"
-    channels_last: bool = True  # NHWC activations: ~1.4x faster training on CPU (oneDNN)
+    channels_last: bool = True  # NHWC activations (oneDNN's faster CPU kernels)
     compile: bool = False  # torch.compile the model (inductor); falls back to eager with a warning
     progress: bool = True
     optimiser: OptimiserParams = field(default_factory=OptimiserParams)

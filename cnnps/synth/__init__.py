@@ -6,7 +6,9 @@
 - :mod:`cnnps.synth.material_maps`: SLIC superpixel material maps;
 - :mod:`cnnps.synth.bsdf`: the paper's material ranges and their Blender 5 mapping;
 - :mod:`cnnps.synth.lights`: light directions on the hemisphere;
-- :mod:`cnnps.synth.capture_render`: one capture folder rendered, cached and resumable;
+- :mod:`cnnps.synth.capture_render`: the one capture renderer (a :class:`Scene` and
+  :class:`RenderSettings` in, a cached, resumable capture folder out; orthographic or
+  pinhole camera, suns or point lights);
 - :mod:`cnnps.synth.blender_renderer`: the in-process Cycles renderer, the only module
   that imports bpy (an optional extra, ``cnnps[render]``).
 """

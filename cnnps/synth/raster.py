@@ -12,8 +12,8 @@ pixels); it is kept as it is, since it is the normal the renderer shades with. Z
 outside the mask.
 
 trimesh's ray module needs rtree/embree (not installed) and is far slower; this
-rasteriser takes about 0.1–0.3 s for 256² and 100 k faces (single-threaded NumPy; the
-work is cut into chunks of :data:`_CHUNK` candidate (triangle, pixel) pairs).
+rasteriser is single-threaded NumPy, the work cut into chunks of :data:`_CHUNK`
+candidate (triangle, pixel) pairs (its speed: docs/performance.md#other-commands).
 """
 
 from __future__ import annotations

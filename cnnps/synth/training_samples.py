@@ -91,9 +91,9 @@ def sparse_subset_sizes(rng: np.random.Generator, n: int, sparse_min_lights: int
 
 def add_ambient(rng: np.random.Generator, I: np.ndarray, mask: np.ndarray, ambient_max: float) -> np.ndarray:
     """``I + a * max(I over the pixel's chosen lights)`` with one ``a ~ U(0, ambient_max)``
-    per pixel (row), added to every light: real attached shadows are not black (DiLiGenT
-    BALL: ~3 % of the pixel's brightest value from ambient light and the black level),
-    while rendered ones are exactly 0. I: (P, m); mask: (P, m) chosen lights."""
+    per pixel (row), added to every light: real attached shadows are not black (ambient
+    light and the black level; docs/extract.md), while rendered ones are exactly 0.
+    I: (P, m); mask: (P, m) chosen lights."""
     a = rng.uniform(0.0, ambient_max, size=(I.shape[0], 1))
     top = chosen_max(I, mask)[:, None]
     return I + (a * top).astype(I.dtype)
@@ -101,7 +101,7 @@ def add_ambient(rng: np.random.Generator, I: np.ndarray, mask: np.ndarray, ambie
 
 def chosen_max(I: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(P,) ``max(np.where(mask, I, 0), axis=1)`` (the pixel's brightest chosen value, or 0),
-    computed as ``(I * mask).max`` (4x faster) unless a value is not finite."""
+    computed as the cheaper ``(I * mask).max`` unless a value is not finite."""
     if I.shape[1] == 0:
         return np.zeros(I.shape[0], I.dtype)
     with np.errstate(invalid="ignore"):

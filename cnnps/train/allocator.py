@@ -3,9 +3,8 @@
 torch allocates CPU tensors with ``malloc``. glibc serves blocks above its mmap threshold
 (128 KiB, raised as blocks are freed, up to 32 MiB) with fresh ``mmap`` pages and returns
 them on ``free``; a training step allocates tens of activations and gradients of 2-25 MB,
-so each step page-faults and zeroes them again. On 2 EPYC cores that was 10 % of the
-machine's time spent in the kernel (2 % with this setting; docs/performance.md, "Fused
-layers and a kept heap"). :func:`keep_freed_memory` asks glibc to serve
+so each step page-faults and zeroes them again, in the kernel
+(docs/performance.md#fused-layers-and-a-kept-heap). :func:`keep_freed_memory` asks glibc to serve
 all blocks from its heap and to keep freed memory there: the next step reuses the pages.
 The cost is memory that is not returned to the system until the process ends (the
 training process's peak, which it reaches again every step anyway).

@@ -138,9 +138,9 @@ def open_training_data(extract_dir: str | Path, verify: bool = True) -> Training
     """Read the manifest at ``extract_dir`` (a folder or an fsspec URL) and check it: its
     own checksum (an edited manifest is refused), that it lists training shards, and
     that every shard it lists exists and, with ``verify``, has the size and SHA-256 the
-    manifest records (one read of every shard before the first step: 0.9 s for the
-    349 MB of cpu-train-v3's shards on 2 busy cores, against ~74 min for one epoch of
-    training there). Problems raise InputError naming the file and the fix."""
+    manifest records (one read of every shard before the first step, small beside an
+    epoch of training; docs/reliability.md). Problems raise InputError naming the file and
+    the fix."""
     if isinstance(extract_dir, str):
         extract_dir = extract_dir.rstrip("/")
     manifest = load_manifest(extract_dir)

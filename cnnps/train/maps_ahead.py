@@ -9,7 +9,7 @@ On CUDA the thread queues its kernels on a stream of its own: they run beside th
 step's, and before a batch is handed over the training stream waits for an event
 recorded after it (``record_stream`` keeps the caching allocator from reusing its memory
 too early). On a CPU the thread uses ``cpu_threads`` torch threads (default 1) beside
-the step's: the step no longer waits for its maps, though on 2 cores, which the step
+the step's: the step does not wait for its maps, though on 2 cores, which the step
 keeps busy, that buys no speed (``docs/pixelwise.md`` has the measurement).
 ``depth`` batches at most wait, made; 0 makes each in the caller's thread when asked.
 """

@@ -12,11 +12,10 @@ def prefer_passive_openmp() -> bool:
     OpenMP reads the policy once, when torch loads its runtime, so this only works before
     the first ``import torch`` of the process (``cnnps run-stage train`` imports torch
     only inside :func:`cnnps.stages.train.run`, after calling this). Idle OpenMP threads
-    then sleep instead of spinning: on a 2-core machine shared with another busy process,
-    the default (spinning) policy made each training step wait for a descheduled thread
-    (measured: 121 against 324 samples/s, benchmarks/results/train.json); on an idle
-    machine it costs nothing measurable (a wake-up per parallel region, ~100 regions in a
-    ~0.4 s step).
+    then sleep instead of spinning: on a machine shared with another busy process, the
+    default (spinning) policy makes each training step wait for a descheduled thread; on
+    an idle machine sleeping costs a wake-up per parallel region
+    (docs/performance.md#training-settings).
     """
     if "OMP_WAIT_POLICY" in os.environ or "torch" in sys.modules:
         return False

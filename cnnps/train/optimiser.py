@@ -5,10 +5,11 @@ its ``optimiser`` and ``cpu`` sections included), read by attribute only, so thi
 does not depend on the stage.
 
 None of the speed settings changes the model or the loss: ``channels_last`` (NHWC
-activations, ~1.3x on CPU), ``optimiser.fused_adam`` (torch's fused kernel: the same algorithm,
+activations), ``optimiser.fused_adam`` (torch's fused kernel: the same algorithm,
 one pass per tensor), ``precision: bf16`` (autocast) and ``compile`` (torch.compile)
 change the float rounding (and, for channels_last or compile, which elements a dropout
-mask draws). Used by :mod:`cnnps.train.loop` and benchmarks/bench_train.py.
+mask draws); what each gains: docs/performance.md#training-settings. Used by
+:mod:`cnnps.train.loop` and benchmarks/bench_train.py.
 """
 
 from __future__ import annotations

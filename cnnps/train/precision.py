@@ -16,14 +16,12 @@ its own step once at its start, :func:`choose_train_precision`:
    steps (kernel creation), then :data:`TIMED_STEPS` timed ones, the median deciding.
 3. **Trains as well**: bf16's first-step loss must be within :data:`LOSS_RTOL` of fp32's
    on the same weights, batch and masks (a broken bf16 kernel shows there); and bf16 must
-   step at least :data:`MIN_GAIN` faster (1.25x). On an AMD EPYC with AVX-512 BF16 a bf16
-   run from scratch ended 0.13-0.19° worse on held-out maps than fp32 after the same
-   3,000 steps (within the spread between seeds), and 0.55° better after the 1.4x steps
-   it made in the same time (``benchmarks/bench_train_precision.py``,
-   docs/performance.md): a step a quarter faster more than pays for bf16's rounding.
+   step at least :data:`MIN_GAIN` faster (1.25x): at equal steps bf16's rounding costs a
+   little accuracy, and a step a quarter faster more than pays for it at equal time
+   (docs/performance.md#bf16-where-the-cpu-has-it-trainprecision-auto).
 
-The probe takes a few seconds (eight steps; none without bf16 kernels) and is not cached:
-a run lasts far longer. Under torchrun rank 0 probes and every rank takes its answer.
+The probe runs eight steps (none without bf16 kernels) and is not cached: a run lasts
+far longer. Under torchrun rank 0 probes and every rank takes its answer.
 The run records the choice in ``metrics.json`` (``precision``, ``precision_choice``) and
 each checkpoint records the precision it stepped in, so a resumed run keeps a list of its
 segments (``precision_segments``: [first step, precision]); a resume in another precision

@@ -18,8 +18,8 @@ class ShardDataset(IterableDataset):
 
     ``float32=False`` keeps the maps float16 (half the bytes to copy to a GPU, which
     converts them; :func:`cnnps.train.optimiser.train_step` does). The float32
-    conversion is torch's (vectorised: ~12 M maps/s on 2 cores, numpy 1.26's
-    ``astype`` ~0.44 M). Use with ``DataLoader(ds, batch_size=None)``. Call :meth:`set_epoch` before each
+    conversion is torch's, vectorised (numpy's ``astype`` is far slower;
+    docs/performance.md#shards-and-the-loader). Use with ``DataLoader(ds, batch_size=None)``. Call :meth:`set_epoch` before each
     epoch and :meth:`set_skip` to resume mid-epoch. With DataLoader workers, each
     worker reads every ``num_workers``-th row group of this rank's share and the
     DataLoader interleaves their batches round-robin; main-process loading

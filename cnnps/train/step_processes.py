@@ -79,9 +79,10 @@ AUTO_MIN_STEPS = 200  # auto starts helpers for runs of at least this many steps
 def auto_processes(threads: int, rows: int, steps: int) -> int:
     """The processes ``step_processes: 0`` (auto) starts for ``threads`` torch threads,
     batches of ``rows`` and a run of ``steps`` steps: one per thread (1-thread processes
-    did 1.1x the steps of one 2-thread process on 2 AMD EPYC cores, docs/performance.md),
-    at most one per :data:`MASK_BLOCK_ROWS` rows; 1 for runs shorter than
-    :data:`AUTO_MIN_STEPS` steps (a helper takes ~2 s to start, ~80 steps' gain there)."""
+    sharing a step make more steps than one process with all the threads;
+    docs/performance.md#processes-sharing-the-step), at most one per :data:`MASK_BLOCK_ROWS`
+    rows; 1 for runs shorter than :data:`AUTO_MIN_STEPS` steps (a helper's start costs
+    more than a short run gains)."""
     if steps < AUTO_MIN_STEPS:
         return 1
     return max(1, min(int(threads), -(-int(rows) // MASK_BLOCK_ROWS)))

@@ -193,6 +193,7 @@ def test_cli_errors_exit_2_before_any_stage_runs(fake_stages, tmp_path, capsys):
         (["demo", "--params", _write(tmp_path, "meshes: {cone: {min_deg: 80, max_deg: 10}}\n")], "cone bounds reversed"),
         (["run-stage", "meshes", "--params", str(tmp_path / "nope.yaml")], "params file not found"),
         (["run-stage", "meshes", "--preset", "nosuchpreset"], "unknown preset 'nosuchpreset'"),
+        (["run-stage", "meshes", "--preset", str(tmp_path / "nope.yaml")], "nope.yaml: preset file not found"),
     ]
     for argv, message in cases:
         with pytest.raises(SystemExit) as exc:
@@ -243,9 +244,15 @@ def _real_stages_available():
 
 REAL = pytest.mark.skipif(not _real_stages_available(), reason="not every stage module exists yet")
 _ROOT = Path(__file__).resolve().parents[2]
-# every params file the repository ships: params.yaml, the presets, the benchmark variants
+# every params file the repository ships: params.yaml, the presets, the past models' recipes,
+# the benchmark variants
 PARAMS_FILES = ["params.yaml"] + sorted(
-    str(p.relative_to(_ROOT)) for p in [*(_ROOT / "cnnps/presets").glob("*.yaml"), *(_ROOT / "benchmarks/variants").glob("*.yaml")]
+    str(p.relative_to(_ROOT))
+    for p in [
+        *(_ROOT / "cnnps/presets").glob("*.yaml"),
+        *(_ROOT / "docs/recipes").glob("*.yaml"),
+        *(_ROOT / "benchmarks/variants").glob("*.yaml"),
+    ]
 )
 
 
@@ -267,6 +274,23 @@ def test_shipped_params_files_validate(repo_root, name, monkeypatch):
     mesh_dir = conf.sections.get("meshes", {}).get("mesh_dir")
     check_files = name != "presets/full.yaml" and (mesh_dir is None or (repo_root / mesh_dir).is_dir())
     cfg.load_all(conf, check_files=check_files)
+
+
+def test_preset_is_a_name_or_a_path(repo_root, tmp_path, monkeypatch, capsys):
+    assert cfg.preset_path("demo") == cfg.PRESETS_DIR / "demo.yaml"
+    monkeypatch.chdir(repo_root)
+    recipe = cfg.preset_path("docs/recipes/cpu-train-v4.yaml")
+    assert recipe == Path("docs/recipes/cpu-train-v4.yaml") and "cpu-train-v4" not in cfg.list_presets()
+    own = tmp_path / "mine.yml"
+    own.write_text((cfg.PRESETS_DIR / "demo.yaml").read_text())
+    assert cfg.preset_path(str(own)) == own
+    with pytest.raises(ConfigError, match="no/such.yaml: preset file not found"):
+        cfg.preset_path("no/such.yaml")
+    # the command line takes the path form as well (stages --check validates every stage)
+    with pytest.raises(SystemExit) as exc:
+        main(["stages", "--check", "--preset", str(own)])
+    assert exc.value.code in (0, None)
+    assert str(own) in capsys.readouterr().out
 
 
 def test_demo_preset_is_params_yaml(repo_root):

@@ -431,44 +431,39 @@ def test_rig_params_and_what_the_rig_costs():
     assert rig_minus_ortho({"ball": r("real", cnn_k10=2.0)}) == {}
 
 
-def test_rig_twins_are_rendered_once_reused_and_redone_when_the_rig_changes(tmp_path, monkeypatch):
-    import json
+def test_rig_twins_are_rendered_through_the_rig_at_the_size_of_their_capture(tmp_path, monkeypatch):
+    """Each twin is a render_capture of its capture's settings through the rig (pinhole
+    camera, point lights or suns): content-keyed and resumed by the renderer itself
+    (tests/synth/test_rig_render.py), so a changed rig is a new key, rendered again."""
+    from cnnps.synth import capture_render
 
-    from cnnps.synth import rig_render
-
-    made, sizes = [], []
+    made = []
 
     def fake_render(mesh, out_dir, **kw):
-        out = Path(out_dir)
-        out.mkdir(parents=True)
-        (out / "scene.json").write_text(json.dumps(kw))
-        made.append((out.name, kw["fov_deg"], kw["light_distance"], kw["lights"]))
-        sizes.append(kw["size"])
-        return out
+        made.append((Path(out_dir).name, kw["fov_deg"], kw["light_distance"], kw["lights"], kw["size"],
+                     kw["jitter_deg"], kw["seed"], kw["material"]))
+        return Path(out_dir)
 
-    monkeypatch.setattr(rig_render, "render_rig_capture", fake_render)
+    monkeypatch.setattr(capture_render, "render_capture", fake_render)
     from cnnps.stages import eval_testset
 
     monkeypatch.setattr(eval_testset, "test_mesh", lambda shape, seed: shape)
     params = ev.Params(test_shapes=("bowl",), categories=("specular",), light_sets=(10, 17), rig=ev.Rig())
     twins = ev.build_rig_twins(params, tmp_path)
     assert [p.name for p in twins] == ["bowl-specular-10-fov40-point3", "bowl-specular-17-fov40-point3"]
-    assert made == [("bowl-specular-10-fov40-point3", 40.0, 3.0, 10), ("bowl-specular-17-fov40-point3", 40.0, 3.0, 17)]
+    seeds = {c["lights"]: c["seed"] for c in ev.testset_plan(params)}  # the orthographic captures' seeds
     # the object spans as many pixels as in the 64-pixel orthographic capture (2 radii across):
     # 5 radii away, a 40-degree frame is 2 x 5 tan(20 deg) = 3.64 radii across
-    assert sizes == [round(64 * 5 * np.tan(np.radians(20)))] * 2 == [116, 116]
-    made.clear()
-    assert ev.build_rig_twins(params, tmp_path) == twins and made == []  # reused
-    (twins[0] / ev.RIG_KEY).unlink()  # killed before its key was written: redone
-    ev.build_rig_twins(params, tmp_path)
-    assert [m[0] for m in made] == ["bowl-specular-10-fov40-point3"]
+    assert round(64 * 5 * np.tan(np.radians(20))) == 116
+    assert made == [("bowl-specular-10-fov40-point3", 40.0, 3.0, 10, 116, 0.0, seeds[10], "specular"),
+                    ("bowl-specular-17-fov40-point3", 40.0, 3.0, 17, 116, 0.0, seeds[17], "specular")]
     made.clear()
     wide = ev.Params(test_shapes=("bowl",), categories=("specular",), light_sets=(10, 17),
                      rig=ev.Rig(fov_deg=70.0, light_distance=None))
     assert [p.name for p in ev.build_rig_twins(wide, tmp_path)] == ["bowl-specular-10-fov70", "bowl-specular-17-fov70"]
-    assert len(made) == 2 and sizes[-1] == round(64 * 5 * np.tan(np.radians(35)))
+    assert [m[1:3] for m in made] == [(70.0, None)] * 2 and made[-1][4] == round(64 * 5 * np.tan(np.radians(35)))
     made.clear()
     fixed = ev.Params(test_shapes=("bowl",), categories=("specular",), light_sets=(10,),
                       rig=ev.Rig(fov_deg=70.0, light_distance=None, size=64))
     ev.build_rig_twins(fixed, tmp_path)
-    assert sizes[-1] == 64 and len(made) == 1  # another size, another key: rendered again
+    assert [m[4] for m in made] == [64]

@@ -100,8 +100,16 @@ def test_render_keys_without_environment_are_unchanged(materials_data):
     from cnnps.stages import render
     from cnnps.synth.capture_render import VERSION, capture_key
 
-    pinned = capture_key({"mesh": "m", "material": "t", "params": render.Params().picture_params(), "v": VERSION})
-    assert pinned == "1e8a2408e5be2b94b2023bb9458d7f2b3679fb20721f23ebd8b22a2db0ebcfde"  # computed before
+    from cnnps.pipeline import config
+
+    def key(params):
+        return capture_key({"mesh": "m", "material": "t", "params": params.picture_params(), "v": VERSION})
+
+    # the formula, pinned (values computed before): on settings of its own, and on params.yaml's
+    assert key(render.Params(samples=64, lights=50, jitter_deg=3.0)) == (
+        "1e8a2408e5be2b94b2023bb9458d7f2b3679fb20721f23ebd8b22a2db0ebcfde")
+    yaml_params = config.build_params(config.load_config(REPO / "params.yaml"), "render", check_files=False)
+    assert key(yaml_params) == "78774e3bc797737ed68be9fadef41094ea265734633a247643d1670acd30f06e"
     p = render.Params(size=16, samples=1, lights=3)
     jobs = render._scene_jobs(p, materials_data)
     assert len(jobs) == 2

@@ -22,6 +22,8 @@ from tests.support.tiny_scenes import sphere as _sphere
 trimesh = pytest.importorskip("trimesh")
 
 REPO = Path(__file__).resolve().parents[2]
+# the sphere capture of the module's fixture (its key is pinned below)
+SPHERE = dict(lights=40, size=S, samples=4, seed=0, superpixels=20, threads=THREADS, progress=False)
 
 
 def _pixel_grid(size):
@@ -41,7 +43,7 @@ def sphere_capture(tmp_path_factory):
     from cnnps.synth.capture_render import render_capture
 
     out = tmp_path_factory.mktemp("render") / "sphere"
-    return render_capture(_sphere(), out, lights=40, size=S, samples=4, seed=0, threads=THREADS, progress=False)
+    return render_capture(_sphere(), out, **SPHERE)
 
 
 # --------------------------------------------------------------------------- no bpy needed
@@ -80,11 +82,14 @@ def test_new_scene_folder_gets_the_umask_mode(tmp_path):
     readable as the umask allows, like every other output."""
     import stat
 
+    from cnnps.io.capture import Capture
     from cnnps.synth.capture_render import _start_folder
 
+    lights = Capture(filenames=["0.exr", "1.exr"], lights=np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]),
+                     intensities=np.ones((2, 3)))
     old = os.umask(0o022)
     try:
-        _start_folder(tmp_path / "scene", "k", np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]), 1.0, ["0.exr", "1.exr"])
+        _start_folder(tmp_path / "scene", "k", lights)
     finally:
         os.umask(old)
     assert stat.S_IMODE(os.stat(tmp_path / "scene").st_mode) == 0o755
@@ -95,9 +100,9 @@ def test_settings_are_validated_before_anything_is_loaded(tmp_path):
     from cnnps.synth.capture_render import RenderSettings, render_capture
 
     assert RenderSettings().picture_params() == {
-        "size": 128, "samples": 64, "lights": 50, "jitter_deg": 3.0, "min_elevation_deg": 5.0,
+        "size": 128, "samples": 32, "lights": 40, "jitter_deg": 0.0, "min_elevation_deg": 5.0,
         "light_intensity": 1.0, "max_bounces": 8, "seed": 0,
-    }  # part of every render key: a change here re-renders every cached capture
+    }  # part of the key of every capture that leaves one unset: a change here re-renders those
     for bad, words in ((dict(lights=2), "lights must be >= 3"), (dict(size=0), "size must be a positive"),
                        (dict(threads=-1), "threads must be >= 0"), (dict(device="tpu"), "device")):
         with pytest.raises(ConfigError, match=words):
@@ -352,7 +357,7 @@ def test_resume_renders_only_missing_images(sphere_capture, tmp_path):
     write = atomic_path(out / "003.exr")  # killed in the middle of this atomic write (kept alive:
     leftover = write.__enter__()  # a collected one would clean up after itself)
     assert leftover.is_file() and leftover.name.startswith(".003.")
-    render_capture(_sphere(), out, lights=40, size=S, samples=4, seed=0, threads=THREADS, progress=False)
+    render_capture(_sphere(), out, **SPHERE)
     meta2 = json.loads((out / "scene.json").read_text())
     assert meta2["images_rendered_last_run"] == 3 and meta2["key"] == meta["key"]
     assert not leftover.exists() and not [p.name for p in out.iterdir() if p.name.startswith(".")]
@@ -362,10 +367,10 @@ def test_resume_renders_only_missing_images(sphere_capture, tmp_path):
     assert (out / "007.exr").read_bytes() != b""
     np.testing.assert_array_equal(read_image(out / "007.exr"), read_image(Path(sphere_capture) / "007.exr"))
     # complete and current: nothing to do
-    render_capture(_sphere(), out, lights=40, size=S, samples=4, seed=0, threads=THREADS, progress=False)
+    render_capture(_sphere(), out, **SPHERE)
     assert json.loads((out / "scene.json").read_text())["images_rendered_last_run"] == 3  # untouched
     # other parameters: the folder is redone from scratch
-    render_capture(_sphere(), out, lights=5, size=S, samples=4, seed=0, threads=THREADS, progress=False)
+    render_capture(_sphere(), out, **{**SPHERE, "lights": 5})
     assert sorted(p.name for p in out.glob("*.exr")) == [f"{i:03d}.exr" for i in range(5)]
 
 
@@ -380,10 +385,10 @@ def test_complete_capture_is_recognised_without_blender(sphere_capture, tmp_path
     shutil.copytree(sphere_capture, out)
     before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
     monkeypatch.setitem(sys.modules, "bpy", None)
-    assert render_capture(_sphere(), out, lights=40, size=S, samples=4, seed=0, threads=THREADS, progress=False) == out
+    assert render_capture(_sphere(), out, **SPHERE) == out
     assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before  # nothing rewritten
     with pytest.raises(ConfigError, match="needs Blender"):  # other settings: it would have to render
-        render_capture(_sphere(), out, lights=5, size=S, samples=4, seed=0, threads=THREADS, progress=False)
+        render_capture(_sphere(), out, **{**SPHERE, "lights": 5})
 
 
 @pytest.mark.blender
@@ -419,8 +424,7 @@ def test_environment_light_in_every_image_lights_files_stay_the_suns(sphere_capt
     from cnnps.synth.capture_render import render_capture
 
     env = 0.05
-    out = render_capture(_sphere(), tmp_path / "env", lights=40, size=S, samples=4, seed=0, threads=THREADS,
-                         progress=False, environment=env)
+    out = render_capture(_sphere(), tmp_path / "env", **SPHERE, environment=env)
     meta = json.loads((out / "scene.json").read_text())
     base = json.loads((Path(sphere_capture) / "scene.json").read_text())
     assert meta["environment_strength"] == env and meta["key"] != base["key"] and "white world" in meta["renderer"]
@@ -445,14 +449,14 @@ def test_a_failed_re_render_puts_the_previous_capture_back(tmp_path, monkeypatch
     pytest.importorskip("bpy")
     import cnnps.synth.capture_render as cr
     from cnnps.io.images import write_exr as real_write_exr
-    from cnnps.synth.capture_render import lambertian_material, render_into
+    from cnnps.synth.capture_render import RenderSettings, Scene, lambertian_material, render_into
     from cnnps.synth.lights import hemisphere_lights
 
     out = tmp_path / "cap"
-    kw = dict(lights=hemisphere_lights(4, seed=0), intensity=1.0, size=8, samples=1, seed=0, threads=THREADS,
-              progress=False)
     mesh = _sphere()
-    render_into(out, mesh.vertices, mesh.faces, lambertian_material(), key="old", **kw)
+    scene = Scene(mesh.vertices, mesh.faces, lambertian_material(), hemisphere_lights(4, seed=0))
+    settings = RenderSettings(size=8, samples=1, seed=0, threads=THREADS)
+    render_into(out, scene, settings, key="old", progress=False)
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     calls = []
 
@@ -464,7 +468,7 @@ def test_a_failed_re_render_puts_the_previous_capture_back(tmp_path, monkeypatch
 
     monkeypatch.setattr("cnnps.io.images.write_exr", full_disk)
     with pytest.raises(OSError, match="No space left"):
-        render_into(out, mesh.vertices, mesh.faces, lambertian_material(), key="new", **kw)
+        render_into(out, scene, settings, key="new", progress=False)
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     assert not cr.previous_path(out).exists() and [p.name for p in tmp_path.iterdir()] == ["cap"]
     monkeypatch.setattr("cnnps.io.images.write_exr", real_write_exr)
@@ -472,7 +476,7 @@ def test_a_failed_re_render_puts_the_previous_capture_back(tmp_path, monkeypatch
     out.rename(cr.previous_path(out))
     out.mkdir()
     (out / ".pending.json").write_text('{"key": "new"}\n')
-    assert render_into(out, mesh.vertices, mesh.faces, lambertian_material(), key="old", **kw)["skipped"]
+    assert render_into(out, scene, settings, key="old", progress=False)["skipped"]
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before and not cr.previous_path(out).exists()
-    render_into(out, mesh.vertices, mesh.faces, lambertian_material(), key="new", **kw)
+    render_into(out, scene, settings, key="new", progress=False)
     assert cr.is_complete(out, "new") and not cr.previous_path(out).exists()
