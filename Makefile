@@ -65,8 +65,23 @@ test-versions: setup-core
 	pythons="$$($(CORE_PY) -m tests.support.pythons $(VERSION_VENVS) $(NEWER_PYTHONS))" && \
 	CNNPS_TEST_PYTHONS="$$pythons" $(CORE_PY) -m pytest -q -rs tests/test_python_versions.py
 
+# A quick set of benchmarks, one or two an area at small sizes (a few minutes on 2 cores),
+# written to $(BENCH_OUT) rather than the committed benchmarks/results/; every benchmark,
+# what it needs and how to run it: benchmarks/README.md.
+BENCH_OUT ?= build/bench
+BENCH     := $(PY) -m benchmarks
+
 bench: setup
-	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
+	$(BENCH).predict.obsmap_speed --pixels 4000 --repeat 3 --no-ball --out $(BENCH_OUT)/predict/obsmap_speed.json
+	$(BENCH).predict.inference_speed --pixels 2000 --maps 512 --repeat 3 --no-k10 --no-ball \
+	    --out $(BENCH_OUT)/predict/inference_speed.json
+	$(BENCH).train.layer_bound --threads 1 --batch 16 --repeat 3 --out $(BENCH_OUT)/train/layer_bound.json
+	$(BENCH).synth.pixelwise_maps --skip-render --repeat 2 --out $(BENCH_OUT)/synth/pixelwise_maps.json
+	$(BENCH).io.extract_speed --pixels 1024 --lights 96 --repeat 2 --out $(BENCH_OUT)/io/extract_speed.json
+	$(BENCH).pipeline.integrate_speed_accuracy --megapixels 0.05 --repeat 3 \
+	    --out $(BENCH_OUT)/pipeline/integrate_speed_accuracy.json
+	@echo "quick set done, results in $(BENCH_OUT)/. The other benchmarks (full sizes, real data," \
+	    "Blender, training runs) and how to run each: benchmarks/README.md"
 
 clean-venv:
 	rm -rf $(VENV) $(CORE_VENV) $(VERSION_VENVS)

@@ -45,11 +45,16 @@ def test_only_the_blender_renderer_imports_bpy(imports):
     assert not bad, "bpy imported outside the renderer:\n" + "\n".join(bad)
 
 
+def test_the_package_imports_nothing_from_the_benchmarks_tools_or_tests(imports):
+    bad = [f"{i.path}:{i.line}: {i.imported}" for i in imports if i.imported.split(".")[0] in ("benchmarks", "tools", "tests")]
+    assert not bad, "cnnps imports from outside the package:\n" + "\n".join(bad)
+
+
 def test_the_old_top_level_packages_are_gone():
     for name in ("models", "stages", "pipeline", "presets"):
         assert not (ROOT / name).exists(), f"{name}/ at the repository root: everything lives under cnnps/"
     old = []
-    for folder in ("cnnps", "tests", "benchmarks"):
+    for folder in ("cnnps", "tests", "benchmarks", "tools"):
         for path in (ROOT / folder).rglob("*.py"):
             for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
                 names = ([a.name for a in node.names] if isinstance(node, ast.Import)

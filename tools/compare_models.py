@@ -1,6 +1,6 @@
 """v2, v3, v3.1 and v3.1 with the Lambertian fill (cnnps.ps.sparse_fill), side by side: the README's model table, from measured results only.
 
-    .venv/bin/python benchmarks/compare_models.py --eval v2=data/eval-v2/eval/metrics.json \
+    .venv/bin/python tools/compare_models.py --eval v2=data/eval-v2/eval/metrics.json \
         --eval v3=data/cpu-train-v3-polish/eval/metrics.json --eval v3.1=data/eval-v3.1/eval/metrics.json \
         --eval v3.1+fill=data/eval-v3.1-fill/eval/metrics.json \
         [--out benchmarks/results/v2_v3.json]
@@ -8,24 +8,29 @@
 Reads ``benchmarks/results/variants_v3.json`` (the validation maps and BALL with rim
 errors: rows ``shipped`` = v2, ``v3`` and ``v3.1``), ``benchmarks/results/model_v2.json`` /
 ``model_v3.json`` / ``model.json`` (v3.1; BALL at 96, 20, 10, 6 images against least squares on the same images,
-written by ``bench_model.py``) and the eval stage's ``metrics.json`` of each model (the
-synthetic test set, per light count; non-convex = every test shape but the sphere). Prints
-Markdown rows and writes the numbers to ``--out``.
+written by ``python -m benchmarks.predict.model_accuracy``) and the eval stage's ``metrics.json`` of each
+model (the synthetic test set, per light count; non-convex = every test shape but the sphere).
+A results file is read in either layout: the benchmarks' schema (its ``results``) or the
+earlier one. Prints Markdown rows and writes the numbers to ``--out``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from cnnps.infra.atomic import write_text
 
-from cnnps.infra.atomic import write_text  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
+
+
+def measured(path: str | Path) -> dict:
+    """A results file's numbers: its ``results`` in the benchmarks' schema, else the file."""
+    data = json.loads(Path(path).read_text())
+    return data["results"] if isinstance(data, dict) and {"benchmark", "results"} <= data.keys() else data
 
 
 def eval_summary(metrics: dict) -> dict:
@@ -46,7 +51,7 @@ def main() -> None:
     ap.add_argument("--eval", action="append", default=[], metavar="NAME=METRICS_JSON")
     ap.add_argument("--variants", type=Path, default=REPO / "benchmarks" / "results" / "variants_v3.json")
     ap.add_argument("--ball", action="append", default=[], metavar="NAME=MODEL_JSON",
-                    help="bench_model.py results per model (default v2=model_v2.json, v3=model.json)")
+                    help="model_accuracy results per model (default v2=model_v2.json, v3=model.json)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "v2_v3.json")
     args = ap.parse_args()
     res = REPO / "benchmarks" / "results"
@@ -54,7 +59,7 @@ def main() -> None:
                                                          "v3.1": str(res / "model.json"),
                                                          "v3.1+fill": str(res / "model.json")}
     evals = dict(a.split("=", 1) for a in args.eval)
-    variants = json.loads(args.variants.read_text())["variants"]
+    variants = measured(args.variants)["variants"]
     table: dict = {"models": {}}
     models = (("v2", variants.get("shipped")), ("v3", variants.get("v3")), ("v3.1", variants.get("v3.1")),
               ("v3.1+fill", variants.get("v3.1")))  # the same weights, with the Lambertian fill below 50 images
@@ -63,7 +68,7 @@ def main() -> None:
         entry: dict = {"val_mean_deg": row["val"]["mean_deg"] if row else None}
         if row:
             entry["ball96_k10_rim_deg"] = row["ball96_k10"]["rim_mean_deg"]
-        m = json.loads(Path(balls[name]).read_text()) if Path(balls.get(name, "")).is_file() else {}
+        m = measured(balls[name]) if Path(balls.get(name, "")).is_file() else {}
         ball = m.get("ball", {})
         entry["ball96"] = {k: ball[k]["mean_deg"] for k in ("lambertian", "cnn_k1_fp32", "cnn_k10_fp32") if k in ball}
         for n, r in m.get("ball_subsets", {}).items():

@@ -1,6 +1,6 @@
 """Time and disk of ``presets/full.yaml`` (the paper's scale) from the measured rates.
 
-    .venv/bin/python benchmarks/estimate_full.py [--meshes 25] [--gpus 1 8] [--out benchmarks/results/full_estimate.json]
+    .venv/bin/python tools/estimate_full.py [--meshes 25] [--gpus 1 8] [--out benchmarks/results/full_estimate.json]
 
 Nothing is run: this multiplies the preset's sizes by rates measured elsewhere and says
 where each rate comes from (docs/cluster.md, "The paper's scale on paper", shows the
@@ -25,13 +25,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 RES = REPO / "benchmarks" / "results"
 
 # measured on the v3 training data (data/cpu-train-v3: 248 scenes of 48 x 48, 200 lights,

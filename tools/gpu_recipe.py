@@ -6,11 +6,11 @@ it trains on maps made on the device by :mod:`cnnps.synth.pixelwise` (preset
 
     # 1. measure there: per-pixel generation (maps/s), the train step (samples/s) by batch
     #    size and precision, and a short learning-rate probe; writes measure.json
-    python3 benchmarks/gpu_recipe.py measure --out $OUT
+    PYTHONPATH=$PWD python3 tools/gpu_recipe.py measure --out $OUT
 
     # 2. train, resuming from the folder's newest checkpoint; stops cleanly before
     #    --seconds (every chunk ends with a checkpoint), so a call never loses work
-    python3 benchmarks/gpu_recipe.py train --data-dir /root/gpu-run --seconds 540 \\
+    PYTHONPATH=$PWD python3 tools/gpu_recipe.py train --data-dir /root/gpu-run --seconds 540 \\
         --measure $OUT/measure.json --budget-seconds 1200 --pack $OUT
 
 The first ``train`` call fixes the plan (batch size, learning rate, precision from
@@ -20,8 +20,9 @@ train stage's resume key holds them). ``--pack DIR`` copies the plan, the metric
 model and the newest checkpoint (in pieces under 15 MiB) to DIR; ``--restore DIR`` puts
 them back into an empty data folder, for a machine that went cold between calls.
 
-Without a GPU both steps run on the CPU (``--device cpu``, a few steps; tests/benchmarks
-run them so).
+Without a GPU both steps run on the CPU (``--device cpu``, a few steps; tests/tools run
+them so). ``PYTHONPATH=$PWD`` (in the checkout) puts ``cnnps`` on the path of a python3 that
+has no install of it; ``.venv/bin/python tools/gpu_recipe.py`` needs none.
 """
 
 from __future__ import annotations
@@ -36,10 +37,7 @@ import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from cnnps.train.openmp import prefer_passive_openmp  # noqa: E402
+from cnnps.train.openmp import prefer_passive_openmp
 
 PRESET = "gpu-train-pixelwise"
 PIECE = 15 * 2**20  # bytes per piece of a packed checkpoint (a returned file may hold 16 MiB)
@@ -48,9 +46,12 @@ PIECE = 15 * 2**20  # bytes per piece of a packed checkpoint (a returned file ma
 def machine() -> dict:
     import torch
 
-    from benchmarks.machine import cpu_info
+    from cnnps.infra.machine import cpu_model_and_flags, logical_cpus
 
-    info = {"cpu": cpu_info(), "torch": torch.__version__}
+    model, flags = cpu_model_and_flags()
+    info = {"cpu": {"model": model, "logical_cpus": logical_cpus(), "flags": flags,
+                    "torch_cpu_capability": torch.backends.cpu.get_cpu_capability()},
+            "torch": torch.__version__}
     if torch.cuda.is_available():
         p = torch.cuda.get_device_properties(0)
         info["gpu"] = {"name": p.name, "memory_gib": round(p.total_memory / 2**30, 1),

@@ -1,6 +1,6 @@
 """Sparse-light subsets of a capture: which n of its m images, by one seeded rule.
 
-    .venv/bin/python benchmarks/image_subsets.py CAPTURE_DIR [--n 20 10 6] [--seed 0]
+    .venv/bin/python tools/image_subsets.py CAPTURE_DIR [--n 20 10 6] [--seed 0]
 
 The rule (the same for every capture, so held-back objects get subsets drawn the same
 way; :func:`cnnps.io.capture.subset_drop`, which the eval stage's ``real_subsets`` uses):
@@ -8,18 +8,17 @@ the images are those of ``filenames.txt`` after DiLiGenT's benchmark rule
 (:data:`cnnps.io.capture.DILIGENT_RULES`: ``bearPNG`` loses its first 20); n of those m are drawn uniformly without replacement by
 ``numpy.random.default_rng([seed, m, n]).choice(m, n, replace=False)`` and kept in
 filenames.txt order. Writes ``benchmarks/image_lists/<capture>-<n>.txt``, one image name
-a line. ``bench_model.py --subsets`` predicts with each list (the other images dropped).
+a line. ``python -m benchmarks.predict.model_accuracy --subsets`` predicts with each list
+(the other images dropped; :mod:`benchmarks.subsets` reads them).
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 LISTS = REPO / "benchmarks" / "image_lists"
-sys.path.insert(0, str(REPO))
 
 
 def usable_images(capture: Path) -> list[str]:
@@ -47,20 +46,6 @@ def list_path(capture_name: str, n: int) -> Path:
     return LISTS / f"{capture_name}-{n}.txt"
 
 
-def drop_for(capture: Path, keep: list[str]) -> list[int]:
-    """0-based indices (filenames.txt order) of every image not in ``keep``."""
-    names = [n.strip() for n in (capture / "filenames.txt").read_text().splitlines() if n.strip()]
-    missing = set(keep) - set(names)
-    if missing:
-        raise ValueError(f"{capture}: images not in filenames.txt: {sorted(missing)}")
-    keep_set = set(keep)
-    return [i for i, name in enumerate(names) if name not in keep_set]
-
-
-def read_list(path: Path) -> list[str]:
-    return [n.strip() for n in path.read_text().splitlines() if n.strip() and not n.startswith("#")]
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("capture", type=Path)
@@ -72,7 +57,7 @@ def main() -> None:
         names = subset_names(args.capture, n, args.seed)
         path = list_path(args.capture.name, n)
         path.write_text(f"# {n} of {len(usable_images(args.capture))} images of {args.capture.name}, "
-                        f"benchmarks/image_subsets.py rule, seed {args.seed}\n" + "\n".join(names) + "\n")
+                        f"tools/image_subsets.py rule, seed {args.seed}\n" + "\n".join(names) + "\n")
         print(path.relative_to(REPO), " ".join(names))
 
 

@@ -1,15 +1,18 @@
 """A training run longer than a session: a fixed checkout, data outside the work tree, a
 CPU-time ledger, and a fallback to committed weights.
 
-    .venv/bin/python benchmarks/long_run.py start v4 --preset cpu-train-v4 [--commit HEAD] [--root /work/runs]
-    .venv/bin/python benchmarks/long_run.py resume v4 [--root /work/runs] [--stages render extract train]
-    .venv/bin/python benchmarks/long_run.py save v4 [--root /work/runs]      # then commit benchmarks/runs/v4/
-    .venv/bin/python benchmarks/long_run.py status v4
-    .venv/bin/python benchmarks/long_run.py study v4                  # a clone for `dvc exp run`
-    .venv/bin/python benchmarks/long_run.py exp v4 -- -n NAME -S train.optimiser.lr=1e-4   # one variant, timed
-    .venv/bin/python benchmarks/long_run.py table v4                  # the study's table (and study.json)
-    .venv/bin/python benchmarks/long_run.py probe v4                  # score the newest checkpoint now
-    .venv/bin/python benchmarks/long_run.py probe v4 --model MID.pt --name mid   # or a candidate weights file
+    .venv/bin/python tools/long_run.py start v4 --preset cpu-train-v4 [--commit HEAD] [--root /work/runs]
+    .venv/bin/python tools/long_run.py resume v4 [--root /work/runs] [--stages render extract train]
+    .venv/bin/python tools/long_run.py save v4 [--root /work/runs]      # then commit tools/runs/v4/
+    .venv/bin/python tools/long_run.py status v4
+    .venv/bin/python tools/long_run.py study v4                  # a clone for `dvc exp run`
+    .venv/bin/python tools/long_run.py exp v4 -- -n NAME -S train.optimiser.lr=1e-4   # one variant, timed
+    .venv/bin/python tools/long_run.py table v4                  # the study's table (and study.json)
+    .venv/bin/python tools/long_run.py probe v4                  # score the newest checkpoint now
+    .venv/bin/python tools/long_run.py probe v4 --model MID.pt --name mid   # or a candidate weights file
+
+It imports ``cnnps`` from this interpreter's install (``make setup``: this checkout, in
+editable mode) for its own bookkeeping; the stages run the clone's code.
 
 The work tree is laid anew every session and only git is certain, but a folder outside
 it often survives. So a run lives in ``ROOT/NAME/``:
@@ -30,7 +33,7 @@ it often survives. So a run lives in ``ROOT/NAME/``:
   tree, sampled every ``--poll`` seconds, so a killed call loses at most that much), with
   the CPU model of the machine it ran on.
 
-What git carries, in ``benchmarks/runs/NAME/``: ``run.json`` (commit, preset, params),
+What git carries, in ``tools/runs/NAME/``: ``run.json`` (commit, preset, params),
 ``ledger.json`` and at most one ``intermediate.pt`` (``save``: the newest checkpoint's
 weights in float16, replaced each time, never a second file). ``resume`` on a machine where
 ``ROOT/NAME`` is gone clones the same commit again and regenerates the data (the stages
@@ -56,12 +59,11 @@ from pathlib import Path
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 STAGES = ["meshes", "materials", "render", "extract", "train", "eval"]
 
 
-CARRIED = REPO / "benchmarks" / "runs"  # what git carries of every run
+CARRIED = REPO / "tools" / "runs"  # what git carries of every run
 
 
 def _write_json(path: Path, data) -> None:
@@ -279,11 +281,11 @@ class Run:
 
     def _timed(self, stage: str, cmd: list[str], cwd: Path, poll: float, **extra) -> int:
         """Run ``cmd`` in ``cwd`` with ``cnnps`` imported from there; its time into the ledger."""
-        from benchmarks.machine import cpu_info
+        from cnnps.infra.machine import cpu_model_and_flags
 
         bindir = str(Path(sys.executable).parent)  # `cnnps` and `dvc` of this interpreter
         env = dict(os.environ, PYTHONPATH=str(cwd), PATH=bindir + os.pathsep + os.environ.get("PATH", ""))
-        entry = {"stage": stage, **extra, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "cpu": cpu_info()["model"],
+        entry = {"stage": stage, **extra, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "cpu": cpu_model_and_flags()[0],
                  "logical_cpus": os.cpu_count(), "commit": self.record()["commit"][:12], "wall_s": 0.0, "cpu_s": 0.0,
                  "finished": False, "id": f"{os.getpid()}-{time.time():.3f}"}
 
@@ -340,7 +342,7 @@ class Run:
             params = yaml.safe_load(self.params.read_text())
             params["data_dir"] = "data"
             (self.study / "params.yaml").write_text(
-                f"# the parameters of long run {self.name!r} (benchmarks/long_run.py), data in {self.data}\n"
+                f"# the parameters of long run {self.name!r} (tools/long_run.py), data in {self.data}\n"
                 + yaml.safe_dump(params, sort_keys=False))
             git = ["git", "-C", str(self.study), "-c", "user.name=cnnps long run", "-c", "user.email=long-run@cnnps"]
             subprocess.run([*git, "commit", "-qam", f"the study's baseline: the parameters of run {self.name}"],

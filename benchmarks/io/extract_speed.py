@@ -117,8 +117,10 @@ def bench(m: int, P: int, p: Params, repeat: int = 3) -> dict:
     # float16 storage error on this data
     sparse = dict(sparse_fraction=p.sparse_fraction, sparse_min_lights=p.sparse_min_lights,
                   sparse_rng=np.random.default_rng(2)) if p.sparse_fraction else {}
-    mask, _, _ = sample_light_masks(np.random.default_rng(1), L, 2000, p.min_lights, p.max_lights, p.cone_min_deg, p.cone_max_deg, **sparse)
-    m32 = observation_maps(I[:2000], L, p.w, light_mask=mask)
+    k = min(2000, P)
+    mask, _, _ = sample_light_masks(np.random.default_rng(1), L, k, p.min_lights, p.max_lights, p.cone_min_deg,
+                                    p.cone_max_deg, **sparse)
+    m32 = observation_maps(I[:k], L, p.w, light_mask=mask)
     err = np.abs(m32.astype(np.float16).astype(np.float32) - m32)
 
     def rate(t, *keys):

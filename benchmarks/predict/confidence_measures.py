@@ -16,7 +16,9 @@ pixel, each oriented so that larger means less trust:
 - ``ls_disagreement``: the angle between the network's normal and least squares';
 - ``dark_lights``: the share of the pixel's lights that read under 2 % of its brightest
   (shadowed or facing away);
-- ``grazing``: 1 - n_z of the network's normal.
+- ``grazing``: 1 - n_z of the network's normal;
+- ``spread_per_lit_share``: the rotation spread divided by the share of lit lights (what
+  :func:`cnnps.ps.confidence.network_confidence` ranks by).
 
 For each measure: Spearman's rank correlation with the network's angular error, and the
 mean error of the half of the pixels it trusts most against the other half. Results go to
@@ -76,6 +78,7 @@ def measures(capture: Path, predictor, pixels: int, rotations: int) -> dict:
         "ls_disagreement": angular_error_deg(n, n_ls),
         "dark_lights": 1.0 - lit.mean(axis=1),
         "grazing": 1.0 - n[:, 2],
+        "spread_per_lit_share": spread / np.maximum(lit.mean(axis=1), 0.05),  # what the confidence map uses
     }
     out = {"pixels": int(P), "rotations": rotations, "mean_error_deg": round(float(err.mean()), 3), "measures": {}}
     for name, m in cand.items():

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cnnps.ps.solver import Solver, Tile
+from cnnps.ps.solver import Solved, Solver, Tile
 
 DEFAULT_TILE_PIXELS = 65536  # mask pixels per tile (a multiple of the network's 4096-pixel chunks)
 
@@ -28,6 +28,7 @@ class TileCounts:
     tiles), pixels with a saturated observation, seconds and notes."""
 
     solver: dict[str, int] = field(default_factory=dict)
+    confidence: np.ndarray | None = None  # (H, W) float32 in [0, 1], 0 outside the mask; None: no measure
     saturated_pixels: int = 0
     seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
@@ -36,8 +37,9 @@ class TileCounts:
 @dataclass
 class CaptureNormals:
     """:func:`capture_normals`' answer: ``normal`` (H, W, 3) float32 unit normals (zeros
-    outside the mask), the returned pass's ``counts``, the light model's ``lights`` record,
-    ``depth`` (H, W) under point lights (else None) and ``notes``."""
+    outside the mask), the returned pass's ``counts`` (its ``confidence`` map among them),
+    the light model's ``lights`` record, ``depth`` (H, W) under point lights (else None) and
+    ``notes``."""
 
     normal: np.ndarray
     counts: TileCounts
@@ -83,10 +85,14 @@ def tile_normals(stack, mask: np.ndarray, solver: Solver, camera, lights, *, til
             index = tile_pixels_index(row_start, mask, start, stop)
             rows, cols = np.divmod(index, W)
             values, tile_lights = lights.tile(values, rows, cols)
-            N, found = solver.solve(Tile(values, missing, tile_lights, rows, cols, camera.views), bar)
-            for key, n in found.items():
+            solved = Solved(*solver.solve(Tile(values, missing, tile_lights, rows, cols, camera.views), bar))
+            for key, n in solved.counts.items():
                 counts.solver[key] = counts.solver.get(key, 0) + int(n)
-            flat_normal[index] = normalize(N).astype(np.float32)
+            flat_normal[index] = normalize(solved.normals).astype(np.float32)
+            if solved.confidence is not None:
+                if counts.confidence is None:
+                    counts.confidence = np.zeros((H, W), dtype=np.float32)
+                counts.confidence.reshape(-1)[index] = np.clip(solved.confidence, 0.0, 1.0)
     finally:
         if bar is not None:
             bar.close()

@@ -215,7 +215,7 @@ def predict(
         scored = outputs.score(found.normal, normal_gt, mask, None, notes)
         errors, stats = scored.errors, scored.stats
     record = outputs.finish_record(record, t0=t0, t_load=t_load, notes=notes, linearize=linearize, warnings=warnings)
-    return Prediction(found.normal, mask, record, errors, stats, found.depth)
+    return Prediction(found.normal, mask, record, errors, stats, found.depth, found.counts.confidence)
 
 
 def predict_folder(
@@ -224,6 +224,7 @@ def predict_folder(
     *,
     drop=None,
     depth: bool = False,
+    report: bool = True,
     scratch_dir=None,
     memory_limit: int | None = None,
     progress: bool = True,
@@ -237,7 +238,8 @@ def predict_folder(
     ``saturated``, ``sparse_fill``, ``tile_pixels``, ...), with its defaults.
     drop: image indices to leave out (None: none; DiLiGenT's rule for bearPNG is
     ``benchmark_drop(capture_dir, DILIGENT_RULES)`` of :mod:`cnnps.io.capture`);
-    depth: also integrate the normals into depth.npy, depth.png and surface.ply; scratch_dir: where the pixel stack's temporary file goes
+    depth: also integrate the normals into depth.npy, depth.png and surface.ply; report:
+    write report.html (:mod:`cnnps.io.report`); scratch_dir: where the pixel stack's temporary file goes
     when it does not fit in ``memory_limit`` bytes (default: OUT_DIR's parent folder;
     256 MiB).
 
@@ -281,7 +283,8 @@ def predict_folder(
         write_surface = functools.partial(write_surface, intrinsics=camera.intrinsics, distance=scale)
     finish = functools.partial(outputs.finish_record, t0=t0, t_load=t_load, notes=notes,
                                linearize=opts["linearize"], warnings=warnings)
-    outputs.write_outputs(out_dir, found.normal, capture.mask, record, scored, write_surface, finish)
+    outputs.write_outputs(out_dir, found.normal, capture.mask, record, scored, write_surface, finish,
+                          found.counts.confidence, report)
     result = dict(record)
     if scored is not None:
         result.update(scored.stats)

@@ -3,8 +3,11 @@
 OUT_DIR is written all at once (a temporary folder renamed at the end, so a failure leaves
 OUT_DIR as it was): ``normal.npy`` (H x W x 3 float32 unit normals in the capture frame,
 zeros outside the mask), ``normal.png`` ((n + 1) / 2), ``prediction.json`` (the record);
+``confidence.npy`` (H x W float32 in [0, 1], 0 outside the mask) and ``confidence.png``
+when the method measures it;
 with ground truth ``error.png`` and ``metrics.json``; with a surface ``depth.npy``,
-``depth.png`` and ``surface.ply`` (:func:`cnnps.io.surface.write_surface_outputs`).
+``depth.png`` and ``surface.ply`` (:func:`cnnps.io.surface.write_surface_outputs`);
+``report.html``, a page of all of these (:mod:`cnnps.io.report`), unless told not to.
 """
 
 from __future__ import annotations
@@ -31,6 +34,9 @@ class Prediction:
     stats: ``mean_deg``, ``median_deg``, ... when ground truth was given, else None.
     depth: under point lights, (H, W) float64 depth along the optical axis found by the
     rounds (the unit of the light positions, NaN outside the mask), else None.
+    confidence: (H, W) float32 in [0, 1], how far each normal can be trusted (1 the most;
+    0 outside the mask; :mod:`cnnps.ps.confidence`, its measure in ``record["confidence"]``),
+    or None when the method has no measure (the network with one rotation).
     """
 
     normals: np.ndarray
@@ -39,6 +45,7 @@ class Prediction:
     errors: np.ndarray | None = None
     stats: dict | None = None
     depth: np.ndarray | None = None
+    confidence: np.ndarray | None = None
 
     @property
     def notes(self) -> list[str]:
@@ -48,9 +55,18 @@ class Prediction:
     def warnings(self) -> list[str]:
         return list(self.record.get("warnings", []))
 
+    def _repr_html_(self) -> str:
+        """The report page (:func:`cnnps.io.report.notebook_html`), for a notebook."""
+        from cnnps.io.report import notebook_html
+
+        return notebook_html(self.normals, self.mask, self.record, confidence=self.confidence, errors=self.errors,
+                             stats=self.stats, depth=self.depth)
+
 
 DEPTH_FILES = ("depth.npy", "depth.png", "surface.ply")
-OUTPUT_FILES = ("normal.npy", "normal.png", "prediction.json", "error.png", "metrics.json") + DEPTH_FILES
+CONFIDENCE_FILES = ("confidence.npy", "confidence.png")
+OUTPUT_FILES = ("normal.npy", "normal.png", "prediction.json", "error.png", "metrics.json") + CONFIDENCE_FILES + DEPTH_FILES + (
+    "report.html",)
 
 
 def check_out_dir(out_dir: Path, capture_dir: Path) -> None:
@@ -82,6 +98,7 @@ def make_record(solver, camera, found, stack, *, n_images: int, image_size, opti
 
     linearize, saturated = options["linearize"], options["saturated"]
     own = solver.record(found.counts.solver, n_images, found.lights.get("model") != "point")
+    confidence = found.counts.confidence
     return {
         "method": solver.name,
         "model": own.pop("model", None),
@@ -89,6 +106,9 @@ def make_record(solver, camera, found, stack, *, n_images: int, image_size, opti
         "camera": camera.record(),
         "lights": found.lights,
         **own,
+        "confidence": None if confidence is None else {
+            **(solver.confidence_record() or {}),
+            "median": round(float(np.median(confidence[found.normal.any(axis=2)])), 4)},
         "grey": options["grey"],
         "n_images": n_images,
         **({} if dropped is None else {"dropped": dropped}),
@@ -185,17 +205,22 @@ def normal_picture(normal: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return rgb
 
 
-def write_outputs(out_dir: Path, normal, mask, record: dict, scored, write_surface, finish) -> None:
-    """normal.npy, normal.png, error.png + metrics.json with a score, the surface files
-    with ``write_surface``, prediction.json last (``finish(record)`` completes it first);
-    all at once (atomic folder)."""
+def write_outputs(out_dir: Path, normal, mask, record: dict, scored, write_surface, finish,
+                  confidence: np.ndarray | None = None, report: bool = True) -> None:
+    """normal.npy, normal.png, confidence.npy + .png with a ``confidence`` map, error.png +
+    metrics.json with a score, the surface files with ``write_surface``, prediction.json
+    (``finish(record)`` completes it first), then report.html with ``report``; all at
+    once (atomic folder)."""
     from cnnps.infra.atomic import atomic_dir
     from cnnps.io.images import write_png
-    from cnnps.io.visualize import score_picture
+    from cnnps.io.visualize import confidence_picture, score_picture
 
     with atomic_dir(out_dir) as tmp:
         np.save(tmp / "normal.npy", normal)
         write_png(tmp / "normal.png", normal_picture(normal, mask))
+        if confidence is not None:
+            np.save(tmp / "confidence.npy", confidence)
+            write_png(tmp / "confidence.png", confidence_picture(confidence, mask))
         if scored is not None:
             write_png(tmp / "error.png", score_picture(scored))
             (tmp / "metrics.json").write_text(dumps({**scored.stats, **record}))
@@ -206,3 +231,10 @@ def write_outputs(out_dir: Path, normal, mask, record: dict, scored, write_surfa
                 raise CnnpsError(f"--depth: {exc}") from exc
         finish(record)
         (tmp / "prediction.json").write_text(dumps(record))
+        if report:
+            from cnnps.io.report import write_report
+
+            write_report(tmp, normal, mask, json.loads(dumps(record)), confidence=confidence,
+                         errors=None if scored is None else scored.errors, scored=None if scored is None else scored.scored,
+                         stats=None if scored is None else scored.stats,
+                         depth=np.load(tmp / DEPTH_FILES[0]) if write_surface is not None else None)

@@ -62,9 +62,27 @@ def error_picture(
     if not (vmax > 0 and np.isfinite(vmax)):
         raise ValueError(f"vmax must be a positive number, got {vmax}")
     cmap = cv2.COLORMAP_JET if colormap is None else colormap
-
-    H, W = err.shape
     level = np.clip(np.nan_to_num(err) / vmax, 0.0, 1.0)
+    return _with_colour_bar(level, mask, [f"{vmax:g} deg", f"{vmax / 2:g}", "0"], cmap)
+
+
+def confidence_picture(confidence: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The confidence map (H, W) in [0, 1] as a uint8 RGB picture with a colour bar:
+    1 (most trusted) the bright end of VIRIDIS, 0 the dark end; black outside ``mask``."""
+    import cv2
+
+    conf = np.asarray(confidence, dtype=np.float64)
+    mask = np.asarray(mask, dtype=bool) & np.isfinite(conf)
+    return _with_colour_bar(np.clip(np.nan_to_num(conf), 0.0, 1.0), mask, ["1 trusted", "0.5", "0"],
+                            cv2.COLORMAP_VIRIDIS)
+
+
+def _with_colour_bar(level: np.ndarray, mask: np.ndarray, labels: list[str], cmap: int) -> np.ndarray:
+    """``level`` (H, W) in [0, 1] colour-mapped (black outside ``mask``) with a bar panel on
+    its right labelled ``labels`` (top, middle, bottom); uint8 RGB."""
+    import cv2
+
+    H, W = level.shape
     bgr = cv2.applyColorMap(np.round(level * 255).astype(np.uint8), cmap)
     bgr[~mask] = 0
 
@@ -73,7 +91,6 @@ def error_picture(
     scale = max(0.3, min(1.0, ph / 400))
     thick = 1
     font = cv2.FONT_HERSHEY_SIMPLEX
-    labels = [f"{vmax:g} deg", f"{vmax / 2:g}", "0"]
     text_w = max(cv2.getTextSize(t, font, scale, thick)[0][0] for t in labels)
     text_h = cv2.getTextSize("0", font, scale, thick)[0][1]
     margin = max(3, ph // 40)
@@ -81,7 +98,7 @@ def error_picture(
     pw = margin + bar_w + margin + text_w + margin
     panel = np.zeros((ph, pw, 3), dtype=np.uint8)
     top, bottom = margin + text_h, ph - margin - text_h
-    ramp = np.linspace(255, 0, bottom - top).astype(np.uint8)[:, None]  # top = vmax
+    ramp = np.linspace(255, 0, bottom - top).astype(np.uint8)[:, None]  # top = the scale's top
     bar = cv2.applyColorMap(np.repeat(ramp, bar_w, axis=1), cmap)
     panel[top:bottom, margin : margin + bar_w] = bar
     x = 2 * margin + bar_w

@@ -169,6 +169,7 @@ def rotated_normals(
     pixel_chunk: int = PIXEL_CHUNK,
     read_ahead: int = 1,
     views: np.ndarray | None = None,
+    spread: np.ndarray | None = None,
 ) -> np.ndarray:
     """(P, 3) float32 normals: K-rotation test-time averaging, pixels in chunks.
 
@@ -190,6 +191,9 @@ def rotated_normals(
     ``lights`` may also be (P, m, 3): each pixel's own light directions (point lights near
     the object, :mod:`cnnps.ps.near_lights`); they are turned by the pixel's view rotation
     the same way. Lights behind a pixel's view plane are left out of its map.
+
+    ``spread`` (P,) float32, optional: filled with each pixel's :func:`rotation_spread` in
+    degrees (0 with K = 1); the normals are the same with or without it.
     """
     from cnnps.infra.prefetch import prefetched
     from cnnps.ps.camera import view_rotations
@@ -225,10 +229,35 @@ def rotated_normals(
         K, n = maps.shape[:2]
         preds = predictor(maps.reshape(K * n, predictor.w, predictor.w), progress=progress).reshape(K, n, 3)
         pred = preds[0] if K == 1 else average_rotated_predictions(preds, angles)
+        if spread is not None:
+            spread[start:start + n] = rotation_spread(preds, angles, pred)
         if views is not None:  # back from each pixel's view frame: n = R^T (R n)
             pred = np.einsum("nji,nj->ni", view_rotations(views[start:start + n]), np.asarray(pred, np.float64))
         out[start:start + n] = pred
     return out
+
+
+def rotation_spread(preds: np.ndarray, angles: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """(n,) the mean angle in degrees between K answers ``preds`` (K, n, 3), each turned
+    back by its rotation ``angles`` (K,) about z, and their average ``mean`` (n, 3) unit:
+    how much the network disagrees with itself over the test-time rotations (0 for K = 1).
+
+    >>> import numpy as np
+    >>> preds = np.array([[[0.0, 0.0, 1.0]], [[0.0, 0.0, 1.0]]])
+    >>> rotation_spread(preds, np.array([0.0, np.pi]), np.array([[0.0, 0.0, 1.0]]))
+    array([0.], dtype=float32)
+    """
+    from cnnps.ps.rotation import normalize, rotate_z
+
+    K = len(angles)
+    if K == 1:
+        return np.zeros(preds.shape[1], dtype=np.float32)
+    mean = np.asarray(mean, np.float64)
+    total = np.zeros(preds.shape[1])
+    for p, a in zip(np.asarray(preds, np.float64), angles):
+        cos = np.einsum("nk,nk->n", normalize(rotate_z(p, -a)), mean)
+        total += np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return (total / K).astype(np.float32)
 
 
 def set_cpu_threads(n: int | None = None) -> int:

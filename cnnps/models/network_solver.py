@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from cnnps.infra.errors import CnnpsError, ConfigError, InputError
-from cnnps.ps.solver import Solver, Tile
+from cnnps.ps.solver import Solved, Solver, Tile
 
 RATE_MIN_SECONDS = 5.0  # shorter runs say too little about the machine's speed
 
@@ -137,11 +137,14 @@ class NetworkSolver(Solver):
 
         return shared_lights and should_fill(self.sparse_fill, n_images)
 
-    def solve(self, tile: Tile, bar=None) -> tuple[np.ndarray, dict[str, int]]:
+    def solve(self, tile: Tile, bar=None) -> Solved:
         from cnnps.models.inference import PIXEL_CHUNK, rotated_normals
+        from cnnps.ps.confidence import lit_share, network_confidence
 
         I, lights = tile.values, tile.lights
         present = None if tile.missing is None else ~tile.missing
+        share = lit_share(I, tile.missing)
+        spread = np.zeros(tile.n, np.float32) if self.rotations > 1 else None
         filled = 0
         if self.fills(I.shape[1], lights.ndim == 2):
             from cnnps.ps.sparse_fill import lambertian_fill
@@ -149,10 +152,16 @@ class NetworkSolver(Solver):
             f = lambertian_fill(I, lights, light_mask=present, w=self.predictor.w)
             I, lights, present, filled = f.intensities, f.lights, f.light_mask, int(f.filled.sum())
         N = np.asarray(rotated_normals(self.predictor, I, lights, self.rotations, light_mask=present, progress=bar,
-                                       pixel_chunk=PIXEL_CHUNK, views=tile.views), dtype=np.float64)
+                                       pixel_chunk=PIXEL_CHUNK, views=tile.views, spread=spread), dtype=np.float64)
         if N.shape != (tile.n, 3) or not np.all(np.isfinite(N)):
             raise CnnpsError(f"the model returned invalid normals (shape {N.shape} or NaN values)")
-        return N, {"filled": filled}
+        return Solved(N, {"filled": filled}, None if spread is None else network_confidence(spread, share))
+
+    def confidence_record(self) -> dict | None:
+        if self.rotations == 1:
+            return None  # one answer a pixel: no spread to measure
+        return {"measure": "1 / (1 + u / 3 deg), u = the spread of the K rotated answers (deg) / the lit share",
+                "rotations": self.rotations}
 
     def progress_bar(self, n_pixels: int):
         from cnnps.infra.progress import progress_bar

@@ -21,6 +21,7 @@ from cnnps.pipeline import (
     cli_integrate,  # noqa: E402,F401
     cli_predict,  # noqa: E402,F401
     cli_render,  # noqa: E402,F401
+    cli_report,  # noqa: E402,F401
     cli_score,  # noqa: E402,F401
     cli_stages,  # noqa: E402,F401
 )

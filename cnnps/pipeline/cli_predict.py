@@ -67,6 +67,7 @@ def predict(
     saturated: Optional[str] = typer.Option(None, "--saturated", metavar="exclude|keep", help=f"exclude: observations with a channel >= 0.99 of the format's maximum are left out (missing); keep: use them as stored. (default: {_default('saturated')})"),
     sparse_fill: Optional[str] = typer.Option(None, "--sparse-fill", metavar="auto|on|off", help=f"cnn: add virtual Lambertian observations to sparse maps, per pixel only where a Lambertian fit explains its observations; auto = with fewer than 50 images. (default: {_default('sparse_fill')})"),
     depth: bool = typer.Option(False, "--depth", help="Also integrate the normals into depth.npy, depth.png and surface.ply."),
+    report: bool = typer.Option(True, "--report/--no-report", help="Write report.html: the normals relit by a light you drag, the confidence, the errors, the surface and the record, in one page that opens from disk (`cnnps report OUT_DIR` makes it again)."),
     tile_pixels: Optional[str] = typer.Option(None, "--tile-pixels", metavar="N", help=f"Mask pixels processed at a time (memory ~ N x images x 8 bytes). (default: {_default('tile_pixels')})"),
     distance: Optional[str] = typer.Option(None, "--distance", metavar="D", help="Point lights (light_positions.txt): the object's median depth along the optical axis, in the positions' unit; starts the rounds and sets depth.npy's scale. (default: the lights' median distance from the camera)"),
     rounds: Optional[str] = typer.Option(None, "--rounds", metavar="N", help=f"Point lights: the most rounds of normals -> depth -> per-pixel lights. (default: {_default('rounds')})"),
@@ -89,7 +90,7 @@ def predict(
              "depth_tolerance": None if depth_tolerance is None else parse("--depth-tolerance", depth_tolerance, Positive),
              "shadow_threshold": (None if shadow_threshold is None
                                   else parse("--shadow-threshold", shadow_threshold, UnitFraction))}
-    result = predict_folder(capture_dir, out, drop=parse_drop(drop), depth=depth, scratch_dir=scratch,
+    result = predict_folder(capture_dir, out, drop=parse_drop(drop), depth=depth, report=report, scratch_dir=scratch,
                             progress=progress, **{k: v for k, v in given.items() if v is not None})
     _report(result, capture_dir, out, verbose)
 

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cnnps.ps.solver import Solver, Tile
+from cnnps.ps.solver import Solved, Solver, Tile
 
 _CHUNK = 65536  # pixels per batch of normal equations (bounds memory at ~m * 64k floats)
 
@@ -238,13 +238,23 @@ class LeastSquaresSolver(Solver):
     def prepare(cls, options: dict) -> "LeastSquaresSolver":
         return cls(options.get("shadow_threshold"))
 
-    def solve(self, tile: Tile, bar=None) -> tuple[np.ndarray, dict[str, int]]:
+    def solve(self, tile: Tile, bar=None) -> Solved:
+        from cnnps.ps.confidence import (
+            lambertian_residual,
+            least_squares_confidence,
+            lit,
+        )
+
         solve = least_squares_per_pixel if tile.lights.ndim == 3 else least_squares_masked
-        normals, _albedo, valid = solve(tile.values, tile.lights, tile.missing,
-                                        shadow_threshold=self.shadow_threshold, return_valid=True)
+        normals, albedo, valid = solve(tile.values, tile.lights, tile.missing,
+                                       shadow_threshold=self.shadow_threshold, return_valid=True)
+        residual = lambertian_residual(tile.values, tile.lights, normals, albedo, lit(tile.values, tile.missing))
         if bar is not None:
             bar.update(tile.n)
-        return normals, {"invalid": int((~valid).sum())}
+        return Solved(normals, {"invalid": int((~valid).sum())}, least_squares_confidence(residual))
+
+    def confidence_record(self) -> dict:
+        return {"measure": "1 - the Lambertian residual |I - rho max(0, L n)| / |I| over the lit observations"}
 
     def progress_bar(self, n_pixels: int):
         from cnnps.infra.progress import progress_bar

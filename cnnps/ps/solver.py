@@ -10,7 +10,8 @@ A solver is a class with a registry name (:mod:`cnnps.api.solvers` lists them):
 - ``check(options)`` (class method): refuse bad options cheaply, before any capture is read;
 - ``prepare(options)`` (class method): the solver, ready for every tile (a network is
   loaded here, once);
-- ``solve(tile, bar)``: (n, 3) normals for the tile's n pixels, and counts to add up;
+- ``solve(tile, bar)``: a :class:`Solved`: (n, 3) normals for the tile's n pixels, counts
+  to add up, and optionally each pixel's confidence in [0, 1];
 - optional: ``quick()`` a cheaper copy for the intermediate rounds under point lights,
   ``progress_bar``, ``notes``, ``warnings``, ``record`` and ``finish``.
 
@@ -33,7 +34,7 @@ Frame: lights, views and normals in the capture frame (x right, y up, z toward t
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, ClassVar
+from typing import Callable, ClassVar, NamedTuple
 
 import numpy as np
 
@@ -72,6 +73,17 @@ class Tile:
         return self._views
 
 
+class Solved(NamedTuple):
+    """What :meth:`Solver.solve` returns for a tile of n pixels: ``normals`` (n, 3), any
+    float dtype, not necessarily unit; ``counts`` to add up over the tiles (e.g.
+    ``{"invalid": 3}``); ``confidence`` (n,) in [0, 1], 1 the most trusted, or None when
+    the solver has no measure of it. A plain ``(normals, counts)`` tuple is taken too."""
+
+    normals: np.ndarray
+    counts: dict = {}
+    confidence: np.ndarray | None = None
+
+
 class Solver:
     """A normal solver (see the module docstring). Subclasses set ``name`` and implement
     :meth:`solve`; the rest has defaults that suit a per-pixel method."""
@@ -88,11 +100,15 @@ class Solver:
         """The solver, ready for every tile of one capture."""
         return cls()
 
-    def solve(self, tile: Tile, bar=None) -> tuple[np.ndarray, dict[str, int]]:
-        """((n, 3) normals of the tile's pixels, any float dtype, not necessarily unit;
-        counts to add up over the tiles, e.g. ``{"invalid": 3}``). ``bar``: a progress bar
-        (:meth:`progress_bar`) or None."""
+    def solve(self, tile: Tile, bar=None) -> Solved:
+        """The tile's normals, counts and confidence (:class:`Solved`). ``bar``: a progress
+        bar (:meth:`progress_bar`) or None."""
         raise NotImplementedError
+
+    def confidence_record(self) -> dict | None:
+        """What ``prediction.json`` says of the confidence this solver gives (its measure),
+        or None when it gives none."""
+        return None
 
     def quick(self) -> "Solver":
         """A cheaper solver for the intermediate rounds under point lights (itself by default)."""

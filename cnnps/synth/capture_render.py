@@ -78,9 +78,9 @@ in ``scene.json`` as ``environment_strength``; 0 = black world, the paper's set-
 environment is the ambient light a real capture has in its attached shadows; it is not in
 the lights files, so every image then holds the lamp's term *plus* the ambient term.
 
-Content keys (:func:`capture_key`): an orthographic capture under suns without an
-environment has the key it had before pinhole cameras, point lights and environments
-existed; each of these, when used, is added to the hashed inputs.
+Content keys (:func:`capture_key`): a pinhole camera, point lights and an environment
+each enter the hashed inputs only when used, so an orthographic capture under suns in a
+black world is keyed by its inputs alone.
 
 Blender (bpy) is needed only to render: :mod:`cnnps.synth.blender_renderer`, the one
 module that imports it, is imported when a folder actually has images to render, and
@@ -348,9 +348,8 @@ class Scene:
 def capture_key(inputs: dict, environment: float = 0.0, *, fov_deg: float | None = None,
                 light_distance: float | None = None) -> str:
     """Content key of a capture: ``stable_hash(inputs)``, with ``environment`` (when
-    non-zero), ``fov_deg`` and ``light_distance`` (when set) added to the hashed dict, so
-    an orthographic capture under suns without an environment keeps the key it had
-    before these options existed."""
+    non-zero), ``fov_deg`` and ``light_distance`` (when set) added to the hashed dict:
+    an orthographic capture under suns in a black world is ``stable_hash(inputs)``."""
     extra: dict[str, float] = {}
     if environment:
         extra["environment"] = float(environment)

@@ -811,7 +811,7 @@ def generate(
     the generator's device: a CPU generator gives the same draws whatever ``device`` is
     (made on the CPU and moved); a CUDA generator draws on the GPU (another stream of
     numbers, as reproducible), which a GPU needs: with a CPU generator the step waits for
-    the draws (docs/pixelwise.md#a-gpu-recipe-benchmarksgpu_recipepy).
+    the draws (docs/pixelwise.md#a-gpu-recipe-toolsgpu_recipepy).
 
     ``lights``: (m, 3) unit directions shared by the batch (frame: x right, y up, z toward
     the camera), or None: a jittered spiral of ``n_lights`` (:func:`default_lights`) drawn

@@ -9,7 +9,7 @@ activations), ``optimiser.fused_adam`` (torch's fused kernel: the same algorithm
 one pass per tensor), ``precision: bf16`` (autocast) and ``compile`` (torch.compile)
 change the float rounding (and, for channels_last or compile, which elements a dropout
 mask draws); what each gains: docs/performance.md#training-settings. Used by
-:mod:`cnnps.train.loop` and benchmarks/bench_train.py.
+:mod:`cnnps.train.loop` and benchmarks/train/step_variants.py.
 """
 
 from __future__ import annotations

@@ -22,8 +22,12 @@ def test_lambertian_outputs_and_metrics(sphere, tmp_path):
     cap, truth = sphere
     out = tmp_path / "out"
     res = predict_folder(cap, out, method="lambertian", shadow_threshold=0.0, progress=False)
-    assert sorted(p.name for p in out.iterdir()) == ["error.png", "metrics.json", "normal.npy", "normal.png", "prediction.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["confidence.npy", "confidence.png", "error.png", "metrics.json",
+                                                     "normal.npy", "normal.png", "prediction.json"]
     normal = np.load(out / "normal.npy")
+    confidence = np.load(out / "confidence.npy")  # an exact Lambertian fit: nothing left unexplained
+    assert confidence.dtype == np.float32 and np.all(confidence[truth["mask"]] > 0.999)
+    assert np.all(confidence[~truth["mask"]] == 0)
     assert normal.dtype == np.float32 and normal.shape == (32, 32, 3)
     assert np.all(normal[~truth["mask"]] == 0)
     metrics = json.loads((out / "metrics.json").read_text())
@@ -39,7 +43,8 @@ def test_lambertian_outputs_and_metrics(sphere, tmp_path):
 def test_no_ground_truth_writes_no_metrics(tmp_path):
     write_capture(tmp_path / "cap", fmt="png16", m=8, gt=None)
     res = predict_folder(tmp_path / "cap", tmp_path / "out", method="lambertian", drop=[1], progress=False)
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["normal.npy", "normal.png", "prediction.json"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["confidence.npy", "confidence.png", "normal.npy",
+                                                                   "normal.png", "prediction.json"]
     assert "mean_deg" not in res and res["dropped"] == [1] and res["n_images"] == 7
     info = json.loads((tmp_path / "out" / "prediction.json").read_text())
     assert info["dropped"] == [1] and info["method"] == "lambertian"

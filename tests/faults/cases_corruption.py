@@ -25,7 +25,7 @@ stages keep no per-file checksums); everything else by the checksums the stages 
 
 :func:`corruption_cases` runs every kind and returns
 ``{kind: {"stage", "tried", "detected", "action"}}`` (the fault benchmark,
-``benchmarks/bench_faults.py``, recorded in ``benchmarks/results/faults.json``); :func:`run_try` runs one try and returns a
+``benchmarks/pipeline/fault_matrix.py``, recorded in ``benchmarks/results/faults.json``); :func:`run_try` runs one try and returns a
 :class:`TryResult` with the reason of a failure.
 """
 

@@ -1,5 +1,5 @@
 """Two runs on one data folder, and a full disk: the cases behind tests/faults/test_concurrent_runs.py,
-tests/faults/test_disk_full.py and benchmarks/bench_faults.py (:func:`concurrent_and_enospc_cases`).
+tests/faults/test_disk_full.py and benchmarks/pipeline/fault_matrix.py (:func:`concurrent_and_enospc_cases`).
 
 Concurrent runs. A *holder* process runs the real ``cnnps run-stage STAGE`` command line
 (:func:`cnnps.pipeline.cli.main`) with the stage's work replaced by "say so, then sleep"

@@ -8,7 +8,7 @@ the previous file or folder stays.
 Then whole stages (:func:`tests.faults.cases_lock.enospc_case`): complete run, parameter
 change, the rewrite meets a full disk (a real tmpfs where the machine allows it, else an
 injected ENOSPC), checks, re-run. CI runs a fixed subset (:data:`CI_CASES`); every stage at
-both points is ``concurrent_and_enospc_cases()`` (benchmarks/bench_faults.py).
+both points is ``concurrent_and_enospc_cases()`` (benchmarks/pipeline/fault_matrix.py).
 """
 
 from __future__ import annotations

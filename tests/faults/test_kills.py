@@ -2,7 +2,7 @@
 
 CI subset: one seeded kill per stage, in the stretch where the stage writes its outputs
 (a kill during interpreter start-up proves nothing). The full matrix (several seeds per
-stage, kill moments over the whole run too) is ``benchmarks/bench_faults.py``.
+stage, kill moments over the whole run too) is ``benchmarks/pipeline/fault_matrix.py``.
 """
 
 from __future__ import annotations

@@ -97,10 +97,9 @@ def test_render_keys_without_environment_are_unchanged(materials_data):
     """Both new features off (the defaults): every scene's key is the one it had before they
     existed (the old formula, and a pinned value of it); on, only lit scenes' keys move."""
     from cnnps.infra.hashing import file_sha256, files_sha256, stable_hash
+    from cnnps.pipeline import config
     from cnnps.stages import render
     from cnnps.synth.capture_render import VERSION, capture_key
-
-    from cnnps.pipeline import config
 
     def key(params):
         return capture_key({"mesh": "m", "material": "t", "params": params.picture_params(), "v": VERSION})

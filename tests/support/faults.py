@@ -1,4 +1,4 @@
-"""Fault injection helpers shared by ``tests/faults/`` and ``benchmarks/bench_faults.py``.
+"""Fault injection helpers shared by ``tests/faults/`` and ``benchmarks/pipeline/fault_matrix.py``.
 
 A *stage folder* is a folder holding ``params.yaml`` (the tiny pipeline params of
 ``tests/pipeline/conftest.py``: one 16x16 scene pair, one worker, so every run is

@@ -1,5 +1,5 @@
 """Analytic height fields, their exact normals and masks with holes and a notch, for the
-normal-integration tests and ``benchmarks/bench_integrate.py``.
+normal-integration tests and ``benchmarks/pipeline/integrate_speed_accuracy.py``.
 
 Heights are functions ``z(x, y)`` of pixel-centre coordinates x = column, y = -row (row 0
 on top: the capture frame's y points up), in pixel units.

@@ -449,7 +449,12 @@ def test_a_failed_re_render_puts_the_previous_capture_back(tmp_path, monkeypatch
     pytest.importorskip("bpy")
     import cnnps.synth.capture_render as cr
     from cnnps.io.images import write_exr as real_write_exr
-    from cnnps.synth.capture_render import RenderSettings, Scene, lambertian_material, render_into
+    from cnnps.synth.capture_render import (
+        RenderSettings,
+        Scene,
+        lambertian_material,
+        render_into,
+    )
     from cnnps.synth.lights import hemisphere_lights
 
     out = tmp_path / "cap"

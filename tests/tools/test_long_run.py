@@ -1,4 +1,4 @@
-"""benchmarks/long_run.py: the schedule a fallback continues with, the CPU time of a process
+"""tools/long_run.py: the schedule a fallback continues with, the CPU time of a process
 tree, and a run that lives outside the work tree (a clone at a fixed commit), records its
 stages' time and rebuilds what did not survive."""
 
@@ -15,7 +15,7 @@ import time
 import pytest
 import yaml
 
-from benchmarks import long_run
+from tools import long_run
 
 REPO = long_run.REPO
 

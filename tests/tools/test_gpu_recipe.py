@@ -1,4 +1,4 @@
-"""benchmarks/gpu_recipe.py on the CPU: measure, then train in two calls that resume the
+"""tools/gpu_recipe.py on the CPU: measure, then train in two calls that resume the
 same run, the second one on a fresh folder restored from what the first packed (a GPU
 machine that went cold between calls)."""
 
@@ -8,8 +8,8 @@ import json
 
 import torch
 
-from benchmarks import gpu_recipe
 from cnnps.models.checkpoint import load_checkpoint
+from tools import gpu_recipe
 
 
 def test_measure_then_train_across_calls(tmp_path):
