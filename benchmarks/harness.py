@@ -50,6 +50,8 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator, Mapping
 
+from cnnps.infra.machine import CPU_FLAGS, cpu_model_and_flags, logical_cpus  # noqa: F401 (CPU_FLAGS: API)
+
 ROOT = Path(__file__).resolve().parents[1]  # the repository
 RESULTS = ROOT / "benchmarks" / "results"
 SCHEMA = ("benchmark", "command", "date", "machine", "commit", "settings", "results")
@@ -225,13 +227,37 @@ def run_for(step: Callable[[], float | None], seconds: float, at_least: int = 1,
 # ----------------------------------------------------------------------------- what a run records
 
 
+def cpu_info() -> dict:
+    """``model`` (from /proc/cpuinfo, else ``platform.processor()``), ``logical_cpus``
+    (those this process may run on), ``flags`` (which of :data:`CPU_FLAGS` the CPU has)
+    and, when torch is importable, ``torch_cpu_capability`` (the kernels torch picked)."""
+    model, flags = cpu_model_and_flags()
+    info = {"model": model, "logical_cpus": logical_cpus(), "flags": flags}
+    try:
+        import torch
+    except ImportError:
+        return info
+    info["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
+    return info
+
+
+def cpu_kind(info: dict | None = None) -> str:
+    """A file-name slug for the CPU kind: model words and the widest vector extension
+    (``amd-epyc_avx2``, ``intel-xeon_avx512-bf16``), so one kind's numbers never overwrite
+    another's."""
+    info = cpu_info() if info is None else info
+    words = [w for w in info["model"].lower().replace("(r)", " ").replace("(tm)", " ").replace("-", " ").split()
+             if w not in ("processor", "cpu", "core") and not w.startswith("@")]
+    flags = set(info.get("flags", []))
+    ext = next((f for f in ("amx_bf16", "avx512_bf16", "avx512f", "avx2") if f in flags), "novec")
+    return "-".join(words[:3]) + "_" + ext.replace("_", "-")
+
+
 def machine() -> dict:
     """The machine a result was measured on: the CPU (model, logical CPUs this process may
     use, the vector and matrix extensions that change the kernels: AVX2, AVX-512, AMX; see
-    :func:`benchmarks.machine.cpu_info`), Python and the platform, torch's version and
+    :func:`cpu_info`), Python and the platform, torch's version and
     threads and the GPUs it sees (when torch is installed), and the load average."""
-    from benchmarks.machine import cpu_info
-
     info: dict = {"cpu": cpu_info(), "python": platform.python_version(), "platform": platform.platform(),
                   "load_average": [round(x, 2) for x in os.getloadavg()], "torch": None, "gpu": None}
     try:

@@ -1,36 +1,7 @@
-"""The machine a benchmark ran on (``machine.cpu`` of a result file,
-:func:`benchmarks.harness.machine`), a file-name slug for its kind of CPU, and its GEMM
-peaks (what a roofline states rates against)."""
+"""This machine's GEMM peaks (what a roofline states rates against); its CPU is described
+by :func:`benchmarks.harness.cpu_info` and :func:`benchmarks.harness.cpu_kind`."""
 
 from __future__ import annotations
-
-from cnnps.infra.machine import CPU_FLAGS, cpu_model_and_flags, logical_cpus  # noqa: F401 (CPU_FLAGS: API)
-
-
-def cpu_info() -> dict:
-    """``model`` (from /proc/cpuinfo, else ``platform.processor()``), ``logical_cpus``
-    (those this process may run on), ``flags`` (which of :data:`CPU_FLAGS` the CPU has)
-    and, when torch is importable, ``torch_cpu_capability`` (the kernels torch picked)."""
-    model, flags = cpu_model_and_flags()
-    info = {"model": model, "logical_cpus": logical_cpus(), "flags": flags}
-    try:
-        import torch
-    except ImportError:
-        return info
-    info["torch_cpu_capability"] = torch.backends.cpu.get_cpu_capability()
-    return info
-
-
-def cpu_kind(info: dict | None = None) -> str:
-    """A file-name slug for the CPU kind: model words and the widest vector extension
-    (``amd-epyc_avx2``, ``intel-xeon_avx512-bf16``), so one kind's numbers never overwrite
-    another's."""
-    info = cpu_info() if info is None else info
-    words = [w for w in info["model"].lower().replace("(r)", " ").replace("(tm)", " ").replace("-", " ").split()
-             if w not in ("processor", "cpu", "core") and not w.startswith("@")]
-    flags = set(info.get("flags", []))
-    ext = next((f for f in ("amx_bf16", "avx512_bf16", "avx512f", "avx2") if f in flags), "novec")
-    return "-".join(words[:3]) + "_" + ext.replace("_", "-")
 
 
 def gemm_peaks(repeat: int = 5, n: int = 2048) -> dict:

@@ -229,7 +229,9 @@ class Run:
         self.dir.mkdir(parents=True, exist_ok=True)
         subprocess.run(["git", "clone", "-q", "--no-checkout", str(REPO), str(self.code)], check=True)
         subprocess.run(["git", "-C", str(self.code), "checkout", "-q", "--detach", sha], check=True)
-        src = self.code / "cnnps" / "presets" / f"{preset}.yaml"
+        # a preset's name, or a params file's path in the repository (docs/recipes/cpu-train-v4.yaml)
+        is_path = preset.endswith((".yaml", ".yml")) or "/" in preset
+        src = self.code / preset if is_path else self.code / "cnnps" / "presets" / f"{preset}.yaml"
         if not src.is_file():
             raise SystemExit(f"{src}: no preset {preset!r} at commit {sha[:12]}")
         params = yaml.safe_load(src.read_text())

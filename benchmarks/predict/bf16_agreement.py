@@ -23,8 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import ROOT, Stopwatch, result_path, write_result
-from benchmarks.machine import cpu_kind
+from benchmarks.harness import ROOT, Stopwatch, cpu_kind, result_path, write_result
 
 SHARED = ROOT.parent / "shared" / "data"
 DEFAULT_CAPTURES = [SHARED / "diligent" / "ballPNG"] + [SHARED / "diligent-crop8" / f"{n}PNG"

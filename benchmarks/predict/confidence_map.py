@@ -19,8 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import Stopwatch, result_path, write_result
-from benchmarks.machine import cpu_kind
+from benchmarks.harness import Stopwatch, cpu_kind, result_path, write_result
 from benchmarks.predict.bf16_agreement import DEFAULT_CAPTURES
 
 

@@ -34,8 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import result_path, write_result
-from benchmarks.machine import cpu_kind
+from benchmarks.harness import cpu_kind, result_path, write_result
 from benchmarks.predict.bf16_agreement import DEFAULT_CAPTURES, SEED
 
 DARK = 0.02  # a light reading under this share of the pixel's brightest counts as dark

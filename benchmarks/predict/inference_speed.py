@@ -48,12 +48,14 @@ import torch
 from benchmarks.harness import (
     ROOT,
     Stopwatch,
+    cpu_info,
+    cpu_kind,
     measure,
     measure_interleaved,
     result_path,
     write_result,
 )
-from benchmarks.machine import cpu_info, cpu_kind, gemm_peaks
+from benchmarks.machine import gemm_peaks
 from cnnps.models.inference import MapPredictor, predict_normals
 from cnnps.models.network import CNNPS
 from cnnps.models.train_layers import mkldnn_bf16_available

@@ -56,8 +56,15 @@ prefer_passive_openmp()  # as the stage does, before torch loads
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from benchmarks.harness import ROOT, Stopwatch, result_path, run_for, write_result  # noqa: E402
-from benchmarks.machine import cpu_info, cpu_kind  # noqa: E402
+from benchmarks.harness import (  # noqa: E402  # noqa: E402
+    ROOT,
+    Stopwatch,
+    cpu_info,
+    cpu_kind,
+    result_path,
+    run_for,
+    write_result,
+)
 from benchmarks.train.pixelwise_finetune import EFFECTS as FINETUNE_EFFECTS  # noqa: E402
 from cnnps.io.shards import ShardStream, load_manifest, manifest_files  # noqa: E402
 from cnnps.train.shard_dataset import ShardDataset  # noqa: E402

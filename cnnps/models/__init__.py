@@ -9,5 +9,6 @@
   model files;
 - ``devices``: the one device rule; ``inference``: batched prediction with test-time
   rotations (``predict_normals``, ``MapPredictor``); ``precision_probe``: what
-  ``--precision auto`` measures.
+  ``--precision auto`` measures; ``network_solver``: the network as ``cnnps predict``'s
+  ``cnn`` method (:mod:`cnnps.ps.solver`).
 """

@@ -3,7 +3,8 @@ driven by selenium (the ``browser`` extra), WebGL on the CPU (SwiftShader), ever
 name unresolvable so nothing can be fetched, and the browser's console kept.
 
 :func:`browser_or_skip` returns a started driver, or skips the test saying what is
-missing (``.ci/run`` installs all of it, so CI runs these tests).
+missing; with ``CNNPS_REQUIRE_BROWSER=1`` (``.ci/run`` installs all of it and sets it) a
+missing piece fails the test instead, so CI cannot skip them unnoticed.
 """
 
 from __future__ import annotations
@@ -64,12 +65,14 @@ def start_browser():
     options.binary_location = _which(CHROMIUM)
     for flag in FLAGS:
         options.add_argument(flag)
-    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL", "performance": "ALL"})
     return webdriver.Chrome(service=Service(executable_path=_which(DRIVER)), options=options)
 
 
 def browser_or_skip():
     reason = missing()
+    if reason and os.environ.get("CNNPS_REQUIRE_BROWSER") == "1":
+        pytest.fail(f"browser test: {reason}, and CNNPS_REQUIRE_BROWSER=1")
     if reason:
         pytest.skip(f"browser test: {reason}")
     return start_browser()
@@ -81,6 +84,41 @@ def console_errors(driver) -> list[str]:
 
 
 def outside_requests(driver) -> list[str]:
-    """The page's resource entries that are not its own data: or blob: URLs."""
+    """What the page (or the frame the driver is in) asked for beyond itself: its resource
+    entries that are not data: or blob: URLs, and every request the browser's network
+    log saw since the last call that is not file:, data: or blob:."""
+    import json
+
     names = driver.execute_script("return performance.getEntriesByType('resource').map(e => e.name)")
-    return [n for n in names if not n.startswith(("data:", "blob:"))]
+    found = [n for n in names if not n.startswith(("data:", "blob:"))]
+    for entry in driver.get_log("performance"):
+        message = json.loads(entry["message"])["message"]
+        if message.get("method") == "Network.requestWillBeSent":
+            url = message["params"]["request"]["url"]
+            if not url.startswith(("file:", "data:", "blob:")):
+                found.append(url)
+    return found
+
+
+def screenshot(page: Path, out: Path, light=None, glossy: bool = False, width: int = 1280) -> None:
+    """A picture of the whole of report page ``page`` (what docs/images/report_*.png
+    are): the light set to ``light`` (a unit vector) and gloss on with ``glossy``."""
+    import time
+
+    driver = start_browser()
+    try:
+        driver.get(Path(page).resolve().as_uri())
+        end = time.monotonic() + 60
+        while not driver.execute_script("return window.cnnpsReport && window.cnnpsReport.ready"):
+            if time.monotonic() > end:
+                raise TimeoutError(f"{page}: the page did not get ready")
+            time.sleep(0.1)
+        if glossy:
+            driver.find_element("id", "glossy").click()
+        if light is not None:
+            driver.execute_script("window.cnnpsReport.setLight(arguments[0])", list(light))
+        driver.set_window_size(width, driver.execute_script("return document.documentElement.scrollHeight") + 140)
+        time.sleep(1.0)
+        driver.save_screenshot(str(out))
+    finally:
+        driver.quit()

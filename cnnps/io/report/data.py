@@ -1,6 +1,7 @@
-"""What the report page shows, made small: maps averaged over blocks, encoded for the page.
+"""What the report page shows, made small: maps cropped to the object, averaged over
+blocks, encoded for the page.
 
-A map of H x W pixels is shown on a grid of ``ceil(H / f) x ceil(W / f)`` cells, the
+The page shows the mask's bounding box with a margin (:func:`crop_box`). A map of H x W pixels is shown on a grid of ``ceil(H / f) x ceil(W / f)`` cells, the
 whole factor ``f = ceil(max(H, W) / max_side)`` (:func:`block_factor`; 1 when it fits).
 Each cell averages the mask pixels of its f x f block (blocks at the right and bottom
 edges are cut short); a cell is in the page's mask when at least half its block's
@@ -21,6 +22,20 @@ import numpy as np
 RELIT_SIDE = 1024  # the relit normal map's longest side on the page, in cells
 MESH_SIDE = 256  # the surface mesh's longest side, in vertices
 HISTOGRAM_BINS = 40
+
+
+def crop_box(mask: np.ndarray, margin: float = 0.03) -> tuple[slice, slice]:
+    """(rows, columns) of ``mask``'s bounding box grown by ``margin`` of the image's
+    longest side (at least 2 pixels) on each side, within the image; the whole image when
+    the mask is empty."""
+    mask = np.asarray(mask, dtype=bool)
+    H, W = mask.shape
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return slice(0, H), slice(0, W)
+    pad = max(2, round(margin * max(H, W)))
+    return (slice(max(0, rows[0] - pad), min(H, rows[-1] + 1 + pad)),
+            slice(max(0, cols[0] - pad), min(W, cols[-1] + 1 + pad)))
 
 
 def block_factor(shape: tuple[int, int], max_side: int) -> int:
@@ -158,18 +173,21 @@ def error_histogram(errors: np.ndarray, scored: np.ndarray, top: float, bins: in
     return np.bincount(np.maximum(index, 0), minlength=bins)
 
 
-def mesh_grid(depth: np.ndarray, mask: np.ndarray, intrinsics=None, max_side: int = MESH_SIDE):
+def mesh_grid(depth: np.ndarray, mask: np.ndarray, intrinsics=None, max_side: int = MESH_SIDE,
+              origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None):
     """(positions (h, w, 3) float32, f): the surface's points on a grid of blocks, where
     ``surface.ply`` puts them (:mod:`cnnps.io.surface`) for each block's mean depth at
     its centre pixel (u, v): x = u - (W - 1) / 2, y = (H - 1) / 2 - v, z = depth in pixel
     units, or with ``intrinsics`` the 3D point depth x diag(1, -1, -1) K^-1 (u, v, 1);
-    NaN where fewer than half a block's pixels have a depth."""
+    NaN where fewer than half a block's pixels have a depth. ``depth`` and ``mask`` may
+    be a crop of the image (H, W) = ``image_shape`` whose top-left pixel is ``origin``."""
     depth = np.asarray(depth)
     present = np.asarray(mask, dtype=bool) & np.isfinite(depth)
-    H, W = present.shape
+    h0, w0 = present.shape
+    H, W = image_shape or present.shape
     f = block_factor(present.shape, max_side)
     z, share = block_mean(np.where(present, depth, 0).astype(np.float32), present, f)
-    r, c = np.meshgrid(block_centres(H, f), block_centres(W, f), indexing="ij")
+    r, c = np.meshgrid(origin[0] + block_centres(h0, f), origin[1] + block_centres(w0, f), indexing="ij")
     if intrinsics is None:
         xyz = np.stack([c - (W - 1) / 2.0, (H - 1) / 2.0 - r, z], axis=-1)
     else:

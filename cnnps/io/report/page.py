@@ -80,10 +80,10 @@ def _note(text: str) -> str:
     return f'<p class="absent">{_e(text)}</p>'
 
 
-def relit_section(normals, mask, max_side: int) -> tuple[str, dict]:
+def relit_section(normals, mask, max_side: int, box: str) -> tuple[str, dict]:
     cells, inside, f = d.page_normals(normals, mask, max_side)
     h, w = inside.shape
-    shown = "" if f == 1 else f" Shown at 1/{f} ({w} x {h} cells, each the mean of {f} x {f} pixels)."
+    shown = box + ("" if f == 1 else f" Shown at 1/{f} ({w} x {h} cells, each the mean of {f} x {f} pixels).")
     body = f"""
 <p>Drag on the picture (or on the ball) to move the light; each pixel shows max(0, n &middot; l), the
 light l pointing from the surface, x right, y up, z toward the camera.{_e(shown)}</p>
@@ -168,12 +168,12 @@ holds {top:g} deg and above</figcaption></figure>
     return _section("errors", "Errors against ground truth", body)
 
 
-def surface_section(depth, mask, record: dict, mesh_side: int) -> tuple[str, dict | None]:
+def surface_section(depth, mask, record: dict, mesh_side: int, origin, image_shape) -> tuple[str, dict | None]:
     if depth is None:
         return _section("surface", "Surface", _note(
             "No surface: run cnnps predict with --depth to integrate the normals into one.")), None
     camera = record.get("camera") or {}
-    xyz, f = d.mesh_grid(depth, mask, camera.get("intrinsics"), mesh_side)
+    xyz, f = d.mesh_grid(depth, mask, camera.get("intrinsics"), mesh_side, origin, image_shape)
     info = record.get("depth") or {}
     facts = "".join(f"<li>{_e(k)}: {_e(info[k])}</li>" for k in ("method", "components", "residual_rms",
                                                                  "vertices", "faces") if k in info)
@@ -226,10 +226,19 @@ def page_html(normals, mask, record: dict, *, confidence=None, errors=None, scor
     (H, W), NaN where there is no surface, or None. ``max_side``: the maps' longest side
     on the page; ``mesh_side``: the mesh's."""
     mask = np.asarray(mask, dtype=bool)
-    relit, relit_data = relit_section(normals, mask, max_side)
-    surface, mesh_data = surface_section(depth, mask, record, mesh_side)
+    scored = mask if scored is None else np.asarray(scored, dtype=bool)
+    shape = mask.shape
+    rows, cols = d.crop_box(mask | scored)
+    box = "" if (rows.stop - rows.start, cols.stop - cols.start) == shape else (
+        f" Cropped to the object: rows {rows.start}-{rows.stop - 1}, columns {cols.start}-{cols.stop - 1} of "
+        f"{shape[1]} x {shape[0]}.")
+    crop = [None if a is None else np.asarray(a)[rows, cols] for a in (normals, mask, confidence, errors, scored, depth)]
+    normals, mask, confidence, errors, scored, depth = crop
+    relit, relit_data = relit_section(normals, mask, max_side, box)
+    relit_data["origin"] = [rows.start, cols.start]  # the top-left pixel of the crop
+    surface, mesh_data = surface_section(depth, mask, record, mesh_side, (rows.start, cols.start), shape)
     sections = (relit + confidence_section(confidence, mask, record, max_side)
-                + errors_section(errors, mask if scored is None else scored, stats, error_picture_url, max_side)
+                + errors_section(errors, scored, stats, error_picture_url, max_side)
                 + surface + record_section(record))
     three = three_payload() if mesh_data is not None else None
     scripts = f'<script type="application/json" id="report-data">{script_json({"relit": relit_data, "mesh": mesh_data})}</script>\n'
@@ -237,7 +246,7 @@ def page_html(normals, mask, record: dict, *, confidence=None, errors=None, scor
         scripts += "".join(f'<script type="text/plain" id="{key}">{three[name]}</script>\n'
                            for key, name in (("three-core", "three.core.js"), ("three-module", "three.module.js"),
                                              ("three-orbit", "OrbitControls.js")))
-    return _frame(record, mask.shape, sections, scripts, three)
+    return _frame(record, shape, sections, scripts, three)
 
 
 def _frame(record: dict, shape, sections: str, scripts: str, three: dict | None) -> str:

@@ -200,7 +200,7 @@ async function surfaceView() {
   scene.add(sun, sun.target);
   sun.target.position.copy(centre);
   const camera = new THREE.PerspectiveCamera(35, 1, radius / 100, radius * 100);
-  const view = new THREE.Vector3(-0.3, 0.45, 0.84).normalize().multiplyScalar(radius * 3.2);  // from the upper left
+  const view = new THREE.Vector3(-0.3, 0.45, 0.84).normalize().multiplyScalar(radius * 4);  // from the upper left
   camera.position.copy(centre).add(view);
   const controls = new OrbitControls(camera, canvas);
   controls.target.copy(centre);
