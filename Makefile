@@ -5,7 +5,8 @@ PYTHON ?= python3.11
 TORCH  ?= torch==2.13.0
 PIP    := -m pip install -qq
 
-# .venv: the full install (core + Blender for rendering + test tools; numpy <2 for bpy).
+# .venv: the full install (core + Blender for rendering + test tools, selenium for the browser
+# tests; numpy <2 for bpy).
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
@@ -31,7 +32,7 @@ $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) $(PIP) --upgrade pip
 	$(PY) $(PIP) $(TORCH)
-	$(PY) $(PIP) -e '.[render,dev]'
+	$(PY) $(PIP) -e '.[render,dev,browser]'
 	@touch $@
 
 $(CORE_STAMP): pyproject.toml

@@ -105,6 +105,9 @@ def test_wheel_ships_presets_and_weights_and_runs_outside_the_checkout(tmp_path)
     weights = {f"cnnps/models/weights/{p.name}" for p in (REPO / "cnnps" / "models" / "weights").iterdir() if p.is_file()}
     assert "cnnps/presets/demo.yaml" in presets and "cnnps/models/weights/cnnps_default.pt" in weights
     assert presets <= names and weights <= names, sorted((presets | weights) - names)
+    report = {f"cnnps/io/report/{p.relative_to(REPO / 'cnnps' / 'io' / 'report').as_posix()}"
+              for sub in ("assets", "vendor/three") for p in (REPO / "cnnps" / "io" / "report" / sub).iterdir()}
+    assert "cnnps/io/report/vendor/three/LICENSE" in report and report <= names, sorted(report - names)
     for pkg in ("infra", "ps", "io", "models", "synth", "train", "stages", "api", "pipeline"):
         assert f"cnnps/{pkg}/__init__.py" in names
     meta = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith(".dist-info/METADATA"))).decode()

@@ -12,8 +12,8 @@ import time
 import numpy as np
 import pytest
 
-from cnnps.io.report import notebook_html, report_html, write_report
 from cnnps.io.report import data as d
+from cnnps.io.report import notebook_html, report_html, write_report
 from cnnps.io.report.page import BACKGROUND, GLOSS, INITIAL_LIGHT
 from tests.support.browser import browser_or_skip, console_errors, outside_requests
 from tests.support.report import dome, page_data, relit, unpacked

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from cnnps.io.report import data as d
-from cnnps.io.report.three_vendor import three_sources
+from cnnps.io.report.three_vendor import manifest, three_sources
 
 ASSETS = Path(__file__).resolve().parent / "assets"
 INITIAL_LIGHT = (-1 / 6**0.5, 1 / 6**0.5, 2 / 6**0.5)  # upper left, in front
@@ -255,7 +255,7 @@ def _frame(record: dict, shape, sections: str, scripts: str, three: dict | None)
     how = f"{method}, K={record['rotations']}" if record.get("rotations") else str(method)
     warnings = record.get("warnings") or []
     banner = ("".join(f'<p class="warning">warning: {_e(w)}</p>' for w in warnings)) if warnings else ""
-    version = three_sources()["version"]
+    version = manifest()["version"]  # three.js itself is read only for a page with a surface
     licence = (f"<details><summary>three.js {_e(version)} is inlined in this page for the surface view; its MIT "
                f"licence</summary><pre>{_e(three['license'])}</pre></details>") if three else ""
     nav = "".join(f'<a href="#{k}">{t}</a>' for k, t in (("relit", "relit"), ("confidence", "confidence"),

@@ -174,6 +174,7 @@ function meshGeometry(THREE, cfg, xyz) {
   for (let i = 0; i < w * h; i++) {  // unused vertices: at the centre, so the bounds stay finite
     if (!ok(i)) { xyz[3 * i] = centre[0]; xyz[3 * i + 1] = centre[1]; xyz[3 * i + 2] = centre[2]; }
   }
+  if (index.length === 0) throw new Error("no 2 x 2 block of the depth map is complete: no surface to draw");
   const geometry = new THREE.BufferGeometry();
   geometry.setAttribute("position", new THREE.BufferAttribute(xyz, 3));
   geometry.setIndex(index);
