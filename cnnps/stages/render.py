@@ -63,7 +63,7 @@ from cnnps.synth.capture_render import (
     Scene,
     capture_key,
     extend_maps,
-    is_complete,
+    finished,
     lambertian_material,
     principled_material,
     render_into,
@@ -247,7 +247,7 @@ def render_scene_job(job: dict) -> dict:
     p = Params(**job["params"])
     sid = job["scene_id"]
     out = Path(job["out"])
-    if is_complete(out, job["key"]):
+    if finished(out, job["key"]):
         return {"scene_id": sid, "rendered": 0, "skipped": True}
     from cnnps.synth.lights import hemisphere_lights
 
@@ -289,7 +289,7 @@ def run(params: Params, data_dir: Path, executor=None) -> dict:
     out_root.mkdir(parents=True, exist_ok=True)
     if params.prune:
         prune_stale(out_root, {j["scene_id"] for j in jobs}, RENDER_MARKERS)
-    todo = [j for j in jobs if not is_complete(Path(j["out"]), j["key"])]
+    todo = [j for j in jobs if not finished(Path(j["out"]), j["key"])]
     results = []
     if todo:
         from cnnps.synth.blender_renderer import require_blender

@@ -414,6 +414,15 @@ def is_complete(out: Path, key: str, verify: bool = True) -> bool:
     return not verify or not folder_problems(out, meta)
 
 
+def finished(out: Path, key: str) -> bool:
+    """:func:`is_complete`, and a finished folder's leftover ``.pending.json`` removed (a
+    kill between writing ``scene.json`` and removing the marker leaves both)."""
+    if not is_complete(out, key):
+        return False
+    (out / PENDING_FILE).unlink(missing_ok=True)
+    return True
+
+
 def folder_problems(out: Path, meta: dict | None = None) -> list[tuple[Path, str]]:
     """``(file, problem)`` for every file of the finished capture ``out`` that does not
     match what its ``scene.json`` (``meta``: read when None) records: the record's own
@@ -508,7 +517,7 @@ def render_into(
     Example: ``render_into("cap", Scene(v, f, lambertian_material(), L), RenderSettings(size=32), key="k")``.
     """
     out = Path(out)
-    if is_complete(out, key):
+    if finished(out, key):
         return {"rendered": 0, "skipped": True}
     if _take_back_previous(out, key):  # a killed re-render left the version this key asks for
         return {"rendered": 0, "skipped": True}
@@ -794,6 +803,7 @@ def _take_back_previous(out: Path, key: str) -> bool:
     if out.exists():
         shutil.rmtree(out)
     prev.rename(out)
+    (out / PENDING_FILE).unlink(missing_ok=True)
     return True
 
 

@@ -23,7 +23,7 @@ def test_lambertian_outputs_and_metrics(sphere, tmp_path):
     out = tmp_path / "out"
     res = predict_folder(cap, out, method="lambertian", shadow_threshold=0.0, progress=False)
     assert sorted(p.name for p in out.iterdir()) == ["confidence.npy", "confidence.png", "error.png", "metrics.json",
-                                                     "normal.npy", "normal.png", "prediction.json"]
+                                                     "normal.npy", "normal.png", "prediction.json", "report.html"]
     normal = np.load(out / "normal.npy")
     confidence = np.load(out / "confidence.npy")  # an exact Lambertian fit: nothing left unexplained
     assert confidence.dtype == np.float32 and np.all(confidence[truth["mask"]] > 0.999)
@@ -44,7 +44,7 @@ def test_no_ground_truth_writes_no_metrics(tmp_path):
     write_capture(tmp_path / "cap", fmt="png16", m=8, gt=None)
     res = predict_folder(tmp_path / "cap", tmp_path / "out", method="lambertian", drop=[1], progress=False)
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["confidence.npy", "confidence.png", "normal.npy",
-                                                                   "normal.png", "prediction.json"]
+                                                                   "normal.png", "prediction.json", "report.html"]
     assert "mean_deg" not in res and res["dropped"] == [1] and res["n_images"] == 7
     info = json.loads((tmp_path / "out" / "prediction.json").read_text())
     assert info["dropped"] == [1] and info["method"] == "lambertian"

@@ -224,7 +224,8 @@ def test_depth_writes_the_surface_of_the_predicted_normals(capture16, tmp_path):
                           progress=False)
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(["normal.npy", "normal.png", "prediction.json", "error.png", "metrics.json",
-                            "confidence.npy", "confidence.png", "depth.npy", "depth.png", "surface.ply"])
+                            "confidence.npy", "confidence.png", "depth.npy", "depth.png", "surface.ply",
+                            "report.html"])
     info = json.loads((out / "prediction.json").read_text())
     assert info["depth"] == res["depth"] and info["depth"]["pixels"] == int(truth["mask"].sum())
     depth = np.load(out / "depth.npy")

@@ -201,6 +201,20 @@ def _hand_made_capture(out: Path, names=("000.exr", "001.exr", "002.exr")) -> di
     return meta
 
 
+def test_a_finished_folder_sheds_the_marker_a_kill_left_beside_scene_json(tmp_path):
+    """A kill between writing scene.json and removing .pending.json leaves both: the folder
+    is finished (nothing to render), and the next look at it removes the marker."""
+    from cnnps.synth.capture_render import PENDING_FILE, finished, is_complete
+
+    out = tmp_path / "cap"
+    _hand_made_capture(out)
+    (out / PENDING_FILE).write_text('{"key": "k"}\n')
+    assert is_complete(out, "k") and (out / PENDING_FILE).is_file()  # the predicate changes nothing
+    assert finished(out, "k") and not (out / PENDING_FILE).exists()
+    (out / PENDING_FILE).write_text('{"key": "k"}\n')
+    assert not finished(out, "other") and (out / PENDING_FILE).is_file()  # not finished for another key
+
+
 def _edit_scene_json(out: Path, edit) -> None:
     meta = json.loads((out / "scene.json").read_text())
     edit(meta)
