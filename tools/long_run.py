@@ -10,6 +10,8 @@ CPU-time ledger, and a fallback to committed weights.
     .venv/bin/python tools/long_run.py table v4                  # the study's table (and study.json)
     .venv/bin/python tools/long_run.py probe v4                  # score the newest checkpoint now
     .venv/bin/python tools/long_run.py probe v4 --model MID.pt --name mid   # or a candidate weights file
+    .venv/bin/python tools/long_run.py curve v5 --every 5000 --pixels 2000   # real objects along the run
+    .venv/bin/python tools/long_run.py stop v5                   # at the next checkpoint
 
 It imports ``cnnps`` from this interpreter's install (``make setup``: this checkout, in
 editable mode) for its own bookkeeping; the stages run the clone's code.
@@ -29,6 +31,15 @@ it often survives. So a run lives in ``ROOT/NAME/``:
   ``dvc exp run -S train.optimiser.lr=...`` there trains and scores one variant into its own
   ``data/train`` and ``data/eval``; ``dvc exp show`` is the table. ``exp`` runs one such
   experiment and books its time in the ledger as stage ``study``;
+- ``curve``: the checkpoints every ``--every`` steps (and the newest) scored on real
+  objects with ground truth (BALL and the four DiLiGenT crops under ``--shared``) by
+  ``cnnps score --pixels N`` of this work tree: the same seeded sample of pixels for every
+  checkpoint, a quick paired comparison, not the benchmark's number. Rows go to
+  ``real_curve.json`` in git's folder (step, CPU-hours at that step, validation error, each
+  capture's mean, the dev-real mean: the captures but BALL); the time to the ledger (stage
+  ``curve``). A step already scored with the same options is not scored again;
+- ``stop``: waits for the train stage's next checkpoint, then ends the run's process tree
+  (this run's only); ``resume`` continues from that checkpoint;
 - ``ledger.json``: wall and CPU seconds of every stage call (the stage's whole process
   tree, sampled every ``--poll`` seconds, so a killed call loses at most that much), with
   the CPU model of the machine it ran on.
@@ -503,6 +514,83 @@ class Run:
         net, _, _ = load_checkpoint(weights, "cpu")
         return val_errors(net, maps, normals, torch.device("cpu"), "fp32").get("val_mean_deg")
 
+    def curve(self, every: int, pixels: int, captures: list[Path], poll: float, rotations: int = 10) -> list[dict]:
+        """Score the checkpoints at multiples of ``every`` steps and the newest (see the
+        module's ``curve``); returns every row of ``real_curve.json``."""
+        cks = {int(p.stem.split("-")[1]): p for p in (self.data / "train" / "checkpoints").glob("step-*.pt")}
+        if not cks:
+            raise SystemExit(f"{self.name}: no checkpoint to score yet")
+        steps = sorted({s for s in cks if s % every == 0} | {max(cks)})
+        record = self.carried / "real_curve.json"
+        old = json.loads(record.read_text()) if record.is_file() else {"rows": []}
+        options = {"pixels": pixels, "rotations": rotations, "captures": [c.name for c in captures]}
+        rows = [r for r in old["rows"] if r.get("options") == options]
+        done = {r["step"] for r in rows}
+        offset = self._offset()
+        for step in steps:
+            if step + offset in done:
+                continue
+            out = self.dir / "curve" / f"step-{step + offset:08d}.json"
+            out.parent.mkdir(parents=True, exist_ok=True)
+            weights = self.export(cks[step], out.with_suffix(".pt"), meta={"steps": step + offset, "run": self.name})
+            cmd = [sys.executable, "-m", "cnnps", "score", str(weights), *map(str, captures), "--pixels", str(pixels),
+                   "--rotations", str(rotations), "--out", str(out),
+                   *(["--exclude-from-mean", BALL] if any(c.name == BALL for c in captures) else [])]
+            print(f"{self.name}: scoring step {step + offset} ({cks[step].name})", flush=True)
+            rc = self._timed("curve", cmd, REPO, poll, step=step + offset)
+            weights.unlink()
+            if rc:
+                raise SystemExit(f"cnnps score exited with an error on {cks[step]}")
+            rows.append(self._curve_row(step + offset, json.loads(out.read_text()), options))
+            rows.sort(key=lambda r: r["step"])
+            _write_json(record, {"run": self.name, "scorer_commit": _head(), "rows": rows})
+        return rows
+
+    def _curve_row(self, step: int, score: dict, options: dict) -> dict:
+        k = f"cnn_k{options['rotations']}"
+        row = {"step": step, "cpu_hours": self._cpu_hours_at(step), "val_mean_deg": self._val_of_step(step),
+               "options": options, "model_sha256": score["model_sha256"]}
+        for name, cap in score["captures"].items():
+            row[name] = round(cap["methods"][k]["mean_deg"], 3)
+        dev = score["summary_real"].get(k, {})
+        row["dev_real_mean_deg"] = None if not dev else round(dev["mean_deg"], 3)
+        return row
+
+    def _cpu_hours_at(self, step: int) -> float | None:
+        """The train stage's CPU-hours up to ``step``: its total so far times the share of
+        the steps done (the step rate of one machine and precision is steady)."""
+        cks = sorted(int(p.stem.split("-")[1]) for p in (self.data / "train" / "checkpoints").glob("step-*.pt"))
+        total = self.totals().get("train", {}).get("cpu_hours")
+        if not cks or not total:
+            return None
+        last = cks[-1] + self._offset()
+        return round(total * min(step, last) / last, 3)
+
+    def stop(self, timeout: float = 1800.0, settle: float = 8.0) -> int:
+        """Wait for the next checkpoint, then end this run's training process tree."""
+        import signal
+
+        ck_dir = self.data / "train" / "checkpoints"
+        pids = _pids_of(f"tools/long_run.py resume {self.name}")
+        if not pids:
+            print(f"{self.name}: not running")
+            return 0
+        newest = max(ck_dir.glob("step-*.pt"), default=None)
+        t0 = time.time()
+        while max(ck_dir.glob("step-*.pt"), default=None) == newest:
+            if time.time() - t0 > timeout:
+                raise SystemExit(f"{self.name}: no new checkpoint in {timeout:.0f} s; not stopped")
+            time.sleep(2)
+        time.sleep(settle)  # the checkpoint is written to a temporary name and renamed: let the stage settle
+        tree = [p for pid in pids for p in _tree(pid)]
+        for p in tree:
+            try:
+                os.kill(p, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+        print(f"{self.name}: stopped after {max(ck_dir.glob('step-*.pt')).name}")
+        return 0
+
     def totals(self) -> dict:
         ledger = json.loads(self.ledger.read_text()) if self.ledger.is_file() else {"calls": []}
         out: dict[str, dict] = {}
@@ -529,12 +617,22 @@ class Run:
         cks = sorted((self.data / "train" / "checkpoints").glob("step-*.pt"))
         if not cks:
             return None
+        out = dst / "intermediate.pt"
+        done = int(cks[-1].stem.split("-")[1]) + int(self._offset())
+        # float16, as the shipped weights: half the bytes in git; a fallback continues from
+        # weights rounded to 1 part in 2,000, far below what one training step changes
+        self.export(cks[-1], out, meta={"steps": done, "run": self.name, "commit": self.record()["commit"]}, half=True)
+        return out
+
+    def export(self, checkpoint: Path, out: Path, meta: dict, half: bool = False) -> Path:
+        """A train stage checkpoint's network as a cnnps weights file (what ``cnnps predict
+        --model`` and ``cnnps score`` read), float16 when ``half``."""
         import torch
 
         from cnnps.models.checkpoint import save_checkpoint
         from cnnps.models.network import CNNPS
 
-        state = torch.load(cks[-1], map_location="cpu", weights_only=True)
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
         params = yaml.safe_load(self.params.read_text())
         train = params.get("train") or {}
         manifest = self.data / "extract" / "manifest.json"  # shards carry their map width
@@ -542,18 +640,40 @@ class Run:
         w = json.loads(manifest.read_text())["w"] if manifest.is_file() and not per_pixel_only else train_value(train, "w", 32)
         net = CNNPS(w=int(w), dropout=float(train.get("dropout", 0.2)))
         net.load_state_dict(state["model"])
-        out = dst / "intermediate.pt"
-        done = int(cks[-1].stem.split("-")[1]) + int(self._offset())
-        # float16, as the shipped weights: half the bytes in git; a fallback continues from
-        # weights rounded to 1 part in 2,000, far below what one training step changes
-        save_checkpoint(out, net, meta={"steps": done, "run": self.name, "commit": self.record()["commit"]}, half=True)
-        return out
+        return save_checkpoint(out, net, meta=meta, half=half)
 
     def _offset(self) -> int:
         """Steps done before this folder's run began (a fallback continues a saved step)."""
         params = yaml.safe_load(self.params.read_text())
         base = self.record()["params"]["train"]
         return int(base.get("max_steps") or 0) - int(params["train"].get("max_steps") or 0)
+
+
+BALL = "ballPNG"  # reported beside dev-real, never in its mean
+
+
+def real_objects(shared: Path) -> list[Path]:
+    """BALL and the four DiLiGenT crops under ``shared`` (``../shared/data``)."""
+    caps = [shared / "diligent" / BALL] + [shared / "diligent-crop8" / f"{n}PNG" for n in ("cow", "goblet", "pot1", "pot2")]
+    missing = [str(c) for c in caps if not c.is_dir()]
+    if missing:
+        raise SystemExit(f"no such capture folder: {', '.join(missing)}")
+    return caps
+
+
+def _head() -> str:
+    return subprocess.run(["git", "-C", str(REPO), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+
+
+def _pids_of(pattern: str) -> list[int]:
+    out = subprocess.run(["pgrep", "-f", pattern], capture_output=True, text=True).stdout.split()
+    return [int(p) for p in out if int(p) != os.getpid()]
+
+
+def _tree(pid: int) -> list[int]:
+    """``pid`` and its descendants, children first."""
+    kids = [int(p) for p in subprocess.run(["pgrep", "-P", str(pid)], capture_output=True, text=True).stdout.split()]
+    return [q for k in kids for q in _tree(k)] + [pid]
 
 
 def metric_columns(em: dict, ev: dict) -> dict:
@@ -595,7 +715,8 @@ def format_study(rows: list[dict]) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("cmd", choices=["start", "resume", "save", "status", "study", "exp", "table", "probe"])
+    ap.add_argument("cmd", choices=["start", "resume", "save", "status", "study", "exp", "table", "probe",
+                                       "curve", "stop"])
     ap.add_argument("name")
     ap.add_argument("--root", type=Path, default=Path("/work/runs"))
     ap.add_argument("--preset")
@@ -605,6 +726,9 @@ def main(argv=None) -> int:
     ap.add_argument("--carried", type=Path, default=CARRIED, help="the runs' folder in git")
     ap.add_argument("--model", type=Path, help="probe: score this weights file instead of the newest checkpoint")
     ap.add_argument("--name", dest="label", help="probe --model: the row's name in probes.json")
+    ap.add_argument("--every", type=int, default=5000, help="curve: score the checkpoints at multiples of this step")
+    ap.add_argument("--pixels", type=int, default=2000, help="curve: pixels per capture (cnnps score --pixels)")
+    ap.add_argument("--shared", type=Path, default=REPO.parent / "shared" / "data", help="curve: where the real captures are")
     argv = list(sys.argv[1:] if argv is None else argv)
     exp_args = argv[argv.index("--") + 1:] if "--" in argv else []  # exp: the arguments of `dvc exp run`
     a = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
@@ -651,6 +775,12 @@ def main(argv=None) -> int:
         print(format_study([row]))
         print(f"(added to {run.carried / 'probes.json'})")
         return 0
+    if a.cmd == "curve":
+        rows = run.curve(a.every, a.pixels, real_objects(a.shared), a.poll)
+        print(json.dumps([{k: v for k, v in r.items() if k not in ("options", "model_sha256")} for r in rows], indent=1))
+        return 0
+    if a.cmd == "stop":
+        return run.stop()
     if a.cmd == "save":
         out = run.save()
         print(f"saved {run.carried}/ledger.json" + (f" and {out}" if out else " (no checkpoint yet)"))

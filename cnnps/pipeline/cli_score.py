@@ -91,7 +91,8 @@ def score(
     saturated: Optional[str] = typer.Option(None, "--saturated", metavar="exclude|keep", help=f"As cnnps predict --saturated. (default: {_default('saturated')})"),
     sparse_fill: Optional[str] = typer.Option(None, "--sparse-fill", metavar="auto|on|off", help=f"As cnnps predict --sparse-fill. (default: {_default('sparse_fill')})"),
     batch_size: Optional[str] = typer.Option(None, "--batch-size", metavar="N", help="Observation maps per network batch (default 256 on a CPU, 4096 on CUDA)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the subset rule (cnnps.io.capture.subset_drop); another seed draws other images."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the subset rule (cnnps.io.capture.subset_drop) and of --pixels; another seed draws other images and pixels."),
+    pixels: int = typer.Option(0, "--pixels", metavar="N", help="Score each capture on a seeded sample of N of its mask pixels, the same for every model (0 = all): a quick paired comparison of checkpoints, not the benchmark's number."),
 ) -> None:
     """Score a weights file on capture folders with ground truth, least squares beside it.
 
@@ -119,6 +120,8 @@ def score(
     }
     if seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {seed}")
+    if pixels < 0:
+        raise ConfigError(f"--pixels must be >= 0 (0 = every pixel), got {pixels}")
     if out is not None and out.is_dir():
         raise InputError(out, "--out is a folder; give a file name")
     path = _model(model)
@@ -136,7 +139,7 @@ def score(
                               f"({', '.join(names)})")
 
     params = ev.Params(synthetic=False, real_captures=tuple(str(d) for d in capture_dirs), real_subsets=ns,
-                       real_exclude_from_mean=excluded, rotations=ks, model=str(path), seed=seed, **options)
+                       real_exclude_from_mean=excluded, real_pixels=pixels, rotations=ks, model=str(path), seed=seed, **options)
     metrics = ev.score_real(params)
 
     from cnnps.infra.hashing import file_sha256
@@ -145,7 +148,7 @@ def score(
         "format": OUT_FORMAT,
         "model": str(path),
         "model_sha256": file_sha256(path),
-        "options": {"rotations": list(ks), "subsets": list(ns), "seed": seed, **options,
+        "options": {"rotations": list(ks), "subsets": list(ns), "seed": seed, "pixels": pixels, **options,
                     "precision_used": metrics["precision"]},
         "methods": metrics["methods"],
         "captures": metrics["captures"],
@@ -157,7 +160,8 @@ def score(
     typer.echo(format_table(metrics))
     k_text = ", ".join(str(k) for k in ks)
     typer.echo(f"\n{path.name} (sha256 {record['model_sha256'][:8]}), K={k_text}, {metrics['precision']}, "
-               f"saturated {options['saturated']}; {record['seconds']:.1f} s")
+               f"saturated {options['saturated']}"
+               + (f", a sample of {pixels} pixels per capture" if pixels else "") + f"; {record['seconds']:.1f} s")
     if out is not None:
         import json
 

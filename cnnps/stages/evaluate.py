@@ -120,7 +120,10 @@ class Params:
     :func:`cnnps.io.capture.subset_drop` (named ``<capture>-<n>``).
     ``real_exclude_from_mean``: folder names of real captures scored and reported but left
     out of ``summary_real`` / ``summary_real_subsets`` (e.g. a capture kept for reference
-    beside a group that is averaged). ``saturated``: "exclude" leaves saturated observations
+    beside a group that is averaged). ``real_pixels``: score each real capture (and its
+    subsets) on a seeded random sample of that many of its mask pixels, the same pixels for
+    every model and subset (:func:`pixel_sample`; 0 = every pixel): a quick, paired
+    comparison of checkpoints, not the benchmark's number. ``saturated``: "exclude" leaves saturated observations
     out, as ``cnnps predict`` does by default; "keep" uses them as stored. ``precision``:
     the network's ("auto": the measured pick of ``cnnps predict --precision auto``).
     ``model``: checkpoint;
@@ -141,6 +144,7 @@ class Params:
     real_captures: tuple[str, ...] = ()
     real_subsets: tuple[int, ...] = ()
     real_exclude_from_mean: tuple[str, ...] = ()
+    real_pixels: int = 0  # 0 = every mask pixel; N = a seeded sample of N (pixel_sample)
     rig: Rig | None = None
     # point-light captures: "known" = the median depth a render records in scene.json, as a
     # measured --distance; "estimated" = found from the images, as without --distance
@@ -188,6 +192,8 @@ class Params:
             if name not in names:
                 raise ConfigError(f"eval.real_exclude_from_mean: {name!r} is not the folder name of one of "
                                   f"eval.real_captures ({', '.join(names) or 'none'})")
+        if self.real_pixels < 0:
+            raise ConfigError(f"eval.real_pixels must be >= 0 (0 = every pixel), got {self.real_pixels}")
         if self.superpixels < 1:
             raise ConfigError(f"eval.superpixels must be >= 1, got {self.superpixels}")
         if self.size < 8:
@@ -223,7 +229,25 @@ def _model_path(params: Params, data_dir: Path) -> Path:
     return path
 
 
-def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> dict:
+def pixel_sample(mask: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """A (H, W) bool mask holding ``n`` of ``mask``'s True pixels, drawn without
+    replacement by ``numpy.random.default_rng(seed)``; ``mask`` itself when it holds ``n``
+    or fewer (or ``n`` is 0). The draw depends only on ``mask``, ``n`` and ``seed``, so every
+    model and image subset of a capture is scored on the same pixels.
+
+    Example: ``pixel_sample(np.ones((4, 4), bool), 5).sum() == 5``.
+    """
+    mask = np.asarray(mask, dtype=bool)
+    idx = np.flatnonzero(mask)
+    if n <= 0 or n >= idx.size:
+        return mask
+    keep = np.random.default_rng(seed).choice(idx, size=n, replace=False)
+    out = np.zeros(mask.size, dtype=bool)
+    out[keep] = True
+    return out.reshape(mask.shape)
+
+
+def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None, pixels: int = 0) -> dict:
     """Normals by every method for one capture; errors where there is ground truth.
 
     ``predict(I (P, m), L, k, views=None) -> (P, 3)``: the CNN with k rotations; ``L`` is
@@ -231,7 +255,8 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> d
     directions under a pinhole camera. When some observations are saturated (and
     ``params.saturated`` is "exclude") it is called with ``present=`` (P, m) bool too,
     False for a missing observation. ``drop``: image indices to leave out
-    (:func:`cnnps.io.capture.scan_capture`).
+    (:func:`cnnps.io.capture.scan_capture`). ``pixels``: score only a seeded sample of that
+    many mask pixels (:func:`pixel_sample` with ``params.seed``; 0 = all).
 
     Rig captures are scored as ``cnnps predict`` treats them: with ``intrinsics.txt`` the
     network sees each pixel's lights in its own view frame; with ``light_positions.txt``
@@ -249,6 +274,8 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None) -> d
     from cnnps.ps.metrics import score_normals
 
     cap = scan_capture(capture_dir, drop=drop)
+    if pixels:
+        cap.mask = pixel_sample(cap.mask, pixels, params.seed)
     I, missing = pixel_values(cap, params.saturated)
     distance = None
     if cap.light_positions is not None and params.rig_distance == "known":
@@ -383,7 +410,8 @@ def score_all(captures, predict, params: Params) -> dict[str, dict]:
         given = drop[0] if drop else None
         if kind == "real" and given is None:
             given = benchmark_drop(path, DILIGENT_RULES)  # the real objects are scored as the benchmark scores them
-        r = evaluate_capture(path, predict, params, drop=given)
+        r = evaluate_capture(path, predict, params, drop=given,
+                             pixels=params.real_pixels if kind == "real" else 0)
         r["kind"] = kind
         r["subset"] = subset
         results[name] = r

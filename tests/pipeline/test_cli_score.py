@@ -190,3 +190,42 @@ def test_the_real_crop_against_its_measured_least_squares(shared_dir, capsys, tm
     assert full["methods"]["lambertian"]["mean_deg"] == pytest.approx(26.7, abs=0.05)
     assert full["methods"]["cnn_k1"]["mean_deg"] < 10.0  # 7.6 with v4
     assert res["summary_real"]["cnn_k1"]["mean_deg"] == full["methods"]["cnn_k1"]["mean_deg"]
+
+
+def test_pixel_sample_scores_the_same_seeded_pixels(tmp_path, capsys, tiny_model):
+    """--pixels N: each capture and its subsets on the same N mask pixels, drawn by the seed;
+    the numbers are the full prediction's errors on exactly those pixels."""
+    from cnnps.stages.evaluate import pixel_sample
+
+    cap = tmp_path / "caps" / "sphere"
+    truth = write_capture(cap, fmt="png16", size=24, m=16, seed=3, max_tilt_deg=45)
+    gt, mask = truth["normals"], truth["mask"]
+    n = int(mask.sum()) // 3
+    runs = {}
+    for seed in (0, 1):
+        out = tmp_path / f"score-{seed}.json"
+        code, stdout, err = run_cli(["score", str(tiny_model), str(cap), "--rotations", "2", "--subsets", "6",
+                                     "--pixels", str(n), "--seed", str(seed), "--device", "cpu", "--precision",
+                                     "fp32", "--out", str(out)], capsys)
+        assert code == 0, err
+        assert f"a sample of {n} pixels per capture" in stdout
+        runs[seed] = json.loads(out.read_text())
+    res = runs[0]
+    assert res["options"]["pixels"] == n
+    for name in ("sphere", "sphere-6"):
+        assert res["captures"][name]["pixels"] == res["captures"][name]["scored_pixels"] == n
+    sample = pixel_sample(mask, n, 0)
+    assert sample.sum() == n and not (sample & ~mask).any()
+    assert (pixel_sample(mask, n, 1) != sample).any()  # another seed, other pixels
+    assert np.array_equal(pixel_sample(mask, 0, 0), mask) and np.array_equal(pixel_sample(mask, 10**6, 0), mask)
+    predicted = _predicted(tmp_path, capsys, cap, "--method", "lambertian")
+    for seed in (0, 1):
+        mean, median = _angular_stats(predicted, gt, pixel_sample(mask, n, seed))
+        got = runs[seed]["captures"]["sphere"]["methods"]["lambertian"]
+        assert got["mean_deg"] == pytest.approx(mean, abs=1e-4) and got["median_deg"] == pytest.approx(median, abs=1e-4)
+    predicted = _predicted(tmp_path, capsys, cap, "--model", str(tiny_model), "--rotations", "2", "--device", "cpu",
+                           "--precision", "fp32")
+    mean, _ = _angular_stats(predicted, gt, sample)
+    assert res["captures"]["sphere"]["methods"]["cnn_k2"]["mean_deg"] == pytest.approx(mean, abs=1e-3)
+    code, _, err = run_cli(["score", str(tiny_model), str(cap), "--pixels", "-1"], capsys)
+    assert code != 0 and "--pixels must be >= 0" in err

@@ -202,3 +202,71 @@ def test_calls_that_run_side_by_side_keep_each_others_ledger_entries(tmp_path):
     run._record_call({**train, "cpu_s": 40.0})  # the training call's next sample
     calls = json.loads(run.ledger.read_text())["calls"]
     assert [(c["stage"], c["cpu_s"]) for c in calls] == [("train", 40.0), ("probe", 3.0)]
+
+
+def _fake_run(tmp_path, steps):
+    """A run folder with untrained checkpoints at ``steps``, a validation log and one
+    training call of an hour's CPU in the ledger."""
+    import torch
+
+    from cnnps.models.network import CNNPS
+
+    root, carried = tmp_path / "runs", tmp_path / "carried"
+    (carried / "r").mkdir(parents=True)
+    (carried / "r" / "run.json").write_text(json.dumps({"commit": "0" * 40, "params": {"train": {"max_steps": 40}}}))
+    run = long_run.Run("r", root, carried)
+    run.params.parent.mkdir(parents=True)
+    run.params.write_text(yaml.safe_dump({"train": {"max_steps": 40}}))
+    ck = run.data / "train" / "checkpoints"
+    ck.mkdir(parents=True)
+    for s in steps:
+        torch.manual_seed(s)
+        torch.save({"model": CNNPS(w=32).state_dict(), "step": s}, ck / f"step-{s:08d}.pt")
+    (run.data / "train" / "plots").mkdir()
+    (run.data / "train" / "plots" / "val.csv").write_text("step,val_mean_deg,val_median_deg\n10,9.5,8\n20,7.25,6\n")
+    run._record_call({"id": "1-1", "stage": "train", "cpu_s": 3600.0, "wall_s": 1800.0})
+    return run
+
+
+def test_a_curve_scores_checkpoints_on_real_objects_once(tmp_path):
+    from tests.stages.test_eval import make_capture
+
+    run = _fake_run(tmp_path, [10, 20, 25])
+    caps = [make_capture(tmp_path / "caps" / "ballPNG"), make_capture(tmp_path / "caps" / "cow")]
+    rows = run.curve(every=20, pixels=50, captures=caps, poll=0.5, rotations=1)
+    assert [r["step"] for r in rows] == [20, 25]  # multiples of 20, and the newest
+    assert [r["cpu_hours"] for r in rows] == [0.8, 1.0]  # an hour for 25 steps
+    assert rows[0]["val_mean_deg"] == 7.25
+    for r in rows:
+        assert r["dev_real_mean_deg"] == r["cow"] and r["ballPNG"] > 0  # BALL beside dev-real, not in it
+        score = json.loads((run.dir / "curve" / f"step-{r['step']:08d}.json").read_text())
+        assert all(c["scored_pixels"] == 50 for c in score["captures"].values())
+    assert rows[0]["model_sha256"] != rows[1]["model_sha256"]
+    calls = [c for c in json.loads(run.ledger.read_text())["calls"] if c["stage"] == "curve"]
+    assert [c["step"] for c in calls] == [20, 25] and all(c["finished"] for c in calls)
+    # again: nothing new to score; other options are another curve
+    assert run.curve(every=20, pixels=50, captures=caps, poll=0.5, rotations=1) == rows
+    assert len([c for c in json.loads(run.ledger.read_text())["calls"] if c["stage"] == "curve"]) == 2
+    saved = json.loads((run.carried / "real_curve.json").read_text())
+    assert saved["run"] == "r" and saved["rows"] == rows
+
+
+def test_stop_waits_for_the_next_checkpoint_then_ends_the_run(tmp_path):
+    import threading
+
+    run = _fake_run(tmp_path, [10])
+    name = f"stop-test-{os.getpid()}"
+    run.name = name  # the process below looks like this run's `resume`
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)", "tools/long_run.py", "resume", name])
+    try:
+        ck = run.data / "train" / "checkpoints"
+        timer = threading.Timer(1.0, lambda: shutil.copy(ck / "step-00000010.pt", ck / "step-00000020.pt"))
+        timer.start()
+        t0 = time.monotonic()
+        assert run.stop(timeout=60, settle=0.1) == 0
+        assert time.monotonic() - t0 >= 0.9  # not before the new checkpoint
+        assert proc.wait(timeout=30) != 0  # ended by a signal
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert run.stop() == 0  # nothing running: nothing to wait for
