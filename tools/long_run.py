@@ -614,6 +614,7 @@ class Run:
             metrics = self.data / stage / "metrics.json"
             if metrics.is_file():
                 shutil.copy(metrics, dst / f"{stage}_metrics.json")
+        self._save_val_curve(dst / "val.csv")
         cks = sorted((self.data / "train" / "checkpoints").glob("step-*.pt"))
         if not cks:
             return None
@@ -623,6 +624,23 @@ class Run:
         # weights rounded to 1 part in 2,000, far below what one training step changes
         self.export(cks[-1], out, meta={"steps": done, "run": self.name, "commit": self.record()["commit"]}, half=True)
         return out
+
+    def _save_val_curve(self, dst: Path) -> None:
+        """The train stage's validation log (steps counted from the run's start) with the
+        CPU-hours at each step (:meth:`_cpu_hours_at`): what the learning-curve plot reads."""
+        src = self.data / "train" / "plots" / "val.csv"
+        if not src.is_file():
+            return
+        offset = self._offset()
+        lines = ["step,cpu_hours,val_mean_deg,val_median_deg"]
+        for ln in src.read_text().splitlines()[1:]:
+            if ln.strip():
+                step, mean, median = ln.split(",")[:3]
+                s = int(float(step)) + offset
+                lines.append(f"{s},{self._cpu_hours_at(s)},{mean},{median}")
+        from cnnps.infra.atomic import write_text
+
+        write_text(dst, "\n".join(lines) + "\n")
 
     def export(self, checkpoint: Path, out: Path, meta: dict, half: bool = False) -> Path:
         """A train stage checkpoint's network as a cnnps weights file (what ``cnnps predict

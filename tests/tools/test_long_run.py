@@ -249,6 +249,10 @@ def test_a_curve_scores_checkpoints_on_real_objects_once(tmp_path):
     assert len([c for c in json.loads(run.ledger.read_text())["calls"] if c["stage"] == "curve"]) == 2
     saved = json.loads((run.carried / "real_curve.json").read_text())
     assert saved["run"] == "r" and saved["rows"] == rows
+    # save: the validation log goes to git with the CPU-hours at each step, for the plot
+    run.save()
+    assert (run.carried / "val.csv").read_text().splitlines() == [
+        "step,cpu_hours,val_mean_deg,val_median_deg", "10,0.4,9.5,8", "20,0.8,7.25,6"]
 
 
 def test_stop_waits_for_the_next_checkpoint_then_ends_the_run(tmp_path):
