@@ -2,7 +2,9 @@
 CPU-time ledger, and a fallback to committed weights.
 
     .venv/bin/python tools/long_run.py start v4 --preset cpu-train-v4 [--commit HEAD] [--root /work/runs]
+    .venv/bin/python tools/long_run.py start fx --preset cpu-train-v5-continue --set train.max_steps=1500
     .venv/bin/python tools/long_run.py resume v4 [--root /work/runs] [--stages render extract train]
+    .venv/bin/python tools/long_run.py resume fx --stages train eval --testset-from v4   # one rendered test set
     .venv/bin/python tools/long_run.py save v4 [--root /work/runs]      # then commit tools/runs/v4/
     .venv/bin/python tools/long_run.py status v4
     .venv/bin/python tools/long_run.py study v4                  # a clone for `dvc exp run`
@@ -131,6 +133,25 @@ def with_train_values(train: dict, **values) -> dict:
     return out
 
 
+def set_value(params: dict, item: str) -> None:
+    """Apply one ``KEY.PATH=VALUE`` to ``params`` in place (VALUE read as YAML: ``0``,
+    ``[1200]``, ``null``); a section on the path that is missing is created.
+
+    >>> p = {"train": {"max_steps": 9}}; set_value(p, "train.optimiser.lr_milestones=[1200]"); p
+    {'train': {'max_steps': 9, 'optimiser': {'lr_milestones': [1200]}}}
+    """
+    key, sep, text = item.partition("=")
+    if not sep or not key or any(not part for part in key.split(".")):
+        raise SystemExit(f"--set {item!r}: expected KEY.PATH=VALUE")
+    *path, last = key.split(".")
+    node = params
+    for part in path:
+        node = node.setdefault(part, {})
+        if not isinstance(node, dict):
+            raise SystemExit(f"--set {item!r}: {part!r} is not a section")
+    node[last] = yaml.safe_load(text)
+
+
 def continue_schedule(train: dict, step: int, init: str) -> dict:
     """The train section that continues a run of ``train`` from the weights of its step
     ``step`` (``init``) as a new run: ``max_steps`` the steps left, ``lr_milestones`` those
@@ -231,8 +252,9 @@ class Run:
     def record(self) -> dict:
         return json.loads((self.carried / "run.json").read_text())
 
-    def create(self, commit: str, preset: str) -> dict:
-        """Clone the repository at ``commit`` into ``code/`` and write ``params.yaml``."""
+    def create(self, commit: str, preset: str, overrides: list[str] = ()) -> dict:
+        """Clone the repository at ``commit`` into ``code/`` and write ``params.yaml``: the
+        preset with ``overrides`` (``KEY.PATH=VALUE``, :func:`set_value`) applied."""
         sha = subprocess.run(["git", "-C", str(REPO), "rev-parse", commit], check=True, capture_output=True,
                              text=True).stdout.strip()
         if self.code.exists():
@@ -246,6 +268,8 @@ class Run:
         if not src.is_file():
             raise SystemExit(f"{src}: no preset {preset!r} at commit {sha[:12]}")
         params = yaml.safe_load(src.read_text())
+        for item in overrides:
+            set_value(params, item)
         params["data_dir"] = str(self.data)
         meshes = params.get("meshes") or {}
         if meshes.get("mesh_dir") and not Path(meshes["mesh_dir"]).is_absolute():
@@ -256,13 +280,14 @@ class Run:
             ev["real_captures"] = [c if Path(c).is_absolute() else str((REPO / c).resolve()) for c in ev["real_captures"]]
         _write_json(self.dir / "run.json", {"name": self.name, "commit": sha, "preset": preset})
         self.params.write_text(yaml.safe_dump(params, sort_keys=False))
-        return {"commit": sha, "preset": preset, "params": params}
+        return {"commit": sha, "preset": preset, **({"overrides": list(overrides)} if overrides else {}),
+                "params": params}
 
     def ensure(self) -> list[str]:
         """Rebuild what did not survive from the record in git; what was rebuilt."""
         rec, notes = self.record(), []
         if not (self.code / ".git").is_dir() or not self.params.is_file():
-            self.create(rec["commit"], rec["preset"])
+            self.create(rec["commit"], rec["preset"], rec.get("overrides", []))
             notes.append(f"cloned {rec['commit'][:12]} again into {self.code}")
         if not any((self.data / "train" / "checkpoints").glob("step-*.pt")):
             w = self.carried / "intermediate.pt"
@@ -566,6 +591,17 @@ class Run:
         last = cks[-1] + self._offset()
         return round(total * min(step, last) / last, 3)
 
+    def link_testset(self, other: "Run") -> str:
+        """Make ``data/eval/testset`` a link to ``other``'s (created there if missing), so
+        runs with one eval plan render it once; a folder already here is kept."""
+        mine, theirs = self.data / "eval" / "testset", other.data / "eval" / "testset"
+        if mine.is_symlink() or mine.exists():
+            return f"{mine}: kept as it is"
+        theirs.mkdir(parents=True, exist_ok=True)
+        mine.parent.mkdir(parents=True, exist_ok=True)
+        mine.symlink_to(theirs, target_is_directory=True)
+        return f"{mine} -> {theirs}"
+
     def stop(self, timeout: float = 1800.0, settle: float = 8.0) -> int:
         """Wait for the next checkpoint, then end this run's training process tree."""
         import signal
@@ -740,6 +776,10 @@ def main(argv=None) -> int:
     ap.add_argument("--preset")
     ap.add_argument("--commit", default="HEAD")
     ap.add_argument("--stages", nargs="+", default=STAGES, choices=STAGES)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE",
+                    help="start: change the preset (e.g. train.max_steps=1500); recorded in run.json")
+    ap.add_argument("--testset-from", metavar="RUN",
+                    help="resume: the eval stage reuses that run's rendered test set (a link; captures carry content keys)")
     ap.add_argument("--poll", type=float, default=30.0)
     ap.add_argument("--carried", type=Path, default=CARRIED, help="the runs' folder in git")
     ap.add_argument("--model", type=Path, help="probe: score this weights file instead of the newest checkpoint")
@@ -755,7 +795,7 @@ def main(argv=None) -> int:
         if not a.preset:
             ap.error("start needs --preset")
         old = run.record() if (run.carried / "run.json").is_file() else None
-        made = run.create(a.commit, a.preset)
+        made = run.create(a.commit, a.preset, a.set)
         rec = {"name": a.name, **made}
         if old and old["commit"] != made["commit"]:  # the same run, its next phase at another commit
             rec["history"] = [*old.get("history", []), {"commit": old["commit"], "preset": old["preset"],
@@ -766,6 +806,8 @@ def main(argv=None) -> int:
     if a.cmd == "resume":
         for note in run.ensure():
             print(note, flush=True)
+        if a.testset_from:
+            print(run.link_testset(Run(a.testset_from, a.root, a.carried)), flush=True)
         for stage in a.stages:
             rc = run.run_stage(stage, a.poll)
             if rc:

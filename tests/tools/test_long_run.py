@@ -274,3 +274,34 @@ def test_stop_waits_for_the_next_checkpoint_then_ends_the_run(tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert run.stop() == 0  # nothing running: nothing to wait for
+
+
+@pytest.mark.skipif(shutil.which("git") is None or not (REPO / ".git").exists(), reason="needs git and a clone")
+def test_a_variant_run_changes_its_preset_and_shares_a_test_set(tmp_path):
+    root, carried = tmp_path / "runs", tmp_path / "carried"
+    args = ["--root", str(root), "--carried", str(carried)]
+    sets = ["--set", "train.max_steps=1500", "--set", "train.optimiser.lr_milestones=[1200]",
+            "--set", "train.pixelwise.effects.saturation=0"]
+    assert long_run.main(["start", "fx", "--preset", "cpu-train-v5-continue", *sets, *args]) == 0
+    rec = json.loads((carried / "fx" / "run.json").read_text())
+    assert rec["overrides"] == ["train.max_steps=1500", "train.optimiser.lr_milestones=[1200]",
+                                "train.pixelwise.effects.saturation=0"]
+
+    def train():
+        return yaml.safe_load((root / "fx" / "params.yaml").read_text())["train"]
+
+    t = train()
+    assert t["max_steps"] == 1500 and t["optimiser"]["lr_milestones"] == [1200] and t["optimiser"]["lr"] == 0.0002
+    assert t["pixelwise"]["effects"]["saturation"] == 0 and t["pixelwise"]["effects"]["quantisation"] == 0.3
+    # a bare machine: the clone is made again with the same changes
+    shutil.rmtree(root / "fx")
+    long_run.Run("fx", root, carried).ensure()
+    assert train() == t
+    with pytest.raises(SystemExit, match="expected KEY.PATH=VALUE"):
+        long_run.main(["start", "bad", "--preset", "demo", "--set", "train.max_steps", *args])
+    # the eval stage's test set, rendered once: a link to another run's
+    run, other = long_run.Run("fx", root, carried), long_run.Run("v", root, carried)
+    assert "->" in run.link_testset(other)
+    (other.data / "eval" / "testset" / "cap").mkdir()
+    assert (run.data / "eval" / "testset" / "cap").is_dir()
+    assert "kept" in run.link_testset(other)
