@@ -107,13 +107,14 @@ def step_rate(device, params, seconds: float) -> dict:
     """Bare train-step samples/s (random sparse maps already on the device)."""
     import torch
 
+    from cnnps.train.loop import input_channels
     from cnnps.train.optimiser import compile_model, make_model, train_step
 
-    B, w = params.data.batch_size, params.pixelwise.w
-    model, opt = make_model(w, params, device)
+    B, w, C = params.data.batch_size, params.pixelwise.w, input_channels(params)
+    model, opt = make_model(w, params, device, in_channels=C)
     step_model = compile_model(model, params)
     g = torch.Generator(device=device).manual_seed(0)
-    maps = (torch.rand(B, 1, w, w, device=device, generator=g) > 0.9).float()
+    maps = (torch.rand(B, C, w, w, device=device, generator=g) > 0.9).float()
     normals = torch.nn.functional.normalize(torch.randn(B, 3, device=device, generator=g), dim=1)
     t0 = time.perf_counter()
     for _ in range(3):
@@ -134,11 +135,11 @@ def lr_probe(device, params, steps: int, val_n: int = 4096) -> dict:
     angular error (deg) on ``val_n`` held per-pixel maps, and the last 20 steps' loss."""
     import torch
 
-    from cnnps.train.loop import pixelwise_maker
+    from cnnps.train.loop import input_channels, pixelwise_maker
     from cnnps.train.optimiser import make_model, train_step
 
     make, w = pixelwise_maker(params), params.pixelwise.w
-    model, opt = make_model(w, params, device)
+    model, opt = make_model(w, params, device, in_channels=input_channels(params))
     losses = []
     t0 = time.perf_counter()
     for s in range(steps):

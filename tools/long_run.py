@@ -692,7 +692,8 @@ class Run:
         manifest = self.data / "extract" / "manifest.json"  # shards carry their map width
         per_pixel_only = train_value(train, "pixelwise", 0) >= 1
         w = json.loads(manifest.read_text())["w"] if manifest.is_file() and not per_pixel_only else train_value(train, "w", 32)
-        net = CNNPS(w=int(w), dropout=float(train.get("dropout", 0.2)))
+        channels = int(state["model"]["conv0.weight"].shape[1])  # 4: a colour model (train.pixelwise.rgb)
+        net = CNNPS(w=int(w), dropout=float(train.get("dropout", 0.2)), in_channels=channels)
         net.load_state_dict(state["model"])
         return save_checkpoint(out, net, meta=meta, half=half)
 

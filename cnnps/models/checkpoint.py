@@ -3,7 +3,7 @@
 A checkpoint is one ``torch.save`` file holding only plain data (no pickled classes)::
 
     {"format": "cnnps-checkpoint", "format_version": 1,
-     "config": {"arch_version": 1, "w": 32, "dropout": 0.2, ...},   # rebuilds the net
+     "config": {"arch_version": 1, "w": 32, "dropout": 0.2, "in_channels": 1, ...},  # rebuilds the net
      "meta": {...},                       # free provenance: steps, val error, data hash
      "weights_dtype": "float32" | "float16",
      "weights_sha256": "...",             # digest of names, dtypes, shapes and bytes
@@ -20,6 +20,8 @@ checkpoint (``sha256sum`` format; :func:`write_sha256_file`, written by the trai
 for ``model.pt``) is verified too, when present: it covers every byte of the file.
 The bytes of a checkpoint depend only on its content (saved through memory, so the zip's
 folder name is not the temporary file's random name).
+``in_channels`` (1: grey maps; 4: grey, R, G, B) is read as 1 when absent: the files
+written before colour models existed load unchanged.
 Weights can be stored in half precision (``half=True``: 5.3 MB
 instead of 10.6 MB for w = 32); they are loaded back as float32.
 """
@@ -78,15 +80,17 @@ def save_checkpoint(
 ) -> Path:
     """Write ``model`` with its ``config`` and provenance ``meta`` atomically to ``path``.
 
-    ``config`` may carry anything JSON-like; ``w``, ``dropout`` and ``arch_version`` are
-    filled in from the model (a value that disagrees with the model raises ValueError).
+    ``config`` may carry anything JSON-like; ``w``, ``dropout``, ``in_channels`` and
+    ``arch_version`` are filled in from the model (a value that disagrees with the model
+    raises ValueError).
     ``half=True`` stores the weights as float16 (refused if a weight exceeds its range).
     """
     if not isinstance(model, CNNPS):
         raise TypeError(f"expected a CNNPS model, got {type(model).__name__}")
     config = _json_like(dict(config or {}), "config")
     meta = _json_like(dict(meta or {}), "meta")
-    for key, value in (("w", model.w), ("dropout", model.dropout_p), ("arch_version", ARCH_VERSION)):
+    for key, value in (("w", model.w), ("dropout", model.dropout_p), ("in_channels", model.in_channels),
+                       ("arch_version", ARCH_VERSION)):
         if key in config and config[key] != value:
             raise ValueError(f"config[{key!r}] = {config[key]!r} disagrees with the model ({value!r})")
         config[key] = value
@@ -224,9 +228,10 @@ def _load_checkpoint(path: str | Path, device: str | torch.device) -> tuple[CNNP
     config = payload["config"]
     try:
         w, dropout = int(config["w"]), float(config["dropout"])
+        in_channels = int(config.get("in_channels", 1))  # files before colour models: grey
         if not math.isfinite(dropout):
             raise ValueError("dropout is not finite")
-        model = CNNPS(w=w, dropout=dropout)
+        model = CNNPS(w=w, dropout=dropout, in_channels=in_channels)
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(path, f"checkpoint config cannot rebuild the network: {exc}") from None
     state = {k: v.float() for k, v in payload["state_dict"].items()}
@@ -234,7 +239,7 @@ def _load_checkpoint(path: str | Path, device: str | torch.device) -> tuple[CNNP
         model.load_state_dict(state, strict=True)
     except RuntimeError as exc:
         detail = " ".join(str(exc).split())[:300]
-        raise InputError(path, f"weights do not match the config (w={w}): {detail}") from None
+        raise InputError(path, f"weights do not match the config (w={w}, in_channels={in_channels}): {detail}") from None
     model.to(resolve_device(device)).eval()
     return model, dict(config), dict(payload["meta"])
 

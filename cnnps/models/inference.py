@@ -16,6 +16,11 @@ under ``torch.inference_mode``, CPU batches small enough to stay in the caches
 rounding. Any other ``nn.Module`` mapping (B, 1, w, w) maps to (B, 3) normals is run as
 given. :class:`MapPredictor` is also what the train stage validates with
 (:mod:`cnnps.train.validation`).
+
+Colour models (``in_channels`` = 4, :data:`cnnps.models.network.RGB_CHANNELS`) get per
+rotation the grey map and the R, G, B maps of the training rule
+(:func:`cnnps.ps.obsmap.observation_maps_rgb_multi`), under distant lights and an
+orthographic camera without the Lambertian fill (:func:`check_colour_inputs`).
 """
 
 from __future__ import annotations
@@ -27,9 +32,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from cnnps.infra.errors import CnnpsError
+from cnnps.infra.errors import CnnpsError, ConfigError
 from cnnps.models.devices import resolve_device  # also part of this module's API
-from cnnps.models.network import CNNPS, fast_cpu_model, fold_for_inference
+from cnnps.models.network import CNNPS, RGB_CHANNELS, fast_cpu_model, fold_for_inference
 from cnnps.ps.rotation import average_rotated_predictions, rotate_z, rotation_angles
 
 PRECISIONS = ("fp32", "bf16")
@@ -48,8 +53,34 @@ def check_precision(precision: str) -> str:
     return precision
 
 
+def model_channels(model) -> int:
+    """The input channels of a network (or :class:`MapPredictor`): its ``in_channels``, 1
+    when it has none (any module mapping (B, 1, w, w) maps to normals)."""
+    return int(getattr(model, "in_channels", 1))
+
+
+def check_colour_inputs(channels: int, *, per_pixel_lights: bool = False, views: bool = False,
+                        fill: bool = False) -> None:
+    """One ConfigError when a network of ``channels`` input channels cannot be fed: a
+    colour model (:data:`RGB_CHANNELS`: grey, R, G, B) builds its maps under distant
+    lights with an orthographic camera and no Lambertian fill; other counts are not built."""
+    if channels == 1:
+        return
+    if channels != RGB_CHANNELS:
+        raise ConfigError(f"a model of {channels} input channels: only 1 (grey) or {RGB_CHANNELS} "
+                          "(grey, R, G, B) are known")
+    if per_pixel_lights or views:
+        what = "per-pixel lights (point lights)" if per_pixel_lights else "a pinhole camera (per-pixel views)"
+        raise ConfigError(f"an RGB model needs distant lights and an orthographic camera; this capture has {what}: "
+                          "use a grey model")
+    if fill:
+        raise ConfigError("an RGB model needs the capture's own observations, not the Lambertian sparse fill "
+                          "(it applies below 50 images); use --sparse-fill off (eval.sparse_fill: off)")
+
+
 class MapPredictor:
-    """Callable (B, w, w) numpy maps (float16 or float32) -> (B, 3) float32 numpy normals.
+    """Callable numpy maps (float16 or float32) -> (B, 3) float32 numpy normals: (B, w, w)
+    for a 1-channel (grey) model, (B, C, w, w) for a C-channel one (``in_channels``).
 
     Holds the prepared (folded, moved, channels_last, eval mode) copy of the model; the
     caller's model is not modified (nor its train/eval mode), and building the copy draws
@@ -66,6 +97,7 @@ class MapPredictor:
             raise CnnpsError(f"batch size must be >= 1, got {batch_size}")
         self.batch_size = int(batch_size)
         self.w = int(getattr(model, "w", 32))
+        self.in_channels = model_channels(model)
         # autocast: bf16 anywhere but in FastCNNPS, which holds its own bf16 weights
         self.autocast = self.precision == "bf16"
         if fold and isinstance(model, CNNPS):
@@ -89,10 +121,14 @@ class MapPredictor:
     @torch.inference_mode()
     def __call__(self, maps: np.ndarray, progress=None) -> np.ndarray:
         maps = np.ascontiguousarray(maps, dtype=np.float32)
-        if maps.ndim != 3 or maps.shape[1:] != (self.w, self.w):
-            raise ValueError(f"maps must be (B, {self.w}, {self.w}), got {maps.shape}")
+        C = self.in_channels
+        want = (self.w, self.w) if C == 1 else (C, self.w, self.w)
+        if maps.ndim != 1 + len(want) or maps.shape[1:] != want:
+            raise ValueError(f"maps must be (B, {', '.join(map(str, want))}), got {maps.shape}")
         out = np.empty((maps.shape[0], 3), dtype=np.float32)
-        x_all = torch.from_numpy(maps).unsqueeze(1)  # (B, 1, w, w): with one channel also channels_last
+        x_all = torch.from_numpy(maps)
+        if C == 1:
+            x_all = x_all.unsqueeze(1)  # (B, 1, w, w): with one channel also channels_last
         for start in range(0, maps.shape[0], self.batch_size):
             x = x_all[start:start + self.batch_size].to(self.device, non_blocking=True)
             x = x.contiguous(memory_format=torch.channels_last)
@@ -118,7 +154,9 @@ def predict_normals(
     """Unit normals (P, 3) float32 for P pixels from their (P, m) intensities
     (:func:`rotated_normals` with a :class:`MapPredictor` of ``model``).
 
-    intensities: (P, m), already divided by each light's intensity.
+    intensities: (P, m), already divided by each light's intensity; for an RGB model
+    (``in_channels`` 4) also (P, m, 3), each channel divided by its own intensity (the
+    grey map is then their mean's; (P, m) grey values stand for R = G = B).
     lights: (m, 3) unit light directions (camera frame: x right, y up, z to the camera),
     or (P, m, 3) each pixel's own (point lights near the object; never sparse-filled).
     rotations: K test-time rotations (K = 1: none; the paper uses 10).
@@ -133,14 +171,17 @@ def predict_normals(
     """
     intensities = np.asarray(intensities, dtype=np.float32)
     lights = np.asarray(lights, dtype=np.float64)
-    if intensities.ndim != 2:
-        raise ValueError(f"intensities must be (P, m), got {intensities.shape}")
-    P, m = intensities.shape
+    channels = model_channels(model)
+    if intensities.ndim != 2 and not (channels > 1 and intensities.ndim == 3 and intensities.shape[2] == 3):
+        raise ValueError(f"intensities must be (P, m){' or (P, m, 3)' if channels > 1 else ''}, "
+                         f"got {intensities.shape}")
+    P, m = intensities.shape[:2]
     if lights.shape not in ((m, 3), (P, m, 3)):
         raise ValueError(f"lights must be ({m}, 3) or ({P}, {m}, 3) to match intensities, got {lights.shape}")
     from cnnps.ps.sparse_fill import lambertian_fill, should_fill
 
     fill = should_fill(sparse_fill, m) and lights.ndim == 2  # per-pixel lights (point lights): no fill
+    check_colour_inputs(channels, per_pixel_lights=lights.ndim == 3, views=views is not None, fill=fill)
     predictor = MapPredictor(model, device=device, precision=precision, batch_size=batch_size)
     light_mask = None
     if fill:
@@ -170,8 +211,18 @@ def rotated_normals(
     read_ahead: int = 1,
     views: np.ndarray | None = None,
     spread: np.ndarray | None = None,
+    colour: np.ndarray | None = None,
 ) -> np.ndarray:
     """(P, 3) float32 normals: K-rotation test-time averaging, pixels in chunks.
+
+    ``intensities`` (P, m): the grey values (each light's intensity divided out). With a
+    colour predictor (``in_channels`` 4) each map is (4, w, w): the grey map of
+    ``intensities`` and the R, G, B maps (:func:`cnnps.ps.obsmap.observation_maps_rgb_multi`)
+    of ``colour`` (P, m, 3) (each channel divided by its light's intensity in it; None:
+    R = G = B = the grey values, a grey capture); ``intensities`` may then also be
+    (P, m, 3), the colour values, whose mean is the grey. Such a predictor needs distant
+    lights and no ``views`` (:func:`check_colour_inputs`). A chunk then holds about
+    ``pixel_chunk`` / 4 maps, so its maps take the grey ones' memory.
 
     The maps of a chunk's pixels under all K rotated light sets are built in one pass
     (:func:`cnnps.ps.obsmap.observation_maps_multi`: the values are masked and laid out
@@ -201,14 +252,19 @@ def rotated_normals(
 
     angles = rotation_angles(int(rotations))
     per_pixel = np.ndim(lights) == 3
+    channels = model_channels(predictor)
+    check_colour_inputs(channels, per_pixel_lights=per_pixel, views=views is not None)
+    intensities, colour = _grey_and_colour(intensities, colour, channels)
     rotated = None if per_pixel else np.stack([rotate_z(lights, a) for a in angles])
     P = intensities.shape[0]
-    chunk = max(1, int(pixel_chunk) // len(angles))
+    chunk = max(1, int(pixel_chunk) // (len(angles) * channels))
     starts = range(0, P, chunk)
 
     def maps_of(start: int) -> np.ndarray:
         stop = min(start + chunk, P)
         mask = None if light_mask is None else light_mask[start:stop]
+        if channels > 1:
+            return colour_maps(intensities[start:stop], colour[start:stop], rotated, predictor.w, mask)
         if views is None and not per_pixel:
             return observation_maps_multi(intensities[start:stop], rotated, w=predictor.w, light_mask=mask)
         if per_pixel:
@@ -227,7 +283,7 @@ def rotated_normals(
     out = np.empty((P, 3), dtype=np.float32)
     for start, maps in zip(starts, prefetched(maps_of, starts, depth=read_ahead)):
         K, n = maps.shape[:2]
-        preds = predictor(maps.reshape(K * n, predictor.w, predictor.w), progress=progress).reshape(K, n, 3)
+        preds = predictor(maps.reshape((K * n,) + maps.shape[2:]), progress=progress).reshape(K, n, 3)
         pred = preds[0] if K == 1 else average_rotated_predictions(preds, angles)
         if spread is not None:
             spread[start:start + n] = rotation_spread(preds, angles, pred)
@@ -235,6 +291,40 @@ def rotated_normals(
             pred = np.einsum("nji,nj->ni", view_rotations(views[start:start + n]), np.asarray(pred, np.float64))
         out[start:start + n] = pred
     return out
+
+
+def _grey_and_colour(intensities, colour, channels: int):
+    """(grey (P, m), colour (P, m, 3) or None) as :func:`rotated_normals` takes them."""
+    intensities = np.asarray(intensities)
+    if channels == 1:
+        if colour is not None or intensities.ndim != 2:
+            raise ValueError(f"a grey model takes (P, m) grey values, got {intensities.shape}"
+                             + (" and colour values" if colour is not None else ""))
+        return intensities, None
+    if intensities.ndim == 3:
+        if colour is not None:
+            raise ValueError("give colour values once: (P, m, 3) intensities, or grey ones and colour=")
+        colour = intensities
+        intensities = intensities.astype(np.float32).mean(axis=2, dtype=np.float32)
+    if colour is None:  # a grey capture: R = G = B
+        colour = np.broadcast_to(np.asarray(intensities)[..., None], intensities.shape + (3,))
+    if np.shape(colour) != intensities.shape + (3,):
+        raise ValueError(f"colour must be {intensities.shape + (3,)} to match the grey values, got {np.shape(colour)}")
+    return intensities, colour
+
+
+def colour_maps(grey: np.ndarray, colour: np.ndarray, lights: np.ndarray, w: int,
+                light_mask: np.ndarray | None = None) -> np.ndarray:
+    """(R, n, 4, w, w) float32 maps of a colour model under R light configurations
+    ``lights`` (R, m, 3): channel 0 :func:`cnnps.ps.obsmap.observation_maps_multi` of the
+    ``grey`` values (n, m), channels 1-3 :func:`cnnps.ps.obsmap.observation_maps_rgb_multi`
+    of ``colour`` (n, m, 3), with the same ``light_mask`` (n, m): the training rule
+    (:func:`cnnps.synth.pixelwise.generate` with ``rgb=True``)."""
+    from cnnps.ps.obsmap import observation_maps_multi, observation_maps_rgb_multi
+
+    g = observation_maps_multi(grey, lights, w=w, light_mask=light_mask)
+    c = observation_maps_rgb_multi(colour, lights, w=w, light_mask=light_mask)
+    return np.concatenate([g[:, :, None], c], axis=2)
 
 
 def rotation_spread(preds: np.ndarray, angles: np.ndarray, mean: np.ndarray) -> np.ndarray:

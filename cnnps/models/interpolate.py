@@ -34,9 +34,10 @@ def interpolate(a: str | Path, b: str | Path, alpha: float):
         raise CnnpsError(f"--alpha must be in [0, 1], got {alpha}")
     net_a, config_a, meta_a = load_checkpoint(a, "cpu")
     net_b, _config_b, meta_b = load_checkpoint(b, "cpu")
-    if (net_a.w, net_a.dropout_p) != (net_b.w, net_b.dropout_p):
-        raise CnnpsError(f"{b}: a different network (w={net_b.w}, dropout={net_b.dropout_p}) "
-                         f"from {a} (w={net_a.w}, dropout={net_a.dropout_p}); cannot interpolate")
+    if (net_a.w, net_a.dropout_p, net_a.in_channels) != (net_b.w, net_b.dropout_p, net_b.in_channels):
+        raise CnnpsError(f"{b}: a different network (w={net_b.w}, dropout={net_b.dropout_p}, "
+                         f"in_channels={net_b.in_channels}) from {a} (w={net_a.w}, dropout={net_a.dropout_p}, "
+                         f"in_channels={net_a.in_channels}); cannot interpolate")
     sa, sb = net_a.state_dict(), net_b.state_dict()
     net_a.load_state_dict({k: (1.0 - alpha) * sa[k] + alpha * sb[k] for k in sa})
     ends = [(a, meta_a), (b, meta_b)]

@@ -1,5 +1,12 @@
 """CNN-PS (Ikehata, ECCV 2018): observation map (B, 1, w, w) -> unit surface normal (B, 3).
 
+``in_channels`` = 4 is the colour variant (PX-Net's input): channel 0 the grey map,
+channels 1-3 the R, G, B maps scaled by one number per pixel
+(:func:`cnnps.synth.pixelwise.observation_maps_rgb_torch`,
+:func:`cnnps.ps.obsmap.observation_maps_rgb`); only the first convolution differs.
+:func:`widen_input` makes one from a grey model with the colour filters at 0, which
+gives the grey model's outputs on maps whose channel 0 is the grey map.
+
 The layers follow the author's Keras model exactly ('same' padding, no batch norm):
 
     conv3x3(16)
@@ -38,21 +45,27 @@ ARCH_VERSION = 1
 DEFAULT_W = 32
 DEFAULT_DROPOUT = 0.2
 GROWTH = 16  # channels added by each dense-block convolution
+RGB_CHANNELS = 4  # the colour variant's input: grey, R, G, B maps
 
 
 class CNNPS(nn.Module):
-    """The CNN-PS network. ``w`` must be even (the transition pools by 2)."""
+    """The CNN-PS network. ``w`` must be even (the transition pools by 2); input
+    (B, ``in_channels``, w, w) maps: 1 (grey, the paper's) or :data:`RGB_CHANNELS` (grey,
+    R, G, B); only ``conv0`` depends on it."""
 
-    def __init__(self, w: int = DEFAULT_W, dropout: float = DEFAULT_DROPOUT):
+    def __init__(self, w: int = DEFAULT_W, dropout: float = DEFAULT_DROPOUT, in_channels: int = 1):
         super().__init__()
         if w < 2 or w % 2:
             raise ValueError(f"observation map width must be an even number >= 2, got {w}")
         if not 0.0 <= dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {dropout}")
+        if int(in_channels) < 1:
+            raise ValueError(f"in_channels must be >= 1, got {in_channels}")
         self.w = int(w)
         self.dropout_p = float(dropout)
+        self.in_channels = int(in_channels)
         g = GROWTH
-        self.conv0 = nn.Conv2d(1, g, 3, padding=1)
+        self.conv0 = nn.Conv2d(self.in_channels, g, 3, padding=1)
         self.block1_conv1 = nn.Conv2d(g, g, 3, padding=1)
         self.block1_conv2 = nn.Conv2d(2 * g, g, 3, padding=1)
         self.trans_conv = nn.Conv2d(3 * g, 3 * g, 1)
@@ -88,7 +101,7 @@ class CNNPS(nn.Module):
         return counter_dropout(t, self.dropout_p, self._mask_key + (site,), self._mask_row0, self.mask_bits)
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, 1, w, w) -> (B, 80, w/2, w/2), the output of the last 1x1 convolution.
+        """(B, in_channels, w, w) -> (B, 80, w/2, w/2), the output of the last 1x1 convolution.
 
         Computed as ``x = cat(x, drop(conv(relu(x))))`` per dense layer, but since
         relu(cat(a, b)) = cat(relu(a), relu(b)) each new piece is rectified once and the
@@ -105,10 +118,11 @@ class CNNPS(nn.Module):
 
     def _fused_training(self, x: torch.Tensor) -> bool:
         """Whether this pass runs :func:`cnnps.models.train_layers.features`: training on a
-        CPU, float32 channels_last input, counter masks, and no autocast or bf16 autocast
-        (then the fused layers run in bf16)."""
+        CPU, float32 channels_last input of one channel (the fused first convolution is for
+        grey maps; colour maps take the layers above), counter masks, and no autocast or
+        bf16 autocast (then the fused layers run in bf16)."""
         return (self.training and self.fused_cpu_layers and self._mask_key is not None and x.device.type == "cpu"
-                and x.dtype == torch.float32 and x.dim() == 4 and x.shape[1] == 1
+                and x.dtype == torch.float32 and x.dim() == 4 and x.shape[1] == 1 == self.in_channels
                 and x.is_contiguous(memory_format=torch.channels_last)
                 and (not torch.is_autocast_enabled("cpu") or torch.get_autocast_dtype("cpu") == torch.bfloat16))
 
@@ -161,10 +175,46 @@ def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
 
 
+def widen_state(state: dict[str, torch.Tensor], in_channels: int = RGB_CHANNELS) -> dict[str, torch.Tensor]:
+    """A CNN-PS state dict with ``in_channels`` input channels made from a 1-channel one:
+    ``conv0.weight[:, 0]`` is the old (16, 1, 3, 3) weight, channels 1.. are 0, every other
+    tensor is copied unchanged. The network it loads into gives, on maps whose channel 0
+    is the grey map, the grey network's outputs (the colour channels are multiplied by 0)."""
+    old = state["conv0.weight"]
+    if old.shape[1] != 1:
+        raise ValueError(f"widen_state needs a 1-channel state dict, conv0.weight is {tuple(old.shape)}")
+    wide = torch.zeros((old.shape[0], int(in_channels)) + tuple(old.shape[2:]), dtype=old.dtype, device=old.device)
+    wide[:, :1] = old
+    return {k: (wide if k == "conv0.weight" else v.detach().clone()) for k, v in state.items()}
+
+
+def widen_input(model: CNNPS, in_channels: int = RGB_CHANNELS) -> CNNPS:
+    """A new CNN-PS taking (B, ``in_channels``, w, w) maps made from the 1-channel
+    ``model`` by :func:`widen_state` (the colour filters at 0): on maps whose channel 0 is
+    the grey map it gives ``model``'s outputs. Same width and dropout, on the CPU in eval
+    mode; building it draws nothing from the global torch RNG."""
+    if not isinstance(model, CNNPS):
+        raise TypeError(f"expected a CNNPS model, got {type(model).__name__}")
+    with torch.random.fork_rng(devices=[]):
+        wide = CNNPS(w=model.w, dropout=model.dropout_p, in_channels=in_channels)
+    state = {k: v.detach().to("cpu", torch.float32) for k, v in model.state_dict().items()}
+    wide.load_state_dict(widen_state(state, in_channels))
+    return wide.eval()
+
+
+def _colour_filters_zero(conv0: nn.Conv2d) -> bool:
+    """Whether a first convolution of more than one input channel has only zeros on
+    channels 1.. (a grey model widened by :func:`widen_input`)."""
+    return conv0.in_channels > 1 and not bool(conv0.weight.detach()[:, 1:].any())
+
+
 class FoldedCNNPS(nn.Module):
     """Eval-only CNN-PS with the linear layers folded (see the module docstring).
 
     Built by ``fold_for_inference``; holds copies of the weights (float32), no dropout.
+    Input (B, ``in_channels``, w, w); when the colour filters of a multi-channel model are
+    all 0 (:func:`widen_input`) only channel 0 is convolved, so the outputs are the grey
+    model's bit for bit.
     """
 
     def __init__(self, model: CNNPS):
@@ -172,7 +222,9 @@ class FoldedCNNPS(nn.Module):
         g = GROWTH
         src = model
         self.w = src.w
-        self.conv0 = _copy_conv(src.conv0)
+        self.in_channels = src.in_channels
+        self.grey_only = _colour_filters_zero(src.conv0)
+        self.conv0 = _copy_conv(src.conv0, first=1 if self.grey_only else None)
         self.block1_conv1 = _copy_conv(src.block1_conv1)
         self.block1_conv2 = _copy_conv(src.block1_conv2)
         self.trans_conv = _copy_conv(src.trans_conv)  # applied after pooling: same result
@@ -200,6 +252,8 @@ class FoldedCNNPS(nn.Module):
         # relu(cat(a, b)) = cat(relu(a), relu(b)): so each convolution is followed by its
         # ReLU once (conv+relu fuse in oneDNN) instead of re-applying ReLU to the whole
         # growing concatenation before each layer.
+        if self.grey_only:  # laid out as a grey model's (B, 1, w, w) input is: the same kernels run
+            x = x[:, :1].contiguous()
         x = F.relu(self.conv0(x))
         x = torch.cat([x, F.relu(self.block1_conv1(x))], dim=1)
         x = torch.cat([x, F.relu(self.block1_conv2(x))], dim=1)
@@ -217,9 +271,13 @@ def _uninitialised(cls, *args, **kwargs) -> nn.Module:
     return torch.nn.utils.skip_init(cls, *args, **kwargs)
 
 
-def _copy_conv(conv: nn.Conv2d) -> nn.Conv2d:
-    new = _uninitialised(nn.Conv2d, conv.in_channels, conv.out_channels, conv.kernel_size, padding=conv.padding)
-    new.load_state_dict({k: v.detach().float().clone() for k, v in conv.state_dict().items()})
+def _copy_conv(conv: nn.Conv2d, first: int | None = None) -> nn.Conv2d:
+    """A float32 copy of ``conv``; ``first``: only its first input channels."""
+    cin = conv.in_channels if first is None else int(first)
+    new = _uninitialised(nn.Conv2d, cin, conv.out_channels, conv.kernel_size, padding=conv.padding)
+    state = {k: v.detach().float().clone() for k, v in conv.state_dict().items()}
+    state["weight"] = state["weight"][:, :cin].contiguous()
+    new.load_state_dict(state)
     return new
 
 
@@ -255,6 +313,9 @@ class FastCNNPS(nn.Module):
     :func:`cnnps.models.train_layers.mkldnn_bf16_available`) the same algebra runs on
     torch's reference kernels: correct, but far slower than fp32.
 
+    Input (B, ``in_channels``, w, w), as :class:`FoldedCNNPS` (a widened grey model
+    convolves channel 0 alone: the grey model's outputs bit for bit).
+
     Example::
 
         fast = FastCNNPS(model, dtype=torch.bfloat16)
@@ -268,6 +329,7 @@ class FastCNNPS(nn.Module):
         folded = model if isinstance(model, FoldedCNNPS) else fold_for_inference(model)
         g = GROWTH
         self.w = folded.w
+        self.in_channels, self.grey_only = folded.in_channels, folded.grey_only  # see FoldedCNNPS
         self.dtype = dtype
         sd = {k: v.detach().float().clone() for k, v in folded.state_dict().items()}
         h = (self.w // 2) ** 2
@@ -318,6 +380,8 @@ class FastCNNPS(nn.Module):
         return t.permute(0, 2, 3, 1).reshape(t.shape[0], -1)  # a view for channels_last
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.grey_only:  # laid out as a grey model's (B, 1, w, w) input is: the same kernels run
+            x = x[:, :1].contiguous()
         x = x.to(self.dtype).contiguous(memory_format=torch.channels_last)
         r0 = self._conv(x, self.c0_w, self.c0_b, 1, True)
         y1 = self._conv(r0, self.c11_w, self.c11_b, 1, True)

@@ -203,10 +203,13 @@ def thread_candidates() -> list[int]:
     return [n] + ([n // 2] if n >= 2 else [])
 
 
-def probe_maps(n: int = PROBE_MAPS, w: int = 32, seed: int = PROBE_SEED) -> tuple[np.ndarray, np.ndarray]:
+def probe_maps(n: int = PROBE_MAPS, w: int = 32, seed: int = PROBE_SEED,
+               channels: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """(n, w, w) float32 observation maps and their (n, 3) true normals: seeded normals
     within 75° of the view, 96 lights within 60°, albedo times (Lambertian + a
-    Blinn-Phong lobe), 10 % of the lights dropped per pixel (cast shadows)."""
+    Blinn-Phong lobe), 10 % of the lights dropped per pixel (cast shadows). ``channels``
+    C > 1 (a colour model's input): (n, C, w, w), the grey map in every channel (the maps
+    of a grey surface, R = G = B)."""
     rng = np.random.default_rng(seed)
     tilt = np.arccos(rng.uniform(np.cos(np.radians(75)), 1.0, n))
     phi = rng.uniform(0, 2 * np.pi, n)
@@ -224,7 +227,10 @@ def probe_maps(n: int = PROBE_MAPS, w: int = 32, seed: int = PROBE_SEED) -> tupl
     shininess = rng.uniform(5, 80, (n, 1))
     I = albedo * ndl + spec * ndl * ndh**shininess
     I *= rng.random((n, m)) > 0.1
-    return observation_maps(I.astype(np.float32), lights, w=w).astype(np.float32), normals.astype(np.float32)
+    maps = observation_maps(I.astype(np.float32), lights, w=w).astype(np.float32)
+    if channels > 1:
+        maps = np.repeat(maps[:, None], int(channels), axis=1)
+    return maps, normals.astype(np.float32)
 
 
 def _mean_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -326,7 +332,7 @@ def probe(model: nn.Module, device: torch.device, batch_size: int | None = None)
     """Time and check every candidate (see the module docstring); no cache."""
     t_start, probed_at = time.perf_counter(), now()
     passes: list[TimedPass] = []
-    maps, truth = probe_maps(w=int(getattr(model, "w", 32)))
+    maps, truth = probe_maps(w=int(getattr(model, "w", 32)), channels=int(getattr(model, "in_channels", 1)))
     threads = thread_candidates() if device.type == "cpu" else []
     if threads:
         torch.set_num_threads(threads[0])

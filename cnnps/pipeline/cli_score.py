@@ -118,10 +118,9 @@ def score(
         "sparse_fill": parse("--sparse-fill", sparse_fill or _default("sparse_fill"), SparseFill),
         "batch_size": 0 if batch_size is None else parse("--batch-size", batch_size, Count),
     }
-    if seed < 0:
-        raise ConfigError(f"--seed must be >= 0, got {seed}")
-    if pixels < 0:
-        raise ConfigError(f"--pixels must be >= 0 (0 = every pixel), got {pixels}")
+    for flag, value in (("--seed", seed), ("--pixels", pixels)):
+        if value < 0:
+            raise ConfigError(f"{flag} must be >= 0, got {value}")
     if out is not None and out.is_dir():
         raise InputError(out, "--out is a folder; give a file name")
     path = _model(model)

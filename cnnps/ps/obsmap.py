@@ -29,6 +29,10 @@ light of every cell holding two or more, and so on; the cell sums are then one r
 and a few block additions, independent of the number of pixels per cell. The masked
 values, shared by every configuration, are built once per block
 (:func:`observation_maps_multi`, used with rotated lights for training data).
+
+Colour maps (:func:`observation_maps_rgb`, a colour network's channels 1-3): the same rule
+per channel of (P, m, C) values, every channel of a pixel divided by one number, its
+largest cell over the channels.
 """
 
 from __future__ import annotations
@@ -169,6 +173,82 @@ def observation_maps_per_pixel(
     peak = maps.max(axis=1, keepdims=True)
     maps = np.divide(maps, peak, out=np.zeros_like(maps), where=peak > 0)
     return maps.astype(dtype, copy=False).reshape(R, P, w, w)
+
+
+def observation_maps_rgb(
+    intensities: np.ndarray,
+    lights: np.ndarray,
+    w: int = DEFAULT_WIDTH,
+    light_mask: np.ndarray | None = None,
+    dtype=np.float32,
+) -> np.ndarray:
+    """Colour observation maps (PX-Net's): (P, C, w, w) of ``intensities`` (P, m, C)
+    (C = 3: R, G, B, each already divided by its light's intensity in that channel)
+    under shared ``lights`` (m, 3).
+
+    Each channel follows the grey rule of :func:`observation_maps` (values max(I, 0), 0
+    where ``light_mask`` (P, m) is False, the mean over the lights used in a cell), but all
+    channels of a pixel are divided by ONE number, the largest cell over its channels, so
+    the map keeps the pixel's colour (an all-dark pixel stays 0). The rule of
+    :func:`cnnps.synth.pixelwise.observation_maps_rgb_torch`, which makes the training maps.
+    """
+    intensities = np.asarray(intensities)
+    if intensities.ndim != 3:
+        raise ValueError(f"intensities must be (P, m, C), got {intensities.shape}")
+    m = intensities.shape[1]
+    lights = np.asarray(lights)
+    if lights.shape != (m, 3):
+        raise ValueError(f"lights must be ({m}, 3) to match intensities, got {lights.shape}")
+    return observation_maps_rgb_multi(intensities, lights[None], w, light_mask=light_mask, dtype=dtype)[0]
+
+
+def observation_maps_rgb_multi(
+    intensities: np.ndarray,
+    lights: np.ndarray,
+    w: int = DEFAULT_WIDTH,
+    light_mask: np.ndarray | None = None,
+    dtype=np.float32,
+) -> np.ndarray:
+    """:func:`observation_maps_rgb` of the same pixels under R configurations of the same
+    m lights (``lights`` (R, m, 3), e.g. the test-time rotations): (R, P, C, w, w).
+
+    Per configuration a light's cell is shared by every pixel, so the cell sums are one
+    product with the (m, w*w) light-to-cell matrix (float64), in blocks of pixels."""
+    intensities = np.asarray(intensities)
+    if intensities.ndim != 3:
+        raise ValueError(f"intensities must be (P, m, C), got {intensities.shape}")
+    P, m, C = intensities.shape
+    lights = np.asarray(lights)
+    if lights.ndim != 3 or lights.shape[1:] != (m, 3):
+        raise ValueError(f"lights must be (R, {m}, 3) to match intensities, got {lights.shape}")
+    if light_mask is not None:
+        light_mask = np.asarray(light_mask, dtype=bool)
+        if light_mask.shape != (P, m):
+            raise ValueError(f"light_mask must be {(P, m)}, got {light_mask.shape}")
+    R, ww = lights.shape[0], w * w
+    out = np.zeros((R, P, C, ww), np.dtype(dtype))
+    if P == 0 or R == 0 or m == 0:
+        return out.reshape(R, P, C, w, w)
+    cells = []
+    for L in lights:  # (m, ww) one-hot: light j -> its cell
+        row, col = light_cells(L, w)
+        onehot = np.zeros((m, ww))
+        onehot[np.arange(m), row * w + col] = 1.0
+        cells.append(onehot)
+    block = max(1, (1 << 20) // (C * ww))
+    for s in range(0, P, block):
+        e = min(s + block, P)
+        v = np.clip(np.nan_to_num(intensities[s:e].astype(np.float64), nan=0.0), 0.0, None)  # (n, m, C)
+        mk = None if light_mask is None else light_mask[s:e]
+        if mk is not None:
+            v = np.where(mk[..., None], v, 0.0)
+        vt = np.ascontiguousarray(v.transpose(0, 2, 1)).reshape((e - s) * C, m)
+        for r, onehot in enumerate(cells):
+            counts = onehot.sum(0)[None] if mk is None else mk.astype(np.float64) @ onehot  # (1 | n, ww)
+            means = (vt @ onehot).reshape(e - s, C, ww) / np.maximum(counts, 1.0)[:, None, :]
+            peak = means.reshape(e - s, C * ww).max(axis=1)[:, None, None]
+            out[r, s:e] = np.divide(means, peak, out=np.zeros_like(means), where=peak > 0)
+    return out.reshape(R, P, C, w, w)
 
 
 def _pixels_by_lights(intensities) -> tuple[int, int]:

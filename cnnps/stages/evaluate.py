@@ -254,8 +254,11 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None, pixe
     (m, 3), or (P, m, 3) per pixel under point lights; ``views`` (P, 3) the pixels' view
     directions under a pinhole camera. When some observations are saturated (and
     ``params.saturated`` is "exclude") it is called with ``present=`` (P, m) bool too,
-    False for a missing observation. ``drop``: image indices to leave out
-    (:func:`cnnps.io.capture.scan_capture`). ``pixels``: score only a seeded sample of that
+    False for a missing observation. When ``predict.in_channels`` is above 1 (a colour
+    model, :func:`network_predict`) it is called with ``colour=`` (P, m, 3) too, the
+    pixels' R, G, B (:meth:`cnnps.io.capture.Capture.read_pixels` with ``colour``); ``I``
+    stays the grey values, which least squares uses as for a grey model. ``drop``: image
+    indices to leave out (:func:`cnnps.io.capture.scan_capture`). ``pixels``: score only a seeded sample of that
     many mask pixels (:func:`pixel_sample` with ``params.seed``; 0 = all).
 
     Rig captures are scored as ``cnnps predict`` treats them: with ``intrinsics.txt`` the
@@ -276,11 +279,12 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None, pixe
     cap = scan_capture(capture_dir, drop=drop)
     if pixels:
         cap.mask = pixel_sample(cap.mask, pixels, params.seed)
-    I, missing = pixel_values(cap, params.saturated)
+    colour = getattr(predict, "in_channels", 1) > 1
+    I, missing, rgb = read_values(cap, params.saturated, colour=colour)
     distance = None
     if cap.light_positions is not None and params.rig_distance == "known":
         distance = (read_scene(capture_dir) or {}).get("median_depth")
-    normals, depths = _capture_normals(cap, I, missing, cap.intrinsics, predict, params, distance)
+    normals, depths = _capture_normals(cap, I, missing, cap.intrinsics, predict, params, distance, colour=rgb)
 
     out = {
         "capture": str(capture_dir),
@@ -315,26 +319,40 @@ def pixel_values(cap, saturated: str = "exclude") -> tuple[np.ndarray, np.ndarra
     scanned capture (row-major pixel order, exactly :meth:`cnnps.io.capture.Capture.read_pixels`'
     values, as ``cnnps predict`` reads them) and, with ``saturated="exclude"``, its
     saturated observations (None when there is none, or with "keep")."""
+    I, missing, _ = read_values(cap, saturated)
+    return I, missing
+
+
+def read_values(cap, saturated: str = "exclude", colour: bool = False):
+    """(I, missing, colour): :func:`pixel_values`' two, and with ``colour`` the (P, m, 3)
+    float32 R, G, B of the same pixels and images, each divided by its light's intensity in
+    that channel (read in the same pass, ``Capture.read_pixels(colour=True)``), else None."""
     from cnnps.io.capture import SATURATION_LEVEL, for_each_image
 
     values = np.empty((cap.n_images, cap.n_pixels), dtype=np.float32)
+    rgb = np.empty((cap.n_images, cap.n_pixels, 3), dtype=np.float32) if colour else None
     flags = np.zeros(values.shape, dtype=bool)
     level = SATURATION_LEVEL if saturated == "exclude" else None
 
     def read(k: int) -> None:
-        pix = cap.read_pixels(k, saturation=level)
+        pix = cap.read_pixels(k, saturation=level, colour=colour)
         values[k] = pix.values
+        if rgb is not None:
+            rgb[k] = pix.colour
         if pix.saturated is not None:
             flags[k] = pix.saturated
 
     for_each_image(cap, read)
-    return np.ascontiguousarray(values.T), (np.ascontiguousarray(flags.T) if flags.any() else None)
+    return (np.ascontiguousarray(values.T), (np.ascontiguousarray(flags.T) if flags.any() else None),
+            None if rgb is None else np.ascontiguousarray(rgb.transpose(1, 0, 2)))
 
 
-def _capture_normals(cap, I, missing, K, predict, params: Params, distance: float | None = None) -> tuple[dict, dict]:
+def _capture_normals(cap, I, missing, K, predict, params: Params, distance: float | None = None,
+                     colour: np.ndarray | None = None) -> tuple[dict, dict]:
     """({method: (H, W, 3) float32 normals}, {method: (H, W) depth} under point lights,
     whose rounds start at ``distance``, or at the estimated scale when it is None), from
-    the values ``I`` (P, m) with ``missing`` (P, m) observations (or None)."""
+    the values ``I`` (P, m) with ``missing`` (P, m) observations (or None); ``colour``
+    (P, m, 3) goes to the CNN only (a colour model's)."""
     from cnnps.ps.camera import view_directions
     from cnnps.ps.least_squares import least_squares_masked, least_squares_per_pixel
     from cnnps.ps.near_field import run_rounds
@@ -342,7 +360,9 @@ def _capture_normals(cap, I, missing, K, predict, params: Params, distance: floa
     from cnnps.ps.rotation import normalize
 
     L = cap.lights
-    present = {} if missing is None else {"present": ~missing}
+    cnn_kw = {} if missing is None else {"present": ~missing}  # the CNN's keyword arguments
+    if colour is not None:
+        cnn_kw["colour"] = colour
     rows, cols = np.nonzero(cap.mask)
     views = None if K is None else view_directions(K, rows, cols)
     shadow = params.lambertian_shadow_threshold
@@ -354,7 +374,7 @@ def _capture_normals(cap, I, missing, K, predict, params: Params, distance: floa
     depths: dict[str, np.ndarray] = {}
     if cap.light_positions is None:
         for k in params.rotations:
-            normals[method_name(k)] = image(predict(I, L, int(k), views, **present))
+            normals[method_name(k)] = image(predict(I, L, int(k), views, **cnn_kw))
         normals[LAMBERTIAN] = image(least_squares_masked(I, L, missing, shadow_threshold=shadow)[0])
         return normals, depths
 
@@ -372,7 +392,7 @@ def _capture_normals(cap, I, missing, K, predict, params: Params, distance: floa
     for k in params.rotations:
         def cnn(depth, final, k=int(k)):
             Ip, dirs = near(depth)
-            return image(predict(Ip, dirs, k if final else 1, views, **present)), None  # rounds at K=1, as predict
+            return image(predict(Ip, dirs, k if final else 1, views, **cnn_kw)), None  # rounds at K=1, as predict
 
         normals[method_name(k)], depths[method_name(k)] = rounds(cnn, final_pass=int(k) > 1)
 
@@ -528,8 +548,15 @@ def network_predict(net, device: str, params: Params, model_path: Path):
     ``params.precision`` ("auto": the pick of :func:`cnnps.models.precision_probe.choose_precision`,
     as ``cnnps predict --precision auto``, at the probe's batch size unless ``batch_size`` is
     set), ``batch_size`` and ``sparse_fill``; missing
-    observations (``present`` False) are left out of the maps, as ``cnnps predict`` does."""
-    from cnnps.models.inference import MapPredictor, rotated_normals
+    observations (``present`` False) are left out of the maps, as ``cnnps predict`` does.
+    ``predict.in_channels`` is the network's; a colour model takes ``colour=`` (P, m, 3)
+    (:func:`evaluate_capture`) and needs distant lights, an orthographic camera and no
+    sparse fill (:func:`cnnps.models.inference.check_colour_inputs`: one ConfigError)."""
+    from cnnps.models.inference import (
+        MapPredictor,
+        check_colour_inputs,
+        rotated_normals,
+    )
     from cnnps.ps.sparse_fill import lambertian_fill, should_fill
 
     precision = params.precision
@@ -544,15 +571,19 @@ def network_predict(net, device: str, params: Params, model_path: Path):
     else:
         batch_size = params.batch_size or None
     predictor = MapPredictor(net, device=device, precision=precision, batch_size=batch_size)
+    channels = predictor.in_channels
 
-    def predict(I, L, k, views=None, present=None):
+    def predict(I, L, k, views=None, present=None, colour=None):
         I = np.asarray(I, dtype=np.float32)
-        if np.ndim(L) == 2 and should_fill(params.sparse_fill, I.shape[1]):  # never under point lights
+        fill = np.ndim(L) == 2 and should_fill(params.sparse_fill, I.shape[1])  # never under point lights
+        check_colour_inputs(channels, per_pixel_lights=np.ndim(L) == 3, views=views is not None, fill=fill)
+        if fill:
             f = lambertian_fill(I, L, light_mask=present, w=predictor.w)
             I, L, present = f.intensities, f.lights, f.light_mask
         return rotated_normals(predictor, I, np.asarray(L, dtype=np.float64), int(k), light_mask=present,
-                               views=views)
+                               views=views, colour=colour)
 
+    predict.in_channels = channels
     return predict, predictor.precision
 
 

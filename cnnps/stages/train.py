@@ -58,8 +58,14 @@ Per-pixel maps (``pixelwise.share``) are made ``pixelwise.ahead`` steps ahead
 (:mod:`cnnps.train.maps_ahead`) from a generator seeded by the step, so they are the same
 made ahead or in the step. What each setting costs or gains: ``docs/performance.md``.
 
+Colour maps (``pixelwise.rgb: true``, with ``pixelwise.share: 1``): the network takes
+(B, 4, w, w) maps, the grey map then R, G, B (:func:`cnnps.synth.pixelwise.generate` with
+``rgb=True``), validation maps too; a grey ``init`` is widened to 4 input channels with
+the colour filters at 0 (:func:`cnnps.models.network.widen_state`), a colour one loads
+as it is. The eager CPU layers run (the fused first convolution is for one channel).
+
 Outputs: ``data_dir/train/model.pt`` (``cnnps.models.checkpoint.save_checkpoint``; config w,
-dropout; meta steps, val error, manifest hash), ``metrics.json`` (with the loop's time
+dropout, in_channels; meta steps, val error, manifest hash), ``metrics.json`` (with the loop's time
 split, :mod:`cnnps.train.step_clock`: waiting for data, validation, checkpoints),
 ``plots/loss.csv`` (step, loss) and ``plots/val.csv`` (step, val_mean_deg,
 val_median_deg) for ``dvc plots``.
@@ -142,9 +148,14 @@ class PixelwiseParams:
     # made this many steps ahead in a background thread (on CUDA on a stream of its own;
     # cnnps.train.maps_ahead); 0 = in the step's thread. The maps do not change.
     ahead: Annotated[int, Range(ge=0, le=8)] = 1
+    # colour maps: the network takes (B, 4, w, w), the grey map then R, G, B (cnnps.synth.pixelwise.generate
+    # with rgb=True); needs share: 1 (the shards are grey); a grey train.init is widened (colour filters at 0)
+    rgb: bool = False
 
     def __post_init__(self):
         check_fields(self, "train.pixelwise.")
+        if not isinstance(self.rgb, bool):
+            raise ConfigError(f"train.pixelwise.rgb must be true or false, got {self.rgb!r}")
         for k, v in self.effects.items():
             if k not in PIXELWISE_EFFECTS:
                 raise ConfigError(f"train.pixelwise.effects: unknown effect {k!r}; "
@@ -194,6 +205,11 @@ MOVED_KEYS = {
     **{k: f"cpu.{k}" for k in ("threads", "step_processes", "dropout_masks", "keep_freed_memory")},
     "cpu_layers": "cpu.layers",
 }
+
+
+# Section keys that came after the sections, with their defaults: left out of the flat
+# params (and so of the run key) at that default.
+NEW_KEYS = {"pixelwise.rgb": False}
 
 
 def _section(cls: type, value, name: str):
@@ -270,6 +286,9 @@ class Params:
         if self.pixelwise.share >= 1.0 and not self.max_steps:
             raise ConfigError("train.pixelwise.share: 1 (per-pixel maps only) needs train.max_steps: "
                               "there are no epochs")
+        if self.pixelwise.rgb and self.pixelwise.share < 1.0:
+            raise ConfigError(f"train.pixelwise.rgb: true needs train.pixelwise.share: 1.0 (the rendered shards "
+                              f"hold grey maps only), got share {self.pixelwise.share}")
 
     @classmethod
     def from_record(cls, record: Mapping) -> Params:
@@ -294,12 +313,20 @@ class Params:
 
     def flat(self) -> dict:
         """The params as one flat mapping, each key under its flat name (:data:`MOVED_KEYS`):
-        what :meth:`result_key` hashes, so run keys do not depend on the sections."""
+        what :meth:`result_key` hashes, so run keys do not depend on the sections. A
+        section key added after the sections (:data:`NEW_KEYS`) is ``<section>_<key>``
+        and only there when it is not at its default, so the runs started before it keep
+        their keys."""
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in SECTIONS}
         back = {new: old for old, new in MOVED_KEYS.items()}
         for name in SECTIONS:
             for key, value in asdict(getattr(self, name)).items():
-                d[back[f"{name}.{key}"]] = value
+                place = f"{name}.{key}"
+                if place in NEW_KEYS:
+                    if value != NEW_KEYS[place]:
+                        d[f"{name}_{key}"] = value
+                    continue
+                d[back[place]] = value
         return d
 
     def result_key(self) -> dict:
@@ -343,7 +370,7 @@ def run(params: Params, data_dir: Path, *, until=None, _stop_after_step: int | N
             data = loop.pixelwise_only_data(params.pixelwise.w)  # no shards at all
         else:
             data = loop.open_training_data(params.data.shards or data_dir / "extract")
-        init_state, init_sha = loop.load_init_weights(params.init, data.w)
+        init_state, init_sha = loop.load_init_weights(params.init, data.w, loop.input_channels(params))
         key = run_key(params, data.manifest_sha256, init_sha)
         return loop.train(params, data, data_dir / "train", key, info, device, init_state, init_sha,
                           stop_after_step=_stop_after_step, until=until)

@@ -52,6 +52,7 @@ from cnnps.models.checkpoint import (
     save_checkpoint,
     write_sha256_file,
 )
+from cnnps.models.network import RGB_CHANNELS, widen_state
 from cnnps.models.train_layers import COUNTER_MASK_BITS
 from cnnps.train.allocator import keep_freed_memory
 from cnnps.train.batch_lookahead import Lookahead
@@ -195,33 +196,52 @@ class GeneratedBatches:
         yield from made_ahead(self.make, range(self.skip, self.steps), self.device, self.ahead)
 
 
+def input_channels(params) -> int:
+    """The network's input channels for ``params``: :data:`cnnps.models.network.RGB_CHANNELS`
+    (grey, R, G, B) with ``train.pixelwise.rgb``, else 1."""
+    return RGB_CHANNELS if getattr(params.pixelwise, "rgb", False) else 1
+
+
 def pixelwise_maker(params):
-    """``(n, generator, device, w) -> (maps (n, 1, w, w), normals (n, 3))``: per-pixel
+    """``(n, generator, device, w) -> (maps (n, C, w, w), normals (n, 3))``: per-pixel
     training maps (:func:`cnnps.synth.pixelwise.generate`) with ``params.pixelwise``'s
-    effects and sparse fraction; None when its share is 0."""
+    effects and sparse fraction, C = 1, or 4 (grey, R, G, B) with ``rgb``; None when its
+    share is 0."""
     if not params.pixelwise.share:
         return None
     from cnnps.synth import pixelwise
 
     effects = pixelwise.Effects(**{k: float(v) for k, v in params.pixelwise.effects.items()})
     sparse_fraction = params.pixelwise.sparse_fraction
+    rgb = input_channels(params) > 1
 
     def make(n, generator, device, w):
         return pixelwise.generate(n, generator=generator, device=device, w=w, effects=effects,
-                                  sparse_fraction=sparse_fraction)
+                                  sparse_fraction=sparse_fraction, rgb=rgb)
 
     return make
 
 
-def load_init_weights(init: str | None, w: int) -> tuple[dict | None, str | None]:
-    """(state_dict, weights SHA-256) of the cnnps checkpoint ``init`` (``train.init``),
-    or (None, None). The SHA-256, not the path, enters the run key."""
+def load_init_weights(init: str | None, w: int, in_channels: int = 1) -> tuple[dict | None, str | None]:
+    """(state_dict for a network of ``in_channels`` input channels, weights SHA-256) of the
+    cnnps checkpoint ``init`` (``train.init``), or (None, None). The SHA-256, not the path,
+    enters the run key. A grey (1-channel) checkpoint for a colour run is widened
+    (:func:`cnnps.models.network.widen_state`: the colour filters at 0, so it starts as
+    the grey model), which one line on stderr says; other mismatches are an InputError."""
     if init is None:
         return None, None
     model, config, _ = load_checkpoint(init)
     if int(config["w"]) != w:
         raise InputError(init, f"train.init is a w={config['w']} model, the shards hold w={w} maps")
-    return model.state_dict(), read_checkpoint(init)["weights_sha256"]
+    state = model.state_dict()
+    if model.in_channels != in_channels:
+        if model.in_channels != 1:
+            raise InputError(init, f"train.init takes {model.in_channels} input channels, this run trains "
+                             f"{in_channels} (train.pixelwise.rgb: {'true' if in_channels > 1 else 'false'})")
+        state = widen_state(state, in_channels)
+        print(f"train: train.init {init} is a grey model: widened to {in_channels} input channels "
+              "(grey, R, G, B; the colour filters start at 0)", file=sys.stderr)
+    return state, read_checkpoint(init)["weights_sha256"]
 
 
 def write_plots(out_dir: Path, history: dict) -> None:
@@ -242,8 +262,8 @@ def train(params, data: TrainingData, out_dir: Path, run_key: str, info: DistInf
           stop_after_step: int | None = None, make_pixelwise=None, until=None) -> dict:
     """Train (resuming the newest checkpoint of ``run_key``); returns the final metrics.
     ``stop_after_step`` (tests only) raises ``KeyboardInterrupt`` after that step, like a
-    killed run. ``make_pixelwise(n, generator, device, w) -> (maps (n, 1, w, w), normals
-    (n, 3))`` makes the per-pixel rows of ``params.pixelwise`` (default:
+    killed run. ``make_pixelwise(n, generator, device, w) -> (maps (n, C, w, w), normals
+    (n, 3))`` (C: :func:`input_channels`) makes the per-pixel rows of ``params.pixelwise`` (default:
     :func:`pixelwise_maker`). ``until(step) -> bool``, asked after every step, ends the
     run there, normally (last validation, checkpoint, ``model.pt``): a budget of time, say. The steps it allows then depend on the clock,
     so such a run is not reproducible from its params alone (under torchrun every rank
@@ -268,11 +288,12 @@ class Trainer:
         self.init_sha = init_sha
         self.main = info.is_main
         self.make_pixelwise = None  # (n, generator, device, w) -> per-pixel (maps, normals); see train()
+        self.in_channels = input_channels(params)  # maps (B, in_channels, w, w)
         self._build_model(init_state)
         self._build_stream()
         self.step = 0
         self.history: dict = {"loss": [], "val": []}
-        self.val_maps, self.val_normals = no_val(data.w)
+        self.val_maps, self.val_normals = no_val(data.w, self.in_channels)
         self.step0, self.seconds = 0, 0.0  # where this call started, and the step loop's time
         self.clock: StepClock | None = None  # where the step loop's time went (run_steps)
         self.procs = None  # the processes sharing each step (step_processes > 1), while run_steps runs
@@ -289,7 +310,7 @@ class Trainer:
         """``raw`` (the CNN-PS) and ``opt`` (Adam); ``model``, what a step runs: ``raw``,
         or under torchrun its DDP wrapper (then each rank reseeds: its own dropout masks)."""
         params, info, device = self.params, self.info, self.device
-        self.raw, self.opt = make_model(self.data.w, params, device)
+        self.raw, self.opt = make_model(self.data.w, params, device, in_channels=self.in_channels)
         if init_state is not None:  # every rank loads the same file: replicas start equal
             self.raw.load_state_dict(init_state)
         self.model = self.raw
@@ -402,7 +423,8 @@ class Trainer:
         else:  # per-pixel maps only: a fixed per-pixel set of this seed
             n = min(self.params.val_max_rows, PIXELWISE_VAL_ROWS)
             maps, normals = self._pixelwise(n, ("val",), torch.device("cpu"))
-            self.val_maps, self.val_normals = maps[:, 0].numpy().astype(np.float16), normals.numpy()
+            maps = maps[:, 0] if self.in_channels == 1 else maps  # (n, w, w) grey, or (n, 4, w, w)
+            self.val_maps, self.val_normals = maps.numpy().astype(np.float16), normals.numpy()
 
     def validate(self) -> dict:
         # in fp32 whatever the steps ran in: one yardstick for every segment and every run
@@ -484,7 +506,7 @@ class Trainer:
         net.set_mask_key((p.seed, self.info.rank, self.step) if counter else None)
 
     def _pixelwise(self, n: int, key: tuple, device: torch.device | None = None):
-        """``n`` per-pixel (maps (n, 1, w, w) float32, normals (n, 3)) on ``device`` (the
+        """``n`` per-pixel (maps (n, C, w, w) float32, normals (n, 3)) on ``device`` (the
         training device), from a generator seeded by (seed, *key) alone (the caller's
         ``make_pixelwise``, e.g. :func:`cnnps.synth.pixelwise.generate`)."""
         from cnnps.infra.hashing import derive_seed64

@@ -51,11 +51,12 @@ def autocast(device: torch.device, precision: str):
     return nullcontext()
 
 
-def make_model(w: int, params, device: torch.device) -> tuple[CNNPS, torch.optim.Adam]:
-    """A fresh CNN-PS (weights drawn after ``torch.manual_seed(params.seed)``) on
-    ``device``, channels_last if asked, and its Adam optimiser."""
+def make_model(w: int, params, device: torch.device, in_channels: int = 1) -> tuple[CNNPS, torch.optim.Adam]:
+    """A fresh CNN-PS of ``in_channels`` input channels (weights drawn after
+    ``torch.manual_seed(params.seed)``) on ``device``, channels_last if asked, and its Adam
+    optimiser."""
     torch.manual_seed(params.seed)
-    model = CNNPS(w=w, dropout=params.dropout).to(device)
+    model = CNNPS(w=w, dropout=params.dropout, in_channels=in_channels).to(device)
     model.fused_cpu_layers = params.cpu.layers == "fused"
     model.mask_bits = COUNTER_MASK_BITS.get(params.cpu.dropout_masks, 32)
     if params.channels_last:
@@ -79,7 +80,8 @@ def compile_model(model, params):
 
 def train_step(model, opt, maps: torch.Tensor, normals: torch.Tensor, device: torch.device, precision: str,
                channels_last: bool) -> torch.Tensor:
-    """One Adam step on a batch (maps (B,1,w,w), unit normals (B,3)); the MSE loss, detached
+    """One Adam step on a batch (maps (B,C,w,w), C the model's input channels, unit normals
+    (B,3)); the MSE loss, detached
     (a tensor on ``device``: reading it out is left to the caller, it waits for the step)."""
     maps = maps.to(device, non_blocking=True).float()  # float16 maps are converted on the device
     normals = normals.to(device, non_blocking=True)

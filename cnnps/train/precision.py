@@ -97,8 +97,9 @@ def choose_train_precision(model, params, device: torch.device, batch_rows: int)
     if not bf16_available(device):  # nothing to choose between: no step is timed
         where = "CPU" if device.type == "cpu" else "device"
         return TrainChoice("fp32", f"bf16 skipped (no bf16 kernels on this {where}): fp32", rates={"bf16": None})
-    maps, normals = probe_maps(max(int(batch_rows), 1), w=int(getattr(model, "w", 32)))
-    maps_t = torch.from_numpy(maps).unsqueeze(1)
+    channels = int(getattr(model, "in_channels", 1))
+    maps, normals = probe_maps(max(int(batch_rows), 1), w=int(getattr(model, "w", 32)), channels=channels)
+    maps_t = torch.from_numpy(maps).unsqueeze(1) if channels == 1 else torch.from_numpy(maps)
     normals_t = torch.from_numpy(normals)
     rates: dict = {}
     losses: dict = {}

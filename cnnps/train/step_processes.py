@@ -192,9 +192,10 @@ class StepProcesses:
                               f"memory ({str(exc).splitlines()[0][:160]}); use step_processes: 1") from None
         ctx = multiprocessing.get_context("spawn")  # fork would copy torch's thread pools
         helper_rows = max(rows for _, rows in row_shares(max_rows, processes)[1:])
+        channels = int(getattr(model, "in_channels", 1))  # maps (B, channels, w, w)
         try:
             for i in range(1, processes):
-                bufs = dict(maps=torch.zeros(helper_rows, 1, w, w).share_memory_(),
+                bufs = dict(maps=torch.zeros(helper_rows, channels, w, w).share_memory_(),
                             normals=torch.zeros(helper_rows, 3).share_memory_(),
                             head=torch.zeros(HEAD_LEN, dtype=torch.int64).share_memory_(),
                             grads=torch.zeros(nparam).share_memory_())
@@ -215,8 +216,8 @@ class StepProcesses:
 
     def step(self, opt: torch.optim.Optimizer, maps: torch.Tensor, normals: torch.Tensor,
              key: tuple[int, ...], meanwhile: Callable[[], object] | None = None) -> torch.Tensor:
-        """One Adam step on the batch (maps (B, 1, w, w), unit normals (B, 3), float32 on
-        the CPU) with the counter masks of ``key``; the batch's MSE loss (detached).
+        """One Adam step on the batch (maps (B, C, w, w), C the model's ``in_channels``, unit
+        normals (B, 3), float32 on the CPU) with the counter masks of ``key``; the batch's MSE loss (detached).
 
         ``meanwhile``: called once this process's rows are done, while the helpers finish
         theirs (the training loop reads its next batch there, so neither side waits for

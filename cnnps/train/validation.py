@@ -34,14 +34,17 @@ def load_val(files: Sequence, w: int, max_rows: int, seed: int) -> tuple[np.ndar
     return np.concatenate(ms)[:max_rows], np.concatenate(ns)[:max_rows]
 
 
-def no_val(w: int) -> tuple[np.ndarray, np.ndarray]:
-    """An empty validation set (maps (0, w, w) float16, normals (0, 3) float32)."""
-    return np.zeros((0, w, w), np.float16), np.zeros((0, 3), np.float32)
+def no_val(w: int, channels: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """An empty validation set (maps (0, w, w) float16, or (0, C, w, w) for ``channels``
+    C > 1; normals (0, 3) float32)."""
+    shape = (0, w, w) if channels == 1 else (0, int(channels), w, w)
+    return np.zeros(shape, np.float16), np.zeros((0, 3), np.float32)
 
 
 def val_errors(model: nn.Module, maps: np.ndarray, normals: np.ndarray, device: torch.device,
                precision: str) -> dict:
     """``{"val_mean_deg", "val_median_deg"}`` of ``model`` on (maps, normals); {} without maps.
+    ``maps`` (N, w, w) for a grey model, (N, C, w, w) for one of C input channels.
 
     The model is not modified (nor its train/eval mode), and the global torch RNG is not
     drawn from (:class:`MapPredictor` works on a copy): the dropout masks of the training

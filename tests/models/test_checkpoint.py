@@ -44,7 +44,7 @@ def _angles_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def test_round_trip_fp32_identical(tmp_path, model, maps):
     path = save_checkpoint(tmp_path / "model.pt", model, {"lr": 1e-3}, {"steps": 12, "val_mean_deg": 3.5})
     loaded, config, meta = load_checkpoint(path)
-    assert config == {"lr": 1e-3, "w": 32, "dropout": 0.2, "arch_version": ARCH_VERSION}
+    assert config == {"lr": 1e-3, "w": 32, "dropout": 0.2, "in_channels": 1, "arch_version": ARCH_VERSION}
     assert meta == {"steps": 12, "val_mean_deg": 3.5}
     assert not loaded.training
     assert next(loaded.parameters()).dtype == torch.float32

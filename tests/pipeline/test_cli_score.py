@@ -228,4 +228,4 @@ def test_pixel_sample_scores_the_same_seeded_pixels(tmp_path, capsys, tiny_model
     mean, _ = _angular_stats(predicted, gt, sample)
     assert res["captures"]["sphere"]["methods"]["cnn_k2"]["mean_deg"] == pytest.approx(mean, abs=1e-3)
     code, _, err = run_cli(["score", str(tiny_model), str(cap), "--pixels", "-1"], capsys)
-    assert code != 0 and "--pixels must be >= 0" in err
+    assert code != 0 and "--pixels must be >= 0, got -1" in err

@@ -164,17 +164,20 @@ class Capture:
         raw = self.read_raw(k)
         return grey_values(linear_values(raw, self.linearize), self.intensities[k], GREY_WEIGHTS[self.grey])
 
-    def read_pixels(self, k: int, saturation: float | None = SATURATION_LEVEL) -> ImagePixels:
+    def read_pixels(self, k: int, saturation: float | None = SATURATION_LEVEL, colour: bool = False) -> ImagePixels:
         """Image ``k``'s mask pixels (row-major order, like :meth:`pixel_intensities`).
 
         ``values`` are exactly those of :meth:`read_grey` at the mask pixels;
         ``saturated`` flags the observations with any channel >= ``saturation`` x the
         integer type's maximum (None when there is none). Float images have no maximum
         and are never flagged; ``saturation`` None flags nothing. Works in bands of rows,
-        so the temporaries stay small next to the decoded image.
+        so the temporaries stay small next to the decoded image. ``colour=True`` also
+        gives ``colour`` (P, 3) float32: the linear R, G, B divided by the light's
+        intensity in each channel (a grey image's value in all three), from the same read
+        (:func:`cnnps.io.capture.pixels.colour_values`); the rest is unchanged.
         """
         raw = self.read_raw(k)
-        pix = masked_pixels(raw, self.mask, self.intensities[k], self.grey, self.linearize, saturation)
+        pix = masked_pixels(raw, self.mask, self.intensities[k], self.grey, self.linearize, saturation, colour)
         return pix if not self.paths else pix._replace(kind=pixel_kind(self.paths[k], raw))
 
     def read_raw(self, k: int) -> np.ndarray:

@@ -11,6 +11,11 @@ maximum, judged on the stored codes.
 
 Example: ``masked_pixels(raw (H, W, 3) uint16, mask (H, W), intensity (3,)).values`` ->
 (P,) float32 grey values of the mask pixels, row-major.
+
+Colour (``colour=True``, for colour models): besides the grey values, the (P, 3) float32
+linear R, G, B, each divided by its channel's light intensity (:func:`colour_values`; a
+one-channel image gives its grey value in all three), from the same decoded values and
+with the same saturation flags; the grey values are those without ``colour``, bit for bit.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ class ImagePixels(NamedTuple):
     values: np.ndarray  # (P,) float32 grey, intensity-normalised, as stored (saturated ones too)
     saturated: np.ndarray | None  # (P,) bool, True = saturated (a missing observation); None: none
     kind: str  # the stored pixel type: "uint8", "uint16", "float32" or "raw-uint16" (a RAW photo)
+    colour: np.ndarray | None = None  # (P, 3) float32 R, G, B, each intensity-normalised (read with colour=True)
 
     @property
     def n_saturated(self) -> int:
@@ -52,6 +58,16 @@ def grey_values(img: np.ndarray, intensity: np.ndarray, weights: np.ndarray) -> 
         return img[..., 0] / np.float32(weights @ intensity)
     w = (weights / intensity).astype(np.float32)  # per-channel weight / intensity
     return img[..., 0] * w[0] + img[..., 1] * w[1] + img[..., 2] * w[2]
+
+
+def colour_values(img: np.ndarray, intensity: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(..., C) float32 linear values -> (..., 3) float32 R, G, B, each divided by its
+    channel's ``intensity`` (3,); a one-channel image (C = 1) gives its grey value
+    (:func:`grey_values` with ``weights``) in all three channels."""
+    if img.shape[-1] == 1:
+        grey = grey_values(img, intensity, weights)
+        return np.repeat(grey[..., None], 3, axis=-1)
+    return img[..., :3] / np.asarray(intensity, np.float64).astype(np.float32)
 
 
 @functools.lru_cache(maxsize=8)
@@ -84,7 +100,8 @@ def saturation_code(dtype, saturation: float | None = SATURATION_LEVEL) -> int |
 
 
 def masked_pixels(raw: np.ndarray, mask: np.ndarray, intensity, grey: Grey = "mean",
-                  linearize: Linearize | None = None, saturation: float | None = SATURATION_LEVEL) -> ImagePixels:
+                  linearize: Linearize | None = None, saturation: float | None = SATURATION_LEVEL,
+                  colour: bool = False) -> ImagePixels:
     """One image's mask pixels as ``cnnps predict`` uses them (row-major order).
 
     raw: (H, W, C) stored values (uint8, uint16 or float32; C = 1 or 3), as
@@ -93,7 +110,8 @@ def masked_pixels(raw: np.ndarray, mask: np.ndarray, intensity, grey: Grey = "me
     combination; grey: "mean" or "luminance"; linearize: as :func:`linear_values`.
     ``saturated`` flags the observations with any channel >= ``saturation`` x the integer
     type's maximum (None when there is none; float images are never flagged). Works in bands of rows, so the
-    temporaries stay small next to the decoded image.
+    temporaries stay small next to the decoded image. ``colour=True`` also fills
+    ``colour`` (P, 3) (:func:`colour_values`); ``values`` and ``saturated`` do not change.
     """
     H, W = mask.shape
     weights = GREY_WEIGHTS[grey]
@@ -101,6 +119,7 @@ def masked_pixels(raw: np.ndarray, mask: np.ndarray, intensity, grey: Grey = "me
     level = saturation_code(raw.dtype, saturation)
     P = int(mask.sum())
     values = np.empty(P, dtype=np.float32)
+    rgb = np.empty((P, 3), dtype=np.float32) if colour else None
     saturated = None
     o = 0
     band = max(1, (1 << 20) // max(1, W))  # about a megapixel of rows at a time
@@ -109,7 +128,10 @@ def masked_pixels(raw: np.ndarray, mask: np.ndarray, intensity, grey: Grey = "me
         n = sub.shape[0]
         if n == 0:
             continue
-        values[o : o + n] = grey_values(linear_values(sub, linearize), intensity, weights)
+        linear = linear_values(sub, linearize)
+        values[o : o + n] = grey_values(linear, intensity, weights)
+        if rgb is not None:
+            rgb[o : o + n] = colour_values(linear, intensity, weights)
         if level is not None:
             sat = (sub >= level).any(axis=-1)
             if sat.any():
@@ -117,4 +139,4 @@ def masked_pixels(raw: np.ndarray, mask: np.ndarray, intensity, grey: Grey = "me
                     saturated = np.zeros(P, dtype=bool)
                 saturated[o : o + n] = sat
         o += n
-    return ImagePixels(values, saturated, str(raw.dtype))
+    return ImagePixels(values, saturated, str(raw.dtype), rgb)
