@@ -135,7 +135,8 @@ def with_train_values(train: dict, **values) -> dict:
 
 def set_value(params: dict, item: str) -> None:
     """Apply one ``KEY.PATH=VALUE`` to ``params`` in place (VALUE read as YAML: ``0``,
-    ``[1200]``, ``null``); a section on the path that is missing is created.
+    ``[1200]``, ``null``; quote a word YAML reads as a boolean: ``eval.sparse_fill="off"``);
+    a section on the path that is missing is created.
 
     >>> p = {"train": {"max_steps": 9}}; set_value(p, "train.optimiser.lr_milestones=[1200]"); p
     {'train': {'max_steps': 9, 'optimiser': {'lr_milestones': [1200]}}}

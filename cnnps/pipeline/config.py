@@ -180,6 +180,19 @@ def _fail(where: str, tp: Any, value: Any) -> typing.NoReturn:
     raise ConfigError(f"{where}: expected {_type_name(tp)}, got {value!r}")
 
 
+YAML_WORDS = {True: ("on", "yes", "true"), False: ("off", "no", "false")}  # what YAML 1.1 reads as booleans
+
+
+def _yaml_word(value: Any, choices: tuple) -> Any:
+    """A boolean that YAML 1.1 (PyYAML) made of a word a string choice spells
+    (``sparse_fill: off`` -> False -> "off"); any other value as it is."""
+    if isinstance(value, bool):
+        for word in YAML_WORDS[value]:
+            if word in choices:
+                return word
+    return value
+
+
 def convert(value: Any, tp: Any, where: str) -> Any:
     """Convert a YAML value to type ``tp`` (a type hint); ConfigError naming ``where``."""
     if tp is Any or tp is object:
@@ -191,6 +204,7 @@ def convert(value: Any, tp: Any, where: str) -> Any:
     if value is None:
         _fail(where, tp, value)
     if origin is typing.Literal:
+        value = _yaml_word(value, args)
         return declared.check(where, value, tp)  # "<where> must be one of a, b, got 'x'", as the API and CLI say it
     if origin in (list, tuple, set, frozenset) or tp in (list, tuple):
         return _convert_sequence(value, tp, origin, args, where)

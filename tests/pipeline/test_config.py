@@ -324,6 +324,21 @@ def test_real_missing_mesh_folder_and_reversed_cone(tmp_path):
         cfg.load_all(c)
 
 
+@REAL
+def test_a_word_yaml_reads_as_a_boolean_is_the_choice_it_spells(tmp_path):
+    """PyYAML reads `off` / `on` as booleans: a choice spelled so is still that choice."""
+    import yaml
+
+    text = "eval:\n  sparse_fill: off\n"
+    c = cfg.config_from_dict(yaml.safe_load(text), "x.yaml")
+    assert cfg.build_params(c, "eval").sparse_fill == "off"
+    c = cfg.config_from_dict(yaml.safe_load(text.replace("off", "on")), "x.yaml")
+    assert cfg.build_params(c, "eval").sparse_fill == "on"
+    c = cfg.config_from_dict(yaml.safe_load(text.replace("sparse_fill: off", "saturated: yes")), "x.yaml")
+    with pytest.raises(ConfigError, match="eval.saturated must be one of exclude, keep, got True"):
+        cfg.build_params(c, "eval")
+
+
 @dataclass(frozen=True)
 class SelfBuilt:
     a: int = 1
