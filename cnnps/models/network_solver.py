@@ -75,8 +75,9 @@ def load_predictor(model_path: Path, device: str, precision: str, batch_size: in
 
     dev = torch_device(device)
     net, _config, meta = load_checkpoint(model_path, dev)  # InputError naming the file
-    if net.in_channels != 1:  # the pixel stack holds grey values
-        raise ConfigError(f"{model_path}: an RGB model ({net.in_channels} input channels); prediction reads grey "
+    channels = getattr(net, "in_channels", 1)
+    if channels != 1:  # the pixel stack holds grey values
+        raise ConfigError(f"{model_path}: an RGB model ({channels} input channels); prediction reads grey "
                           "values only: score it with `cnnps score` or the eval stage, or use a grey model")
     if precision == "auto":
         import torch
