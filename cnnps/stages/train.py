@@ -85,7 +85,7 @@ from cnnps.train.openmp import prefer_passive_openmp  # torch-free (torch loads 
 
 # cnnps.synth.pixelwise.EFFECT_NAMES (named here: this module loads without torch)
 PIXELWISE_EFFECTS = ("cast_shadow", "interreflection", "ambient", "intensity_error", "noise", "saturation",
-                     "quantisation", "boundary_mix")
+                     "quantisation", "boundary_mix", "interreflection_share", "ambient_share", "grazing_falloff")
 
 
 def _at_least(section: object, prefix: str, names: tuple[str, ...], low: int) -> None:

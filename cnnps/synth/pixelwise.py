@@ -314,11 +314,17 @@ def microfiber_sheen(normals: torch.Tensor, L: torch.Tensor, roughness: float = 
     return R * d, R
 
 
-def _diffuse_lobe(diffuse_model: str, cnl, rough, cos_lh, cos_nv):
+def _diffuse_lobe(diffuse_model: str, cnl, rough, cos_lh, cos_nv, fd90=None):
     """(P, m) the diffuse lobe times cos: Lambert's ``cnl``, or Burley 2012's with its
-    retro-reflection (``rough`` (P,), ``cos_lh`` (P, m), ``cos_nv`` (P, 1))."""
+    retro-reflection (``rough`` (P,), ``cos_lh`` (P, m), ``cos_nv`` (P, 1)); ``fd90``
+    (P,) or None: Lambert's lobe darkened toward grazing light by Burley's light factor
+    1 + (fd90 - 1)(1 - cos)^5 at a fixed fd90 (1 = Lambert's)."""
     if diffuse_model == "lambert":
+        if fd90 is not None:
+            return cnl * (1.0 + (fd90.to(cnl.dtype)[:, None] - 1.0) * (1.0 - cnl) ** 5)
         return cnl
+    if fd90 is not None:
+        raise ConfigError("a grazing falloff (fd90) needs diffuse_model 'lambert'")
     if diffuse_model == "burley":
         fd90 = 0.5 + 2.0 * rough[:, None] * cos_lh * cos_lh
         fl = (1.0 - cnl) ** 5
@@ -336,6 +342,7 @@ def shade(
     sheen_model: str = "microfiber",
     multiscatter: bool = True,
     rgb: bool = False,
+    fd90: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(P, m) grey pixel values (mean of R, G, B; ``rgb=True``: (P, m, 3)) of P surface
     points with unit ``normals`` (P, 3) under m suns of irradiance 1 from unit ``lights``
@@ -351,7 +358,9 @@ def shade(
     F0 = 0.08 · specular, the same compensation, over a diffuse base attenuated by the
     layer's albedo (Cycles' ``closure_layering_weight``); the diffuse is Lambertian
     (``diffuse_model="lambert"``, Blender's Diffuse Roughness 0) or Burley 2012 with its
-    retro-reflection (``"burley"``, the paper's). Sheen, weight sheen · (1 − metallic) and
+    retro-reflection (``"burley"``, the paper's); ``fd90`` (P,) darkens the Lambertian
+    diffuse toward grazing light by Burley's light factor 1 + (fd90 − 1)(1 − n·l)^5 alone
+    (no retro-reflection; 1 leaves a point Lambertian). Sheen, weight sheen · (1 − metallic) and
     tint mix(white, base_color, sheen_tint): ``"microfiber"`` (Blender's: Zeltner et al.
     2022, :func:`microfiber_sheen`, roughness 0.5, a layer over everything else, which it
     attenuates by 1 − max over R, G, B of weight · tint · its albedo, as Cycles'
@@ -405,7 +414,7 @@ def shade(
     layer_albedo = torch.where(singular[:, 0] & has_spec, fresnel_dielectric(mu, eta), layer_albedo)
     diffuse_w = (1.0 - layer_albedo).clamp(0.0, 1.0)[:, None]  # (P, 1)
 
-    fd = _diffuse_lobe(diffuse_model, cnl, rough, cos_lh, cos_nv)
+    fd = _diffuse_lobe(diffuse_model, cnl, rough, cos_lh, cos_nv, fd90)
     if sheen_model not in ("microfiber", "disney", "none"):
         raise ConfigError(f"sheen_model must be 'microfiber', 'disney' or 'none', got {sheen_model!r}")
     tint = 1.0 + sheen_tint * (base - 1.0)  # (P, 3)
@@ -483,17 +492,20 @@ def light_subsets(
 
 
 EFFECT_NAMES = ("cast_shadow", "interreflection", "ambient", "intensity_error", "noise", "saturation",
-                "quantisation", "boundary_mix")  # the fields of Effects, in order
+                "quantisation", "boundary_mix", "interreflection_share", "ambient_share",
+                "grazing_falloff")  # the fields of Effects, in order
 SATURATION_RANGE = (1.0, 4.0)  # a saturated pixel's brightest observation lands at k x clip, k log-uniform here
 EXPOSURE_RANGE = (1.0 / 64.0, 0.5)  # an unsaturated quantised pixel's brightest lands at k x full scale
 BLACK_LEVEL_MAX = 2.0 / 255.0  # black-level offset U(-max, max) of full scale per quantised pixel
 EIGHT_BIT_SHARE = 0.5  # share of quantised pixels stored in 8 bits (255 levels); the rest 16 bits (65535)
 MIX_ALPHA_RANGE = (0.5, 1.0)  # foreground weight of a pixel straddling a depth discontinuity
+FD90_RANGE = (0.3, 1.0)  # Burley's grazing factor fd90 of a pixel whose diffuse falls off, uniform here
 
 
 @dataclass(frozen=True)
 class Effects:
-    """Global effects and capture realism, each off at 0 (probabilities and strengths in [0, 1]).
+    """Global effects and capture realism, each off at 0 (probabilities and strengths in [0, 1];
+    the two shares are on at 1, every pixel).
 
     - ``cast_shadow``: probability that a pixel has an occluder: a spherical cap of
       directions (axis at a random azimuth, elevation U(0°, 45°), half-angle U(20°, 60°))
@@ -521,9 +533,18 @@ class Effects:
     - ``boundary_mix``: probability that a pixel straddles a depth discontinuity: its
       direct shading is alpha · (its own surface) + (1 − alpha) · (a second surface with
       an independently drawn normal and material), alpha ~ U(:data:`MIX_ALPHA_RANGE`);
-      the target normal stays the first (foreground) surface's.
+      the target normal stays the first (foreground) surface's;
+    - ``interreflection_share`` and ``ambient_share``: the probability that a pixel gets
+      the inter-reflection, or the ambient term, at all (1: every pixel, as the two
+      strengths alone mean); a real object's convex parts see neither, and every pixel
+      lifted by them teaches the network maps no convex pixel shows;
+    - ``grazing_falloff``: probability that a pixel's diffuse darkens toward grazing light
+      as real matte surfaces do (DiLiGenT's BALL): Lambert's lobe times
+      1 + (fd90 − 1)(1 − n·l)^5, fd90 ~ U(:data:`FD90_RANGE`) per pixel (``shade``'s
+      ``fd90``; needs ``diffuse_model="lambert"``).
 
-    Example: ``Effects(cast_shadow=0.3, saturation=0.1, quantisation=0.5, boundary_mix=0.05)``.
+    Example: ``Effects(cast_shadow=0.3, saturation=0.1, quantisation=0.5, boundary_mix=0.05)``;
+    ``Effects(interreflection=0.3, interreflection_share=0.3, grazing_falloff=0.3)``.
     """
 
     cast_shadow: float = 0.0
@@ -534,6 +555,9 @@ class Effects:
     saturation: float = 0.0
     quantisation: float = 0.0
     boundary_mix: float = 0.0
+    interreflection_share: float = 1.0
+    ambient_share: float = 1.0
+    grazing_falloff: float = 0.0
 
     def __post_init__(self):
         for name in EFFECT_NAMES:
@@ -545,6 +569,11 @@ class Effects:
     def camera(self) -> bool:
         """True when a pixel may be exposed, clipped or quantised."""
         return bool(self.saturation or self.quantisation)
+
+    @property
+    def per_pixel_draws(self) -> bool:
+        """True when the shares or the grazing falloff need draws of their own."""
+        return self.interreflection_share < 1.0 or self.ambient_share < 1.0 or self.grazing_falloff > 0.0
 
 
 def cast_shadow_mask(lights: torch.Tensor, n: int, probability: float, *, generator: torch.Generator) -> torch.Tensor:
@@ -718,6 +747,19 @@ def _draw_camera_and_mix(B: int, g: torch.Generator, grazing_fraction: float, ra
     return cam_u, mix_u, normals_b, params_b, cat_b
 
 
+def _draw_shares(fx: Effects, B: int, g: torch.Generator):
+    """The draws of the shares and the grazing falloff (B, 4): which pixels get the
+    inter-reflection (column 0 < share), the ambient term (1), a falloff (2), and its fd90 (3);
+    made last, and only when one of them is on (:attr:`Effects.per_pixel_draws`)."""
+    return torch.rand(B, 4, generator=g, device=g.device)
+
+
+def _falloff_fd90(fx: Effects, u: torch.Tensor) -> torch.Tensor:
+    """(B,) each pixel's fd90: drawn in FD90_RANGE where ``u[:, 2] < grazing_falloff``, else 1."""
+    lo, hi = FD90_RANGE
+    return torch.where(u[:, 2] < fx.grazing_falloff, lo + (hi - lo) * u[:, 3], torch.ones_like(u[:, 3]))
+
+
 def _add_noise(I, mask, s, z, rgb: bool):
     """I plus signal-dependent noise: variance (s0 peak)^2 + s1^2 peak I, ``peak`` each
     pixel's brightest used value (grey), ``z`` the standard normal field; clamped at 0."""
@@ -826,9 +868,11 @@ def generate(
     the noise field (B x m, or B x m x 3 with ``rgb``; drawn when ``noise`` or one of
     ``saturation``, ``quantisation``, ``boundary_mix`` is on), then, only when one of
     those three is on: the camera's uniforms (B x 5), the mixing uniforms (B x 2: which
-    pixels, alpha), the second surfaces' normals and materials (B each). Every effect
+    pixels, alpha), the second surfaces' normals and materials (B each), then, only when a
+    share is under 1 or ``grazing_falloff`` is on, the shares' uniforms (B x 4). Every effect
     draws whether it is on or off, so turning one on changes no other draw; with the three
-    at 0 the generator's draws, and so the maps, are those of :class:`Effects` without them.
+    at 0 (and the shares at 1, the falloff at 0) the generator's draws, and so the maps, are
+    those of :class:`Effects` without them.
 
     ``rgb=True`` shades R, G, B (:func:`shade` with ``rgb=True``), applies every effect per
     channel (the inter-reflection's colour, the noise, the clip and the quantisation are per
@@ -841,7 +885,9 @@ def generate(
     ``boundary_mix`` ``mix`` (``mixed`` (B,) bool, ``alpha`` (B,) (1 where not mixed),
     ``normals``, ``params``, ``category`` of the second surfaces); with ``interreflection``
     ``interreflection`` (``strength`` r (B,), the neighbour's ``normal`` (B, 3) and
-    ``colour`` ρ_n (B, 3), the pixel's ``reflectance`` ρ_pixel (B, 3)).
+    ``colour`` ρ_n (B, 3), the pixel's ``reflectance`` ρ_pixel (B, 3); ``strength`` is 0
+    on the pixels ``interreflection_share`` left out); with ``grazing_falloff``
+    ``falloff_fd90`` (B,): each pixel's fd90, 1 where its diffuse is Lambert's.
 
     Example::
 
@@ -863,6 +909,7 @@ def generate(
     blocked, ir, gains, amb, s_noise, z_noise, later = _draw_effects(fx, L0, B, g, rgb)
     if later:  # drawn only when one of these effects is on: at 0 they leave the generator as it was
         cam_u, mix_u, normals_b, params_b, cat_b = _draw_camera_and_mix(B, g, grazing_fraction, ranges, categories)
+    share_u = _draw_shares(fx, B, g) if fx.per_pixel_draws else None
 
     dev = torch.device(device)
     normals_d, L = normals.to(dev), L0.to(dev)
@@ -873,7 +920,11 @@ def generate(
     def per_light(x):  # (B, m) -> broadcastable against I
         return x[..., None] if rgb else x
 
-    I = shade(normals_d, L, params_d, diffuse_model=diffuse_model, sheen_model=sheen_model, rgb=rgb)
+    fd90 = None
+    if fx.grazing_falloff:
+        fd90 = _falloff_fd90(fx, share_u).to(dev)
+        details["falloff_fd90"] = fd90
+    I = shade(normals_d, L, params_d, diffuse_model=diffuse_model, sheen_model=sheen_model, rgb=rgb, fd90=fd90)
     alpha = None
     if fx.boundary_mix:
         shading = {"diffuse_model": diffuse_model, "sheen_model": sheen_model, "rgb": rgb}
@@ -887,12 +938,16 @@ def generate(
         if alpha is not None:
             al = alpha[:, None]
             rho_pix = al * rho_pix + (1.0 - al) * _diffuse_colour(details["mix"]["params"])
-        I, details["interreflection"] = _interreflect(I, L, normals_d, rho_pix, fx.interreflection * ir[:, 0:1].to(dev),
-                                                      ir.to(dev), rgb)
+        r = fx.interreflection * ir[:, 0:1]
+        if fx.interreflection_share < 1.0:
+            r = r * (share_u[:, 0:1] < fx.interreflection_share)
+        I, details["interreflection"] = _interreflect(I, L, normals_d, rho_pix, r.to(dev), ir.to(dev), rgb)
     if fx.intensity_error:
         I = I * per_light(gains.to(dev)[None])
     grey = (lambda x: x.mean(-1)) if rgb else (lambda x: x)
     if fx.ambient:
+        if fx.ambient_share < 1.0:
+            amb = amb * (share_u[:, 1:2] < fx.ambient_share)
         top = torch.where(mask_d, grey(I), torch.zeros_like(mask_d, dtype=I.dtype)).amax(1, keepdim=True)
         I = I + per_light(amb.to(dev) * top)
     if fx.noise:

@@ -319,3 +319,61 @@ def test_new_effects_on_cuda_repeat():
     assert torch.equal(cpu[1], gpu[1].cpu()) and torch.equal(cpu[2]["camera"]["bits"], gpu[2]["camera"]["bits"].cpu())
     assert torch.equal(cpu[2]["mix"]["mixed"], gpu[2]["mix"]["mixed"].cpu())
     torch.testing.assert_close(cpu[2]["camera"]["exposure"], gpu[2]["camera"]["exposure"].cpu(), rtol=1e-3, atol=0)
+
+
+# --------------------------------------------------------------------------- shares and grazing falloff
+
+
+def test_shares_at_one_and_no_falloff_are_the_defaults_bit_for_bit():
+    kw = {"n_lights": 300, "sparse_fraction": 0.2}
+    g1, g2 = torch.Generator().manual_seed(20240), torch.Generator().manual_seed(20240)
+    a = px.generate(8, generator=g1, effects=px.Effects(**OLD), **kw)
+    b = px.generate(8, generator=g2, effects=px.Effects(**OLD, interreflection_share=1.0, ambient_share=1.0,
+                                                         grazing_falloff=0.0), **kw)
+    assert torch.equal(a[0], b[0]) and torch.rand(1, generator=g1).item() == torch.rand(1, generator=g2).item()
+    with pytest.raises(ConfigError, match="ambient_share"):
+        px.Effects(ambient_share=1.5)
+
+
+@pytest.mark.parametrize("name", ["interreflection", "ambient"])
+def test_a_share_applies_its_effect_to_that_share_of_the_pixels(name):
+    kw = {"n_lights": 300, "return_details": True}
+    other = {k: 0.0 for k in OLD if k != name}
+    off = px.generate(2000, generator=torch.Generator().manual_seed(3), effects=px.Effects(**other), **kw)
+    none = px.generate(2000, generator=torch.Generator().manual_seed(3),
+                       effects=px.Effects(**other, **{name: 0.3, f"{name}_share": 0.0}), **kw)
+    torch.testing.assert_close(none[2]["intensities"], off[2]["intensities"], rtol=0, atol=0)
+    part = px.generate(2000, generator=torch.Generator().manual_seed(3),
+                       effects=px.Effects(**other, **{name: 0.3, f"{name}_share": 0.3}), **kw)
+    full = px.generate(2000, generator=torch.Generator().manual_seed(3), effects=px.Effects(**other, **{name: 0.3}),
+                       **kw)
+    changed = (part[2]["intensities"] != off[2]["intensities"]).any(1)
+    assert abs(changed.double().mean().item() - 0.3) < 0.05  # binomial sd 0.01
+    # where the share applies, the pixel is what the effect alone makes of it
+    torch.testing.assert_close(part[2]["intensities"][changed], full[2]["intensities"][changed], rtol=0, atol=0)
+    assert torch.equal(part[1], off[1]) and torch.equal(part[2]["mask"], off[2]["mask"])
+
+
+def test_grazing_falloff_darkens_lambertian_pixels_by_burleys_light_factor():
+    L, Ln = _lights()
+    maps, normals, det = px.generate(400, generator=torch.Generator().manual_seed(1), lights=L,
+                                     effects=px.Effects(grazing_falloff=0.5), return_details=True, **LAMBERT)
+    fd90 = det["falloff_fd90"].double().numpy()
+    some = fd90 < 1.0
+    assert abs(some.mean() - 0.5) < 0.1  # binomial sd 0.025
+    lo, hi = px.FD90_RANGE
+    assert fd90[some].min() >= lo and fd90[some].max() <= hi and np.ptp(fd90[some]) > 0.5 * (hi - lo)
+    cos = np.clip(normals.double().numpy() @ Ln.T, 0.0, None)
+    ref = _lambert(det["params"]["base_color"].numpy(), normals.numpy(), Ln) * (1 + (fd90[:, None] - 1) * (1 - cos) ** 5)
+    got = det["intensities"].double().numpy()
+    np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-6)
+    # a grazing light (n.l = 0.1) on a pixel at fd90 = 0.5 reads 1 - 0.5 * 0.9^5 = 0.705 of Lambert's
+    n = torch.tensor([[0.0, 0.0, 1.0]])
+    lights = torch.tensor([[np.sqrt(1 - 0.01), 0.0, 0.1], [0.0, 0.0, 1.0]], dtype=torch.float32)
+    prm = {"base_color": torch.ones(1, 3), "metallic": torch.zeros(1), "specular": torch.zeros(1),
+           "roughness": torch.full((1,), 0.5), "sheen": torch.zeros(1), "sheen_tint": torch.zeros(1)}
+    lam = px.shade(n, lights, prm)
+    dark = px.shade(n, lights, prm, fd90=torch.tensor([0.5]))
+    np.testing.assert_allclose((dark / lam).numpy()[0], [1.0 - 0.5 * 0.9 ** 5, 1.0], rtol=1e-5)
+    with pytest.raises(ConfigError, match="lambert"):
+        px.shade(n, lights, prm, diffuse_model="burley", fd90=torch.tensor([0.5]))
