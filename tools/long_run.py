@@ -462,7 +462,8 @@ class Run:
     def probe(self, poll: float, model: Path | None = None, name: str | None = None) -> dict:
         """Score the newest checkpoint now, as the study scores a variant: ``save`` (the
         weights into ``intermediate.pt``), then the run's eval section with that model into
-        ``probe/`` (its test set linked to the study's renders when there are some). The
+        ``probe/`` (its test set linked to the study's renders when there are some, else to
+        the run's own test set, so a probe renders nothing the run already has). The
         row (the study table's columns, step and validation error added) is appended to
         ``probes.json`` in git's folder, the time to the ledger (stage ``probe``).
 
@@ -485,6 +486,8 @@ class Run:
         params["data_dir"] = str(probe)
         params["eval"] = {**params.get("eval", {}), "model": str(weights)}
         rendered = self.study / "data" / "eval" / "testset"
+        if not rendered.is_dir():  # no study: the run's own test set (or the one --testset-from linked)
+            rendered = (self.data / "eval" / "testset").resolve()
         if rendered.is_dir() and not (probe / "eval" / "testset").exists():
             (probe / "eval").mkdir(parents=True, exist_ok=True)
             (probe / "eval" / "testset").symlink_to(rendered, target_is_directory=True)

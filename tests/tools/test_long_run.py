@@ -174,7 +174,10 @@ def test_a_probe_scores_the_newest_checkpoint_and_keeps_a_row(tmp_path):
     torch.save({"model": CNNPS(w=32).state_dict(), "step": 20}, ck / "step-00000020.pt")
     (root / "r" / "data" / "train" / "plots").mkdir()
     (root / "r" / "data" / "train" / "plots" / "val.csv").write_text("step,val_mean_deg,val_median_deg\n10,9.5,8\n20,7.25,6\n")
+    own = root / "r" / "data" / "eval" / "testset"  # the run's test set (no study): the probe reuses it
+    own.mkdir(parents=True)
     assert long_run.main(["probe", "r", "--poll", "0.5", *args]) == 0
+    assert (root / "r" / "probe" / "eval" / "testset").resolve() == own.resolve()
     rows = json.loads((carried / "r" / "probes.json").read_text())["rows"]
     assert [r["step"] for r in rows] == [20] and rows[0]["val_mean_deg"] == 7.25
     assert rows[0]["ball_ls_deg"] < 0.05 and rows[0]["ball-6_deg"] > 0  # least squares is exact on this capture
