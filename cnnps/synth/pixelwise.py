@@ -747,7 +747,7 @@ def _draw_camera_and_mix(B: int, g: torch.Generator, grazing_fraction: float, ra
     return cam_u, mix_u, normals_b, params_b, cat_b
 
 
-def _draw_shares(fx: Effects, B: int, g: torch.Generator):
+def _draw_shares(B: int, g: torch.Generator):
     """The draws of the shares and the grazing falloff (B, 4): which pixels get the
     inter-reflection (column 0 < share), the ambient term (1), a falloff (2), and its fd90 (3);
     made last, and only when one of them is on (:attr:`Effects.per_pixel_draws`)."""
@@ -909,7 +909,7 @@ def generate(
     blocked, ir, gains, amb, s_noise, z_noise, later = _draw_effects(fx, L0, B, g, rgb)
     if later:  # drawn only when one of these effects is on: at 0 they leave the generator as it was
         cam_u, mix_u, normals_b, params_b, cat_b = _draw_camera_and_mix(B, g, grazing_fraction, ranges, categories)
-    share_u = _draw_shares(fx, B, g) if fx.per_pixel_draws else None
+    share_u = _draw_shares(B, g) if fx.per_pixel_draws else None
 
     dev = torch.device(device)
     normals_d, L = normals.to(dev), L0.to(dev)
