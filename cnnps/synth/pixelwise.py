@@ -817,6 +817,21 @@ def _unit_lights(lights, device) -> torch.Tensor:
     return L0 / L0.norm(dim=1, keepdim=True)
 
 
+def _shared(level: torch.Tensor, share: float, share_u, column: int) -> torch.Tensor:
+    """``level`` (B, 1), zero on the pixels a ``share`` under 1 leaves out (``share_u``'s
+    ``column`` at or over it)."""
+    if share >= 1.0:
+        return level
+    return level * (share_u[:, column:column + 1] < share).to(level.device)
+
+
+def _add_ambient(I, mask, amb: torch.Tensor, rgb: bool) -> torch.Tensor:
+    """``I`` plus ambient light ``amb`` (B, 1) times each pixel's brightest used grey value."""
+    grey = I.mean(-1) if rgb else I
+    top = torch.where(mask, grey, torch.zeros_like(mask, dtype=I.dtype)).amax(1, keepdim=True)
+    return I + ((amb * top)[..., None] if rgb else amb * top)
+
+
 def _maps(I, L, w: int, mask, rgb: bool) -> torch.Tensor:
     """(B, 1, w, w) grey observation maps, or with ``rgb`` (B, 4, w, w): grey then R, G, B."""
     if rgb:
@@ -938,18 +953,12 @@ def generate(
         if alpha is not None:
             al = alpha[:, None]
             rho_pix = al * rho_pix + (1.0 - al) * _diffuse_colour(details["mix"]["params"])
-        r = fx.interreflection * ir[:, 0:1]
-        if fx.interreflection_share < 1.0:
-            r = r * (share_u[:, 0:1] < fx.interreflection_share)
+        r = _shared(fx.interreflection * ir[:, 0:1], fx.interreflection_share, share_u, 0)
         I, details["interreflection"] = _interreflect(I, L, normals_d, rho_pix, r.to(dev), ir.to(dev), rgb)
     if fx.intensity_error:
         I = I * per_light(gains.to(dev)[None])
-    grey = (lambda x: x.mean(-1)) if rgb else (lambda x: x)
     if fx.ambient:
-        if fx.ambient_share < 1.0:
-            amb = amb * (share_u[:, 1:2] < fx.ambient_share)
-        top = torch.where(mask_d, grey(I), torch.zeros_like(mask_d, dtype=I.dtype)).amax(1, keepdim=True)
-        I = I + per_light(amb.to(dev) * top)
+        I = _add_ambient(I, mask_d, _shared(amb, fx.ambient_share, share_u, 1).to(dev), rgb)
     if fx.noise:
         I = _add_noise(I, mask_d, s_noise.to(dev), z_noise.to(dev), rgb)
     if fx.camera:
