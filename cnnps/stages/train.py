@@ -31,6 +31,12 @@ Learning rate: ``optimiser.lr`` times ``optimiser.lr_gamma`` at each step of
 initialisation (fine-tuning); its weights' SHA-256 is recorded in the model's meta
 (``init_weights_sha256``).
 
+Weight averaging: with ``optimiser.average_from: N`` (N >= 1) ``model.pt`` holds the mean
+of the weights at every checkpoint from step N on (:mod:`cnnps.train.averaging`; the mean
+travels in the checkpoints, so a resume reaches the same one), and the final validation
+and ``val_mean_deg`` are the mean's (``metrics.json``'s ``average`` also gives the last
+step's).
+
 Several processes: under ``torchrun`` (``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK``), e.g.
 ``torchrun --standalone --nproc-per-node 4 -m cnnps run-stage train``, every process
 trains a DistributedDataParallel replica (NCCL on GPUs, ``cuda:LOCAL_RANK``; gloo on CPU).
@@ -104,6 +110,9 @@ class OptimiserParams:
     lr_gamma: float = 0.1
     weight_decay: float = 0.0
     fused_adam: bool = True  # torch's fused Adam kernel (same algorithm, one pass per tensor)
+    # N >= 1: model.pt is the mean of the weights at every checkpoint from step N on (each
+    # checkpoint_every steps and the last; cnnps.train.averaging); 0: the last step's weights
+    average_from: int = 0
 
     def __post_init__(self):
         if not self.lr > 0:
@@ -116,6 +125,8 @@ class OptimiserParams:
                               f"got {list(self.lr_milestones)}")
         if not 0 < self.lr_gamma <= 1:
             raise ConfigError(f"train.optimiser.lr_gamma must be in (0, 1], got {self.lr_gamma}")
+        if not isinstance(self.average_from, int) or isinstance(self.average_from, bool) or self.average_from < 0:
+            raise ConfigError(f"train.optimiser.average_from must be a step >= 0 (0 = off), got {self.average_from!r}")
 
 
 @dataclass(frozen=True)
@@ -209,7 +220,7 @@ MOVED_KEYS = {
 
 # Section keys that came after the sections, with their defaults: left out of the flat
 # params (and so of the run key) at that default.
-NEW_KEYS = {"pixelwise.rgb": False}
+NEW_KEYS = {"pixelwise.rgb": False, "optimiser.average_from": 0}
 
 
 def _section(cls: type, value, name: str):

@@ -20,6 +20,7 @@ behaviour: batch order, resuming, several processes, outputs.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import itertools
 import json
@@ -55,6 +56,7 @@ from cnnps.models.checkpoint import (
 from cnnps.models.network import RGB_CHANNELS, widen_state
 from cnnps.models.train_layers import COUNTER_MASK_BITS
 from cnnps.train.allocator import keep_freed_memory
+from cnnps.train.averaging import WeightAverage
 from cnnps.train.batch_lookahead import Lookahead
 from cnnps.train.device_feed import fed
 from cnnps.train.distributed import (
@@ -305,6 +307,8 @@ class Trainer:
         self.precision_choice: dict | None = None
         self.segments: list = []
         self.resumed_precision: str | None = None
+        # the mean of the weights at the checkpoints from optimiser.average_from on (0: off)
+        self.average = WeightAverage(params.optimiser.average_from)
 
     def _build_model(self, init_state: dict | None) -> None:
         """``raw`` (the CNN-PS) and ``opt`` (Adam); ``model``, what a step runs: ``raw``,
@@ -374,6 +378,7 @@ class Trainer:
                 cpu_rng, cuda_rng = state["torch_rng"], state.get("cuda_rng")
             set_rng_states(cpu_rng, cuda_rng, self.device)
             self.step, self.history = int(state["step"]), state["history"]
+            self.average.load_state_dict(state.get("average"))
             # checkpoints older than the record stepped in their run's precision (auto was fp32 then)
             self.resumed_precision = state.get("precision", self.precision)
             self.precision_choice = state.get("precision_choice")  # kept when no step is left to probe for
@@ -436,6 +441,8 @@ class Trainer:
         rank_rng = all_gather(rng_states(self.device), self.info)
         if not self.main:
             return
+        if self.average.wants(self.step):
+            self.average.add(self.step, self.raw.state_dict())
         cpu_rng, cuda_rng = rng_states(self.device)
         save_training_state(
             self.ckpt_dir,
@@ -453,6 +460,7 @@ class Trainer:
                 "precision": self.precision,
                 "precision_choice": self.precision_choice,
                 "precision_segments": self.segments,
+                "average": self.average.state_dict(),
             },
             self.params.keep_checkpoints,
         )
@@ -665,6 +673,19 @@ class Trainer:
         fewest = [f for f in fewest if f is not None]
         return min(fewest) if fewest else None
 
+    def _final_model(self, last_val: dict) -> tuple[torch.nn.Module, dict | None]:
+        """What ``model.pt`` holds: the network, or with ``optimiser.average_from`` a copy
+        holding the mean of the averaged checkpoints' weights, and then a record (rank 0):
+        from_step, checkpoints, the last weights' validation and the mean's (``val``)."""
+        if not (self.main and self.average.n):
+            return self.raw, None
+        final = copy.deepcopy(self.raw)
+        final.load_state_dict(self.average.mean(like=self.raw.state_dict()))
+        record = {"from_step": self.average.from_step, "checkpoints": self.average.n,
+                  "last_step_val_mean_deg": last_val.get("val_mean_deg"),
+                  "val": val_errors(final, self.val_maps, self.val_normals, self.device, "fp32")}
+        return final, record
+
     def finish(self) -> dict:
         """Last validation, a checkpoint if none was written, plots, ``model.pt`` and
         ``metrics.json`` (rank 0); the metrics (rank 0's, on every rank)."""
@@ -676,6 +697,9 @@ class Trainer:
             self.checkpoint()
         if self.main:
             write_plots(self.out_dir, self.history)
+        final, averaged = self._final_model(v)
+        if averaged:
+            v = {**averaged.pop("val"), "average": averaged}
         ran = step - self.step0
         metrics = {
             "steps": step,
@@ -700,11 +724,12 @@ class Trainer:
         if self.main:
             save_checkpoint(
                 self.out_dir / "model.pt",
-                self.raw.cpu().to(memory_format=torch.contiguous_format),  # the file holds plain NCHW weights
+                final.cpu().to(memory_format=torch.contiguous_format),  # the file holds plain NCHW weights
                 config={"w": self.data.w, "dropout": p.dropout},
                 meta={"steps": step, "val_mean_deg": v.get("val_mean_deg"), "val_median_deg": v.get("val_median_deg"),
                       "data_manifest_sha256": self.data.manifest_sha256, "params": dataclasses.asdict(p),
                       "min_lights": self._fewest_lights(),
+                      **({"average": v["average"]} if "average" in v else {}),
                       **({"init_weights_sha256": self.init_sha} if self.init_sha else {})},
             )
             write_sha256_file(self.out_dir / "model.pt")  # model.pt.sha256: load_checkpoint verifies it

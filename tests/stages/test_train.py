@@ -565,3 +565,36 @@ def test_a_finished_auto_run_finished_again_keeps_its_precision_record(dataset, 
     for key in ("precision", "precision_requested", "precision_choice", "precision_segments"):
         assert again[key] == first[key], key
     assert first["precision_choice"]["precision"] == first["precision"]
+
+
+def test_average_from_ships_the_mean_of_the_checkpoints_and_resumes_to_it(tmp_path):
+    """train.optimiser.average_from: model.pt holds the mean of the weights at the
+    checkpoints from that step on; a killed run resumes to the same mean; off, the run
+    key is the one of a run without the key."""
+    from cnnps.models.checkpoint import load_checkpoint
+    from cnnps.train.resume import checkpoint_path, read_training_state
+
+    p = params(pixelwise={"share": 1.0, "w": 16}, max_steps=5, checkpoint_every=1, keep_checkpoints=10,
+               val_every=0, val_max_rows=100, optimiser={"lr": 1e-3, "average_from": 3})
+    a, b = tmp_path / "a", tmp_path / "b"
+    ma = train.run(p, a)
+    ckpts = [read_training_state(checkpoint_path(a / "train/checkpoints", s))["model"] for s in (3, 4, 5)]
+    model, _config, meta = load_checkpoint(a / "train/model.pt")
+    shipped = model.state_dict()
+    for k, v in shipped.items():
+        expected = torch.stack([c[k].float() for c in ckpts]).mean(0)
+        torch.testing.assert_close(v.float(), expected.to(v.dtype).float(), rtol=1e-3, atol=1e-3)
+    last = ckpts[-1]
+    assert any(not torch.allclose(shipped[k].float(), last[k].float(), atol=1e-3) for k in shipped)
+    assert ma["average"]["from_step"] == 3 and ma["average"]["checkpoints"] == 3
+    assert meta["average"]["checkpoints"] == 3 and meta["val_mean_deg"] == pytest.approx(ma["val_mean_deg"])
+    with pytest.raises(KeyboardInterrupt):
+        train.run(p, b, _stop_after_step=4)
+    train.run(p, b)
+    resumed = load_checkpoint(b / "train/model.pt")[0].state_dict()
+    for k in shipped:
+        torch.testing.assert_close(resumed[k].float(), shipped[k].float(), rtol=1e-3, atol=1e-4)
+    off = replace(p, optimiser=replace(p.optimiser, average_from=0))
+    assert "optimiser_average_from" not in off.flat() and "optimiser_average_from" in p.flat()
+    with pytest.raises(ConfigError, match="average_from"):
+        params(optimiser={"average_from": -1})
