@@ -81,3 +81,36 @@ def test_command_writes_a_loadable_checkpoint(tmp_path, ends, capsys):
     with pytest.raises(SystemExit, match="alpha"):
         main([str(pa), str(pb), "--alpha", "-1", "--out", str(tmp_path / "bad.pt")])
     assert not (tmp_path / "bad.pt").exists()
+
+
+def test_the_mean_of_three_is_each_tensor_averaged_and_records_every_file(tmp_path, ends):
+    from cnnps.models.interpolate import mean
+
+    a, b, pa, pb = ends
+    c = _net(2)
+    pc = save_checkpoint(tmp_path / "c.pt", c, meta={"min_lights": 20})
+    net, _config, meta = mean([pa, pb, pc])
+    sa, sb, sc = a.state_dict(), b.state_dict(), c.state_dict()
+    for name, t in net.state_dict().items():
+        torch.testing.assert_close(t, (sa[name] + sb[name] + sc[name]) / 3, rtol=1e-6, atol=1e-7)
+    assert [e["meta"].get("min_lights") for e in meta["mean"]] == [50, 6, 20] and meta["min_lights"] == 50
+    # the mean of two is the mid-point
+    two, _, _ = mean([pa, pb])
+    mid, _, _ = interpolate(pa, pb, 0.5)
+    for name, t in two.state_dict().items():
+        torch.testing.assert_close(t, mid.state_dict()[name], rtol=1e-6, atol=1e-7)
+    with pytest.raises(CnnpsError, match="two or more"):
+        mean([pa])
+    wide = save_checkpoint(tmp_path / "w.pt", _net(3, w=16))
+    with pytest.raises(CnnpsError, match="different network"):
+        mean([pa, wide])
+
+
+def test_the_command_takes_mean_or_alpha(tmp_path, ends, capsys):
+    _, _, pa, pb = ends
+    out = tmp_path / "soup.pt"
+    main([str(pa), str(pb), str(pa), "--mean", "--out", str(out)])
+    assert "the mean of 3 checkpoints" in capsys.readouterr().out and load_checkpoint(out)[2]["mean"]
+    with pytest.raises(SystemExit):
+        main([str(pa), str(pb), str(pa), "--alpha", "0.5", "--out", str(tmp_path / "x.pt")])
+    assert "takes two checkpoints" in capsys.readouterr().err
