@@ -77,4 +77,15 @@ def test_cli_option(sparse, tmp_path, capsys):
     code, _, stderr = run_cli(["predict", str(root), "--out", str(tmp_path / "o"), "--rotations", "1",
                                "--precision", "fp32", "--no-progress", "-v"], capsys)
     assert code == 0, stderr
-    assert "sparse fill (auto):" in stderr and "(the Lambertian fill is on: see --sparse-fill)" in stderr
+    assert "sparse fill (auto):" in stderr
+    # a model trained on maps of 50 or more lights says so for these 10 images, and that the fill is on
+    from cnnps.models.checkpoint import load_checkpoint, save_checkpoint
+    from cnnps.models.shipped import weights_path
+
+    net, config, meta = load_checkpoint(weights_path(), "cpu")
+    dense = save_checkpoint(tmp_path / "dense.pt", net, config, {**meta, "min_lights": 50})
+    code, _, stderr = run_cli(["predict", str(root), "--out", str(tmp_path / "o2"), "--rotations", "1", "--model",
+                               str(dense), "--precision", "fp32", "--no-progress", "-v"], capsys)
+    assert code == 0, stderr
+    assert "10 images, but this model was trained on maps of 50 or more lights" in stderr
+    assert "(the Lambertian fill is on: see --sparse-fill)" in stderr

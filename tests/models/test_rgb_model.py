@@ -64,8 +64,12 @@ def test_checkpoints_keep_the_channels_and_old_files_load_as_grey(tmp_path, ship
     x = _with_colour(_grey_maps(6, 16))
     with torch.no_grad():
         assert torch.equal(loaded(x), model(x))
-    # the shipped weights were written before colour models: no in_channels, a grey network
-    assert "in_channels" not in read_checkpoint(weights_path())["config"]
+    # a file written before colour models has no in_channels: it loads as a grey network
+    payload = read_checkpoint(weights_path())
+    payload["config"].pop("in_channels", None)
+    torch.save(payload, tmp_path / "old.pt")
+    old, config, _ = load_checkpoint(tmp_path / "old.pt")
+    assert "in_channels" not in config and old.in_channels == 1 and old.conv0.weight.shape == (16, 1, 3, 3)
     assert shipped.in_channels == 1 and shipped.conv0.weight.shape == (16, 1, 3, 3)
     with pytest.raises(ValueError, match="disagrees"):
         save_checkpoint(tmp_path / "bad.pt", model, {"in_channels": 1})
