@@ -13,6 +13,7 @@ CPU-time ledger, and a fallback to committed weights.
     .venv/bin/python tools/long_run.py probe v4                  # score the newest checkpoint now
     .venv/bin/python tools/long_run.py probe v4 --model MID.pt --name mid   # or a candidate weights file
     .venv/bin/python tools/long_run.py curve v5 --every 5000 --pixels 2000   # real objects along the run
+    .venv/bin/python tools/long_run.py curve v5 --every 5000 --no-newest     # while it trains: the grid only
     .venv/bin/python tools/long_run.py stop v5                   # at the next checkpoint
 
 It imports ``cnnps`` from this interpreter's install (``make setup``: this checkout, in
@@ -33,8 +34,8 @@ it often survives. So a run lives in ``ROOT/NAME/``:
   ``dvc exp run -S train.optimiser.lr=...`` there trains and scores one variant into its own
   ``data/train`` and ``data/eval``; ``dvc exp show`` is the table. ``exp`` runs one such
   experiment and books its time in the ledger as stage ``study``;
-- ``curve``: the checkpoints every ``--every`` steps (and the newest) scored on real
-  objects with ground truth (BALL and the four DiLiGenT crops under ``--shared``) by
+- ``curve``: the checkpoints every ``--every`` steps (and the newest, unless
+  ``--no-newest``) scored on real objects with ground truth (BALL and the four DiLiGenT crops under ``--shared``) by
   ``cnnps score --pixels N`` of this work tree: the same seeded sample of pixels for every
   checkpoint, a quick paired comparison, not the benchmark's number. Rows go to
   ``real_curve.json`` in git's folder (step, CPU-hours at that step, validation error, each
@@ -543,13 +544,15 @@ class Run:
         net, _, _ = load_checkpoint(weights, "cpu")
         return val_errors(net, maps, normals, torch.device("cpu"), "fp32").get("val_mean_deg")
 
-    def curve(self, every: int, pixels: int, captures: list[Path], poll: float, rotations: int = 10) -> list[dict]:
-        """Score the checkpoints at multiples of ``every`` steps and the newest (see the
-        module's ``curve``); returns every row of ``real_curve.json``."""
+    def curve(self, every: int, pixels: int, captures: list[Path], poll: float, rotations: int = 10,
+              newest: bool = True) -> list[dict]:
+        """Score the checkpoints at multiples of ``every`` steps and, with ``newest``, the
+        newest (see the module's ``curve``); returns every row of ``real_curve.json``.
+        ``newest=False`` suits scoring while the run trains: only the grid's points."""
         cks = {int(p.stem.split("-")[1]): p for p in (self.data / "train" / "checkpoints").glob("step-*.pt")}
         if not cks:
             raise SystemExit(f"{self.name}: no checkpoint to score yet")
-        steps = sorted({s for s in cks if s % every == 0} | {max(cks)})
+        steps = sorted({s for s in cks if s % every == 0} | ({max(cks)} if newest else set()))
         record = self.carried / "real_curve.json"
         old = json.loads(record.read_text()) if record.is_file() else {"rows": []}
         options = {"pixels": pixels, "rotations": rotations, "captures": [c.name for c in captures]}
@@ -791,6 +794,8 @@ def main(argv=None) -> int:
     ap.add_argument("--name", dest="label", help="probe --model: the row's name in probes.json")
     ap.add_argument("--every", type=int, default=5000, help="curve: score the checkpoints at multiples of this step")
     ap.add_argument("--pixels", type=int, default=2000, help="curve: pixels per capture (cnnps score --pixels)")
+    ap.add_argument("--no-newest", dest="newest", action="store_false",
+                    help="curve: only the multiples of --every, not the newest checkpoint (while the run trains)")
     ap.add_argument("--shared", type=Path, default=REPO.parent / "shared" / "data", help="curve: where the real captures are")
     argv = list(sys.argv[1:] if argv is None else argv)
     exp_args = argv[argv.index("--") + 1:] if "--" in argv else []  # exp: the arguments of `dvc exp run`
@@ -841,7 +846,7 @@ def main(argv=None) -> int:
         print(f"(added to {run.carried / 'probes.json'})")
         return 0
     if a.cmd == "curve":
-        rows = run.curve(a.every, a.pixels, real_objects(a.shared), a.poll)
+        rows = run.curve(a.every, a.pixels, real_objects(a.shared), a.poll, newest=a.newest)
         print(json.dumps([{k: v for k, v in r.items() if k not in ("options", "model_sha256")} for r in rows], indent=1))
         return 0
     if a.cmd == "stop":

@@ -236,6 +236,8 @@ def test_a_curve_scores_checkpoints_on_real_objects_once(tmp_path):
 
     run = _fake_run(tmp_path, [10, 20, 25])
     caps = [make_capture(tmp_path / "caps" / "ballPNG"), make_capture(tmp_path / "caps" / "cow")]
+    grid = run.curve(every=20, pixels=50, captures=caps, poll=0.5, rotations=1, newest=False)
+    assert [r["step"] for r in grid] == [20]  # while a run trains: the grid's points only
     rows = run.curve(every=20, pixels=50, captures=caps, poll=0.5, rotations=1)
     assert [r["step"] for r in rows] == [20, 25]  # multiples of 20, and the newest
     assert [r["cpu_hours"] for r in rows] == [0.8, 1.0]  # an hour for 25 steps
