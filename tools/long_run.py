@@ -35,9 +35,10 @@ it often survives. So a run lives in ``ROOT/NAME/``:
   ``data/train`` and ``data/eval``; ``dvc exp show`` is the table. ``exp`` runs one such
   experiment and books its time in the ledger as stage ``study``;
 - ``curve``: the checkpoints every ``--every`` steps (and the newest, unless
-  ``--no-newest``) scored on real objects with ground truth (BALL and the four DiLiGenT crops under ``--shared``) by
-  ``cnnps score --pixels N`` of this work tree: the same seeded sample of pixels for every
-  checkpoint, a quick paired comparison, not the benchmark's number. Rows go to
+  ``--no-newest``) scored on real objects with ground truth (BALL and the four DiLiGenT
+  crops under ``--shared``) by ``cnnps score --pixels N`` of this work tree: the same
+  seeded sample of pixels for every checkpoint, a quick paired comparison, not the
+  benchmark's number. Rows go to
   ``real_curve.json`` in git's folder (step, CPU-hours at that step, validation error, each
   capture's mean, the dev-real mean: the captures but BALL); the time to the ledger (stage
   ``curve``). A step already scored with the same options is not scored again;
