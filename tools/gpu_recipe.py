@@ -39,7 +39,7 @@ from pathlib import Path
 
 from cnnps.train.openmp import prefer_passive_openmp
 
-PRESET = "gpu-train-pixelwise"
+PRESET = "gpu-train-pixelwise"  # --preset: another one (gpu-train-v5: model v5's maps)
 PIECE = 15 * 2**20  # bytes per piece of a packed checkpoint (a returned file may hold 16 MiB)
 
 
@@ -66,11 +66,24 @@ def with_params(p, **overrides):
                                      for k, v in overrides.items()})
 
 
-def preset_params(**overrides):
-    """The train section of the ``gpu-train-pixelwise`` preset, with ``overrides`` (:func:`with_params`)."""
+def preset_params(preset: str = PRESET, **overrides):
+    """The train section of ``preset`` (a name in cnnps/presets), with ``overrides`` (:func:`with_params`)."""
     from cnnps.pipeline.config import build_params, load_config, preset_path
 
-    return with_params(build_params(load_config(preset_path(PRESET)), "train", check_files=False), **overrides)
+    return with_params(build_params(load_config(preset_path(preset)), "train", check_files=False), **overrides)
+
+
+def segment_schedule(plan: dict, gamma: float) -> tuple[float, tuple[int, ...]]:
+    """The learning rate and milestones of the train stage's run that continues ``plan``
+    from its ``offset`` (steps done before carried weights restarted it; Adam starts
+    afresh there): the rate reached at ``offset``, the milestones ahead counted from it.
+
+    >>> segment_schedule({"lr": 1e-3, "lr_milestones": [70, 90], "offset": 80}, 0.2)
+    (0.0002, (10,))
+    """
+    offset, ms = int(plan.get("offset", 0)), [int(m) for m in plan["lr_milestones"]]
+    lr = plan["lr"] * gamma ** sum(offset >= m for m in ms)
+    return round(lr, 12), tuple(m - offset for m in ms if m > offset)
 
 
 def _sync(device):
@@ -160,7 +173,8 @@ def measure(args) -> dict:
     device = torch.device(args.device)
     res = {"command": " ".join(sys.argv), "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": machine(),
            "device": str(device)}
-    base = preset_params(device=device.type)
+    base = preset_params(args.preset, device=device.type)
+    res["preset"] = args.preset
     res["generation"] = [generation_rate(device, b, args.seconds, base) for b in args.batches]
     print("generation", res["generation"], flush=True)
     steps = []
@@ -209,15 +223,20 @@ def measure(args) -> dict:
 def make_plan(args, data_dir: Path) -> dict:
     plan_file = data_dir / "plan.json"
     if plan_file.is_file():
-        return json.loads(plan_file.read_text())
+        plan = json.loads(plan_file.read_text())
+        if args.preset not in (None, plan.get("preset", PRESET)):
+            raise SystemExit(f"{plan_file}: this run's preset is {plan.get('preset', PRESET)}, not {args.preset}")
+        return plan
+    preset = args.preset
     if args.measure:
-        chosen = json.loads(Path(args.measure).read_text())["chosen"]
+        measured = json.loads(Path(args.measure).read_text())
+        chosen, preset = measured["chosen"], preset or measured.get("preset")
     else:
         chosen = {"batch_size": args.batch_size, "precision": args.precision, "lr": args.lr, "compile": False,
                   "loop_samples_per_s_est": None}
     rate = chosen.get("loop_samples_per_s_est")
     total = args.total_steps or max(1, int(args.budget_seconds * rate / chosen["batch_size"]))
-    plan = {"batch_size": chosen["batch_size"], "precision": chosen["precision"], "lr": chosen["lr"],
+    plan = {"preset": preset or PRESET, "batch_size": chosen["batch_size"], "precision": chosen["precision"], "lr": chosen["lr"],
             "compile": bool(chosen.get("compile")), "total_steps": total,
             "lr_milestones": sorted({max(1, int(total * 0.7)), max(2, int(total * 0.9))}),
             "budget_seconds": args.budget_seconds, "loop_samples_per_s_est": rate, "device": args.device}
@@ -239,9 +258,14 @@ def train(args) -> dict:
     if args.restore:
         restore(Path(args.restore), data_dir)
     plan = make_plan(args, data_dir)
+    preset = plan.get("preset", PRESET)
     deadline = time.monotonic() + args.seconds
     ck = newest_checkpoint(data_dir)
-    done = int(ck.stem.split("-")[1]) if ck else 0
+    # a run restored from carried weights counts its steps on from plan["offset"]
+    offset = int(plan.get("offset", 0))
+    done = offset + (int(ck.stem.split("-")[1]) if ck else 0)
+    lr, milestones = segment_schedule(plan, preset_params(preset).optimiser.lr_gamma)
+    init = str(data_dir / plan["init"]) if plan.get("init") else None
     chunk_t = None
     stop = min(plan["total_steps"], args.stop_at_step or plan["total_steps"])
     while done < stop:
@@ -251,10 +275,11 @@ def train(args) -> dict:
         steps = max(1, min(stop - done, int(rate * min(args.chunk_seconds, left - 25))))
         if left < 40 or steps < 1:
             break
-        p = preset_params(device=args.device, data={"batch_size": plan["batch_size"]}, precision=plan["precision"],
-                          optimiser={"lr": plan["lr"], "lr_milestones": tuple(plan["lr_milestones"])},
-                          compile=plan["compile"], max_steps=done + steps, checkpoint_every=max(1, steps),
-                          val_every=0, val_max_rows=args.val_rows, progress=args.progress)
+        p = preset_params(preset, device=args.device, data={"batch_size": plan["batch_size"]},
+                          precision=plan["precision"], optimiser={"lr": lr, "lr_milestones": milestones},
+                          compile=plan["compile"], max_steps=done + steps - offset, checkpoint_every=max(1, steps),
+                          val_every=0, val_max_rows=args.val_rows, progress=args.progress,
+                          **({"init": init} if init else {}))
         t0 = time.monotonic()
         metrics = train_stage.run(p, data_dir)
         chunk_t = steps / max(1e-6, time.monotonic() - t0)
@@ -264,12 +289,15 @@ def train(args) -> dict:
     summary = {"steps_done": done, "total_steps": plan["total_steps"], "plan": plan}
     (data_dir / "progress.json").write_text(json.dumps(summary, indent=1) + "\n")
     if args.pack:
-        pack(data_dir, Path(args.pack))
+        pack(data_dir, Path(args.pack), done)
     return summary
 
 
-def pack(data_dir: Path, out: Path) -> None:
-    """plan, metrics, model and the newest checkpoint (in pieces) into ``out``."""
+def pack(data_dir: Path, out: Path, done: int | None = None) -> None:
+    """plan, progress, metrics, model and the newest checkpoint into ``out``: in pieces
+    (the whole training state, for the next call of this session) and, with ``done`` (the
+    run's steps), as ``intermediate.pt``: its weights in float16 with ``meta["steps"]``,
+    the file a run's folder in git carries to the next session's GPU (:func:`restore`)."""
     out.mkdir(parents=True, exist_ok=True)
     for name in ("plan.json", "progress.json", "train/metrics.json", "train/model.pt"):
         if (data_dir / name).is_file():
@@ -280,14 +308,41 @@ def pack(data_dir: Path, out: Path) -> None:
     blob = ck.read_bytes()
     for i in range(0, len(blob), PIECE):
         (out / f"{ck.stem}.part{i // PIECE:02d}").write_bytes(blob[i:i + PIECE])
+    if done is not None:
+        preset = json.loads((data_dir / "plan.json").read_text()).get("preset", PRESET)
+        export_half(ck, out / "intermediate.pt", preset_params(preset), {"steps": done, "preset": preset})
+
+
+def export_half(checkpoint: Path, out: Path, params, meta: dict) -> Path:
+    """A train stage checkpoint's network (of train params ``params``: map width, dropout)
+    as a float16 cnnps weights file."""
+    import torch
+
+    from cnnps.models.checkpoint import save_checkpoint
+    from cnnps.models.network import CNNPS
+
+    state = torch.load(checkpoint, map_location="cpu", weights_only=True)["model"]
+    net = CNNPS(w=params.pixelwise.w, dropout=params.dropout, in_channels=int(state["conv0.weight"].shape[1]))
+    net.load_state_dict(state)
+    return save_checkpoint(out, net, meta=meta, half=True)
 
 
 def restore(src: Path, data_dir: Path) -> None:
-    """The inverse of :func:`pack` into ``data_dir`` (only where it has no checkpoint)."""
+    """The inverse of :func:`pack` into ``data_dir`` (only where it has no checkpoint and
+    no plan): from the pieces, the whole training state; without pieces, from ``src``'s
+    ``intermediate.pt``, ``plan.json`` and ``progress.json`` (a run's folder in git), the
+    weights as ``init.pt`` and the plan with ``offset`` = the steps done, so the run goes on
+    from there with a fresh Adam (the one thing the carried file loses)."""
     if newest_checkpoint(data_dir) is not None or not src.is_dir():
         return
     parts = sorted(src.glob("step-*.part*"))
     if not parts:
+        if (src / "intermediate.pt").is_file() and not (data_dir / "plan.json").is_file():
+            plan = json.loads((src / "plan.json").read_text())
+            done = int(json.loads((src / "progress.json").read_text())["steps_done"])
+            data_dir.mkdir(parents=True, exist_ok=True)
+            shutil.copy(src / "intermediate.pt", data_dir / "init.pt")
+            (data_dir / "plan.json").write_text(json.dumps({**plan, "offset": done, "init": "init.pt"}, indent=1) + "\n")
         return
     ckdir = data_dir / "train" / "checkpoints"
     ckdir.mkdir(parents=True, exist_ok=True)
@@ -306,6 +361,7 @@ def main(argv=None) -> int:
     sub = ap.add_subparsers(dest="cmd", required=True)
     m = sub.add_parser("measure")
     m.add_argument("--out", default=".")
+    m.add_argument("--preset", default=PRESET, help="the train section to measure (a name in cnnps/presets)")
     m.add_argument("--device", default="cuda")
     m.add_argument("--seconds", type=float, default=4.0)
     m.add_argument("--batches", type=int, nargs="+", default=[512, 2048, 8192])
@@ -316,6 +372,7 @@ def main(argv=None) -> int:
     m.add_argument("--probe-maps", type=int, default=4096, help="per-pixel maps that score each learning rate")
     t = sub.add_parser("train")
     t.add_argument("--data-dir", required=True)
+    t.add_argument("--preset", help=f"the run's train section (first call; default {PRESET}); later calls: the plan's")
     t.add_argument("--device", default="cuda")
     t.add_argument("--seconds", type=float, default=540)
     t.add_argument("--chunk-seconds", type=float, default=120)

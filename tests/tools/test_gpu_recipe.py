@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import json
 
+import pytest
 import torch
 
 from cnnps.models.checkpoint import load_checkpoint
+from cnnps.models.network import CNNPS
 from tools import gpu_recipe
 
 
@@ -39,3 +41,33 @@ def test_measure_then_train_across_calls(tmp_path):
     assert meta["steps"] == 4
     sa, sb = a.state_dict(), b.state_dict()
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def test_a_run_continues_from_the_weights_its_folder_in_git_carries(tmp_path):
+    common = ["--device", "cpu", "--chunk-seconds", "1000", "--seconds", "600", "--total-steps", "4",
+              "--val-rows", "256", "--batch-size", "8", "--preset", "gpu-train-v5"]
+    first, later, pack, carried = (tmp_path / n for n in ("first", "later", "pack", "carried"))
+    gpu_recipe.main(["train", "--data-dir", str(first), *common, "--stop-at-step", "3", "--pack", str(pack)])
+    plan = json.loads((first / "plan.json").read_text())
+    assert plan["preset"] == "gpu-train-v5" and plan["lr_milestones"] == [2, 3]
+    # what git keeps of the run: the plan, the progress and the weights in float16
+    carried.mkdir()
+    for name in ("plan.json", "progress.json", "intermediate.pt"):
+        (carried / name).write_bytes((pack / name).read_bytes())
+    net, _, meta = load_checkpoint(carried / "intermediate.pt")
+    assert meta["steps"] == 3 and meta["preset"] == "gpu-train-v5"
+    ck = torch.load(first / "train/checkpoints/step-00000003.pt", map_location="cpu", weights_only=True)["model"]
+    assert all(torch.allclose(v.float(), ck[k], rtol=1e-3, atol=1e-4) for k, v in net.state_dict().items())
+    # the next session's GPU: an empty folder goes on from step 3 at the rate reached there
+    out = gpu_recipe.main(["train", "--data-dir", str(later), *common, "--restore", str(carried)])
+    assert out == 0
+    progress = json.loads((later / "progress.json").read_text())
+    assert progress["steps_done"] == 4 and progress["plan"]["offset"] == 3
+    assert gpu_recipe.segment_schedule(progress["plan"], 0.2) == (pytest.approx(1e-3 * 0.2 ** 2), ())
+    # its one step started from the carried weights: the model moved from them, not from a fresh init
+    after, _, _ = load_checkpoint(later / "train/model.pt")
+    moved = max((after.state_dict()[k] - v).abs().max().item() for k, v in net.state_dict().items())
+    fresh = max((after.state_dict()[k] - v).abs().max().item() for k, v in CNNPS(w=32).state_dict().items())
+    assert 0 < moved < fresh / 10
+    with pytest.raises(SystemExit, match="preset is gpu-train-v5"):
+        gpu_recipe.main(["train", "--data-dir", str(later), *common[:-1], "gpu-train-pixelwise"])
