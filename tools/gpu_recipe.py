@@ -295,9 +295,9 @@ def train(args) -> dict:
 
 def pack(data_dir: Path, out: Path, done: int | None = None) -> None:
     """plan, progress, metrics, model and the newest checkpoint into ``out``: in pieces
-    (the whole training state, for the next call of this session) and, with ``done`` (the
+    (the whole training state, for the next call on the same machine) and, with ``done`` (the
     run's steps), as ``intermediate.pt``: its weights in float16 with ``meta["steps"]``,
-    the file a run's folder in git carries to the next session's GPU (:func:`restore`)."""
+    the file a run's folder in git carries to the next GPU machine (:func:`restore`)."""
     out.mkdir(parents=True, exist_ok=True)
     for name in ("plan.json", "progress.json", "train/metrics.json", "train/model.pt"):
         if (data_dir / name).is_file():

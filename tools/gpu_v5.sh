@@ -2,7 +2,7 @@
 # Model v5's maps from scratch on a lent GPU (preset gpu-train-v5), as one device call of at
 # most 10 minutes: the run's first call measures (batch size, precision, learning rate) and
 # fixes the plan; every call trains on from the run's folder in git, tools/runs/gpu-v5
-# (plan.json, progress.json, intermediate.pt: float16 weights; Adam restarts each session),
+# (plan.json, progress.json, intermediate.pt: float16 weights; Adam restarts on each new machine),
 # and leaves in $OUT what that folder keeps next (7 files, ~5.5 MB; docs/pixelwise.md).
 #
 #   device run:  bash tools/gpu_v5.sh 420            (timeout_s 600; carry .whl if needed)

@@ -58,7 +58,7 @@ def test_a_run_continues_from_the_weights_its_folder_in_git_carries(tmp_path):
     assert meta["steps"] == 3 and meta["preset"] == "gpu-train-v5"
     ck = torch.load(first / "train/checkpoints/step-00000003.pt", map_location="cpu", weights_only=True)["model"]
     assert all(torch.allclose(v.float(), ck[k], rtol=1e-3, atol=1e-4) for k, v in net.state_dict().items())
-    # the next session's GPU: an empty folder goes on from step 3 at the rate reached there
+    # a later GPU machine: an empty folder goes on from step 3 at the rate reached there
     out = gpu_recipe.main(["train", "--data-dir", str(later), *common, "--restore", str(carried)])
     assert out == 0
     progress = json.loads((later / "progress.json").read_text())
