@@ -81,8 +81,12 @@ def segment_schedule(plan: dict, gamma: float) -> tuple[float, tuple[int, ...]]:
     >>> segment_schedule({"lr": 1e-3, "lr_milestones": [70, 90], "offset": 80}, 0.2)
     (0.0002, (10,))
     """
-    offset, ms = int(plan.get("offset", 0)), [int(m) for m in plan["lr_milestones"]]
-    lr = plan["lr"] * gamma ** sum(offset >= m for m in ms)
+    from types import SimpleNamespace
+
+    from cnnps.train.optimiser import lr_at
+
+    offset, ms = int(plan.get("offset", 0)), tuple(int(m) for m in plan["lr_milestones"])
+    lr = lr_at(SimpleNamespace(lr=plan["lr"], lr_gamma=gamma, lr_milestones=ms), offset)
     return round(lr, 12), tuple(m - offset for m in ms if m > offset)
 
 
