@@ -336,7 +336,8 @@ def restore(src: Path, data_dir: Path) -> None:
     no plan): from the pieces, the whole training state; without pieces, from ``src``'s
     ``intermediate.pt``, ``plan.json`` and ``progress.json`` (a run's folder in git), the
     weights as ``init.pt`` and the plan with ``offset`` = the steps done, so the run goes on
-    from there with a fresh Adam (the one thing the carried file loses)."""
+    from there with a fresh Adam (the one thing the carried file loses). A folder whose run
+    has made all its planned steps stops the call with one line (SystemExit)."""
     if newest_checkpoint(data_dir) is not None or not src.is_dir():
         return
     parts = sorted(src.glob("step-*.part*"))
@@ -344,6 +345,9 @@ def restore(src: Path, data_dir: Path) -> None:
         if (src / "intermediate.pt").is_file() and not (data_dir / "plan.json").is_file():
             plan = json.loads((src / "plan.json").read_text())
             done = int(json.loads((src / "progress.json").read_text())["steps_done"])
+            if done >= int(plan["total_steps"]):
+                raise SystemExit(f"{src}: this run has spent its plan ({done} of {plan['total_steps']} steps); "
+                                 "a new run takes a new folder")
             data_dir.mkdir(parents=True, exist_ok=True)
             shutil.copy(src / "intermediate.pt", data_dir / "init.pt")
             (data_dir / "plan.json").write_text(json.dumps({**plan, "offset": done, "init": "init.pt"}, indent=1) + "\n")

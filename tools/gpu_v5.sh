@@ -10,6 +10,9 @@
 #                cnnps score tools/runs/gpu-v5/intermediate.pt ../shared/data/{diligent/ballPNG,diligent-crop8/*PNG} \
 #                    --pixels 2000 --exclude-from-mean ballPNG --out tools/runs/gpu-v5/score_p2000.json
 #
+# The run in git (one H200, BUDGET=360) has spent its plan: a call on it stops with one line;
+# RUN=tools/runs/NAME starts another (docs/models.md, "On a GPU").
+#
 # TRAIN_SECONDS ($1, default 420) is this call's training time; the measurement adds about
 # a minute on the run's first call. DEVICE=cpu (and small BATCHES, LR_STEPS) tries the
 # script on a machine without a GPU (PYTHON=.venv/bin/python here).

@@ -71,3 +71,9 @@ def test_a_run_continues_from_the_weights_its_folder_in_git_carries(tmp_path):
     assert 0 < moved < fresh / 10
     with pytest.raises(SystemExit, match="preset is gpu-train-v5"):
         gpu_recipe.main(["train", "--data-dir", str(later), *common[:-1], "gpu-train-pixelwise"])
+    # the run has made its 4 planned steps: its folder in git starts nothing on a later machine
+    for name in ("plan.json", "progress.json"):
+        (carried / name).write_bytes((later / name).read_bytes())
+    with pytest.raises(SystemExit, match="spent its plan \\(4 of 4 steps\\)"):
+        gpu_recipe.main(["train", "--data-dir", str(tmp_path / "next"), *common, "--restore", str(carried)])
+    assert not (tmp_path / "next").exists()
