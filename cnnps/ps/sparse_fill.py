@@ -11,7 +11,11 @@ chance: the fit again without its brightest observation (a specular highlight is
 bright outlier), if at least 4 lit observations remain; if that fit explains the rest,
 its values fill the map (the bright observation stays in the map as measured). A pixel
 neither fit explains (metallic, shadowed, inter-reflections: what least squares gets
-wrong) gets no virtual observations at all, so the network alone decides there.
+wrong) gets no virtual observations at all, so the network alone decides there. A pixel
+with exactly three lit observations is fitted exactly by any data, so its residual is
+taken over its dark observations too: the fill holds only where they are attached shadows
+(max(b . l, 0) near 0), not where a fit through three values points at a light the pixel
+never saw.
 
 Used only below ``FILL_BELOW`` images (:func:`should_fill`). The defaults were chosen by
 measurement on the eval stage's synthetic captures, not on BALL
@@ -120,7 +124,10 @@ def lambertian_fits(intensities: np.ndarray, lights: np.ndarray, light_mask: np.
     lit = present & (I > 0)
     normals, albedo, valid = least_squares_masked(I, L, missing=~present, shadow_threshold=0.0, return_valid=True)
     b = normals * albedo[:, None]
-    residual = np.where(valid, fit_residual(I, L, b, lit), np.inf)
+    # three lit observations fit any b exactly: such a fit must also explain the dark ones
+    # (as attached shadows, max(b . l, 0) near 0) to count
+    exact = lit.sum(axis=1) == 3
+    residual = np.where(valid, fit_residual(I, L, b, np.where(exact[:, None], present, lit)), np.inf)
     brightest = np.zeros((P, m), dtype=bool)
     brightest[np.arange(P), np.where(present, I, -np.inf).argmax(axis=1)] = True
     kept = lit & ~brightest

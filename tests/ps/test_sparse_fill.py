@@ -99,3 +99,24 @@ def test_coplanar_lights_fill_nothing_instead_of_failing():
     out = lambertian_fill(I, flat)
     assert not out.filled.any() and not out.light_mask[:, 8:].any()
     np.testing.assert_array_equal(out.intensities[:, :8], I)
+
+
+def test_three_lit_observations_fill_only_where_the_dark_ones_are_attached_shadows():
+    # six lights; a pixel sees three of them lit: any b fits three values exactly, so the
+    # fit counts only if it also explains the three dark ones (b . l <= 0 there)
+    L = np.array([[0.6, 0.0, 0.8], [0.5, 0.5, 0.707], [0.5, -0.5, 0.707],
+                  [-0.9, 0.0, 0.436], [-0.8, 0.5, 0.332], [-0.8, -0.5, 0.332]])
+    L /= np.linalg.norm(L, axis=1, keepdims=True)
+    n = np.array([0.8, 0.0, 0.6])
+    I = np.maximum(L @ n, 0.0)[None].astype(np.float32) * 0.7
+    assert (I > 0).sum() == 3  # the three lights on -x are behind the surface: attached shadow
+    out = lambertian_fill(I, L)
+    assert out.filled.all()
+    np.testing.assert_allclose(out.intensities[0, 6:], np.maximum(0.7 * n @ out.lights[6:].T, 0), atol=1e-5)
+    # the same three lit values with a normal that faces a dark light: that light is in a
+    # cast shadow (or the values are not Lambertian), which three values cannot tell apart
+    n2 = np.array([0.0, 0.0, 1.0])
+    I2 = np.maximum(L @ n2, 0.0)[None].astype(np.float32) * 0.7
+    I2[0, 3:] = 0.0  # all three -x lights dark though n2 . l > 0 for them
+    out2 = lambertian_fill(I2, L)
+    assert not out2.filled.any() and not out2.light_mask[:, 6:].any()
