@@ -11,11 +11,13 @@ chance: the fit again without its brightest observation (a specular highlight is
 bright outlier), if at least 4 lit observations remain; if that fit explains the rest,
 its values fill the map (the bright observation stays in the map as measured). A pixel
 neither fit explains (metallic, shadowed, inter-reflections: what least squares gets
-wrong) gets no virtual observations at all, so the network alone decides there. A pixel
-with exactly three lit observations is fitted exactly by any data, so its residual is
-taken over its dark observations too: the fill holds only where they are attached shadows
-(max(b . l, 0) near 0), not where a fit through three values points at a light the pixel
-never saw.
+wrong) gets no virtual observations at all, so the network alone decides there. The first
+fit is made on the lit observations (value > 0) and judged on the dark ones too: the model
+says a dark observation is an attached shadow, max(b . l, 0) = 0. Three or four lit values
+fit almost any b, and without the dark ones a fit pointing at a light the pixel never saw
+would pass; a pixel in a cast shadow goes to the second chance. (The second fit is judged
+on its lit observations only: judging it on the dark ones too cost the synthetic non-convex
+captures at 6 and 10 lights; docs/results.md.)
 
 Used only below ``FILL_BELOW`` images (:func:`should_fill`). The defaults were chosen by
 measurement on the eval stage's synthetic captures, not on BALL
@@ -112,8 +114,9 @@ def fit_residual(intensities: np.ndarray, lights: np.ndarray, b: np.ndarray, use
 
 
 def lambertian_fits(intensities: np.ndarray, lights: np.ndarray, light_mask: np.ndarray | None = None) -> Fits:
-    """Both least-squares fits of the module docstring, on the lit (value > 0), present
-    observations."""
+    """Both least-squares fits of the module docstring, made on the lit (value > 0), present
+    observations; the first one's residual is over every present observation, dark ones
+    included, the second one's over those it was made on."""
     I = np.asarray(intensities, dtype=np.float32)
     L = np.asarray(lights, dtype=np.float64)
     P, m = I.shape
@@ -124,10 +127,10 @@ def lambertian_fits(intensities: np.ndarray, lights: np.ndarray, light_mask: np.
     lit = present & (I > 0)
     normals, albedo, valid = least_squares_masked(I, L, missing=~present, shadow_threshold=0.0, return_valid=True)
     b = normals * albedo[:, None]
-    # three lit observations fit any b exactly: such a fit must also explain the dark ones
-    # (as attached shadows, max(b . l, 0) near 0) to count
-    exact = lit.sum(axis=1) == 3
-    residual = np.where(valid, fit_residual(I, L, b, np.where(exact[:, None], present, lit)), np.inf)
+    # made on the lit observations, judged on every present one: a dark observation must be
+    # an attached shadow, max(b . l, 0) near 0 (three or four lit values fit almost any b;
+    # the dark ones tell a right fit from a wrong one)
+    residual = np.where(valid, fit_residual(I, L, b, present), np.inf)
     brightest = np.zeros((P, m), dtype=bool)
     brightest[np.arange(P), np.where(present, I, -np.inf).argmax(axis=1)] = True
     kept = lit & ~brightest

@@ -6,7 +6,9 @@ import pytest
 from cnnps.ps.obsmap import light_cells, observation_maps
 from cnnps.ps.sparse_fill import (
     FILL_BELOW,
+    RESIDUAL_MAX,
     lambertian_fill,
+    lambertian_fits,
     should_fill,
     virtual_lights,
 )
@@ -101,7 +103,7 @@ def test_coplanar_lights_fill_nothing_instead_of_failing():
     np.testing.assert_array_equal(out.intensities[:, :8], I)
 
 
-def test_three_lit_observations_fill_only_where_the_dark_ones_are_attached_shadows():
+def test_the_fit_must_explain_the_dark_observations_as_attached_shadows():
     # six lights; a pixel sees three of them lit: any b fits three values exactly, so the
     # fit counts only if it also explains the three dark ones (b . l <= 0 there)
     L = np.array([[0.6, 0.0, 0.8], [0.5, 0.5, 0.707], [0.5, -0.5, 0.707],
@@ -113,10 +115,20 @@ def test_three_lit_observations_fill_only_where_the_dark_ones_are_attached_shado
     out = lambertian_fill(I, L)
     assert out.filled.all()
     np.testing.assert_allclose(out.intensities[0, 6:], np.maximum(0.7 * n @ out.lights[6:].T, 0), atol=1e-5)
-    # the same three lit values with a normal that faces a dark light: that light is in a
-    # cast shadow (or the values are not Lambertian), which three values cannot tell apart
+    # a normal that faces every light, with three of them dark: cast shadows (or values that
+    # are not Lambertian), which the lit values alone cannot tell apart from a right fit
     n2 = np.array([0.0, 0.0, 1.0])
     I2 = np.maximum(L @ n2, 0.0)[None].astype(np.float32) * 0.7
-    I2[0, 3:] = 0.0  # all three -x lights dark though n2 . l > 0 for them
+    I2[0, 3:] = 0.0
     out2 = lambertian_fill(I2, L)
     assert not out2.filled.any() and not out2.light_mask[:, 6:].any()
+    # five lit values and one dark light that faces the surface (a cast shadow): the first
+    # fit is refused for it; the second chance, judged on its own four values, fills
+    I3 = np.maximum(L @ n2, 0.0)[None].astype(np.float32) * 0.7
+    I3[0, 4] = 0.0
+    fits = lambertian_fits(I3, L)
+    assert fits.residual[0] > RESIDUAL_MAX > fits.residual_second[0]
+    np.testing.assert_allclose(fits.b_second[0], 0.7 * n2, atol=1e-5)
+    assert lambertian_fill(I3, L).filled.all()
+    I3[0, 4] = 0.7 * L[4] @ n2  # lit as the fit says: the first fit explains every value
+    assert lambertian_fits(I3, L).residual[0] < 1e-5
