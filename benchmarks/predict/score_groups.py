@@ -93,9 +93,13 @@ def main(argv=None) -> int:
     for g, _ in groups:
         for n in sorted(means[labels[0]].get(g, {}), key=int, reverse=True):
             print(f"{g:{width}s} {n:>6s}" + "".join(f"{means[lab][g][n]:13.2f}" for lab in labels))
-    captures = {name: {lab: (scores[labels[0]] if lab == LAMBERTIAN else scores[lab])["captures"][name]["methods"]
-                       [LAMBERTIAN if lab == LAMBERTIAN else args.method]["mean_deg"] for lab in labels}
-                for name in scores[labels[0]]["captures"] if group_of(name, groups)}
+    first = labels[0]
+    captures = {}
+    for name in scores[first]["captures"]:
+        if group_of(name, groups):
+            row = {lab: scores[lab]["captures"][name]["methods"][args.method]["mean_deg"] for lab in scores}
+            row[LAMBERTIAN] = scores[first]["captures"][name]["methods"][LAMBERTIAN]["mean_deg"]
+            captures[name] = row
     out = args.out or result_path(__spec__.name, args.name)
     write_result(out, __spec__.name, {"files": files, "groups": dict(groups), "method": args.method},
                  {"group_means": means, "captures": captures})
