@@ -47,9 +47,10 @@ checkpoints, plots, metrics and the model; a checkpoint holds every rank's RNG s
 resume with the same number of processes is exact. The logged loss is the mean over ranks.
 
 How a step runs (none of these changes the model or the loss; they change float
-rounding): ``precision`` (``auto`` times fp32 and bf16 steps at the run's start where the
-device has bf16 kernels, :mod:`cnnps.train.precision`; it enters the run key as fp32, and
-``metrics.json`` records the choice and each resumed segment's precision),
+rounding): ``precision`` (``auto``: chosen once, at the run's first step, from this
+machine's cached answer or a probe timing fp32 and bf16 steps where the device has bf16
+kernels; every resume, step process and rank keeps it; the run key holds the precision
+chosen, :mod:`cnnps.train.precision`; ``metrics.json`` and ``model.pt`` record it),
 ``channels_last``, ``compile`` (opt-in torch.compile, eager with a warning when it fails),
 ``optimiser.fused_adam``; on a CPU :func:`run` sets ``OMP_WAIT_POLICY=PASSIVE`` before
 torch loads unless the environment sets a policy (:mod:`cnnps.train.openmp`), and
@@ -350,16 +351,20 @@ class Params:
                   "keep_freed_memory", "pixelwise_ahead", "step_processes"):
             d.pop(k)
         d["lr_milestones"] = list(self.optimiser.lr_milestones)
-        if d["precision"] == "auto":  # auto resumes fp32 runs and they resume it; each checkpoint says what ran
-            d["precision"] = "fp32"
         return d
 
 
-def run_key(params: Params, manifest_sha256: str, init_sha256: str | None = None) -> str:
+def run_key(params: Params, manifest_sha256: str, init_sha256: str | None = None, precision: str | None = None) -> str:
     """The key a checkpoint must carry to be resumed: a hash of the params that change the
-    result (:meth:`Params.result_key`), the manifest's SHA-256 and, with ``init``, the
-    SHA-256 of the starting weights."""
-    return stable_hash([params.result_key(), manifest_sha256] + ([init_sha256] if init_sha256 else []), compact=False)
+    result (:meth:`Params.result_key`) with the precision the run steps in (``precision``:
+    ``train.precision: auto`` resolved, :mod:`cnnps.train.precision`; an ``auto`` run that
+    stepped in fp32 has the key of an ``fp32`` run, one that stepped in bf16 a ``bf16``
+    run's), the manifest's SHA-256 and, with ``init``, the SHA-256 of the starting weights."""
+    d = params.result_key()
+    d["precision"] = precision or params.precision
+    if d["precision"] not in ("fp32", "bf16"):
+        raise ValueError(f"a run key needs the precision the run steps in (fp32 or bf16), not {d['precision']!r}")
+    return stable_hash([d, manifest_sha256] + ([init_sha256] if init_sha256 else []), compact=False)
 
 
 def run(params: Params, data_dir: Path, *, until=None, _stop_after_step: int | None = None) -> dict:
@@ -382,6 +387,8 @@ def run(params: Params, data_dir: Path, *, until=None, _stop_after_step: int | N
         else:
             data = loop.open_training_data(params.data.shards or data_dir / "extract")
         init_state, init_sha = loop.load_init_weights(params.init, data.w, loop.input_channels(params))
-        key = run_key(params, data.manifest_sha256, init_sha)
-        return loop.train(params, data, data_dir / "train", key, info, device, init_state, init_sha,
+        def key_for(precision: str) -> str:
+            return run_key(params, data.manifest_sha256, init_sha, precision)
+
+        return loop.train(params, data, data_dir / "train", key_for, info, device, init_state, init_sha,
                           stop_after_step=_stop_after_step, until=until)

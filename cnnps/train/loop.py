@@ -5,10 +5,13 @@
     with training_processes(params) as (info, device):    # torchrun env, threads, device, process group
         data = open_training_data(extract_dir)            # manifest, its hash, the shard lists
         init_state, init_sha = load_init_weights(params.init, data.w)
-        return train(params, data, out_dir, run_key(...), info, device, init_state, init_sha)
+        return train(params, data, out_dir, key_for, info, device, init_state, init_sha)
 
-and :func:`train` runs a :class:`Trainer`: build (model, optimiser, DDP, the rank's
+(``key_for(precision)``: the run key of these params stepping in ``precision``) and
+:func:`train` runs a :class:`Trainer`: build (model, optimiser, DDP, the rank's
 shard stream), :meth:`~Trainer.resume` (newest checkpoint of this run key),
+:meth:`~Trainer.choose_precision` (the checkpoint's precision, else ``train.precision``
+resolved once: :mod:`cnnps.train.precision`),
 :meth:`~Trainer.load_validation`, :meth:`~Trainer.run_steps` (the step loop: logging,
 validation, checkpoints), :meth:`~Trainer.finish` (last validation, model file, metrics).
 
@@ -26,7 +29,7 @@ import itertools
 import json
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -73,6 +76,7 @@ from cnnps.train.distributed import (
 )
 from cnnps.train.maps_ahead import made_ahead
 from cnnps.train.optimiser import compile_model, lr_at, make_model, set_lr, train_step
+from cnnps.train.precision import PRECISIONS
 from cnnps.train.resume import (
     CKPT_FORMAT,
     checkpoint_path,
@@ -259,10 +263,13 @@ def write_plots(out_dir: Path, history: dict) -> None:
 # -- the loop ---------------------------------------------------------------------------
 
 
-def train(params, data: TrainingData, out_dir: Path, run_key: str, info: DistInfo, device: torch.device,
-          init_state: dict | None = None, init_sha: str | None = None, *,
+def train(params, data: TrainingData, out_dir: Path, key_for: Callable[[str], str], info: DistInfo,
+          device: torch.device, init_state: dict | None = None, init_sha: str | None = None, *,
           stop_after_step: int | None = None, make_pixelwise=None, until=None) -> dict:
-    """Train (resuming the newest checkpoint of ``run_key``); returns the final metrics.
+    """Train (resuming the newest checkpoint of this run); returns the final metrics.
+    ``key_for(precision)`` is the run key of ``params`` stepping in ``precision`` ("fp32" or
+    "bf16"; :func:`cnnps.stages.train.run_key`): a run resumes the newest checkpoint made
+    under its key, with ``train.precision: auto`` under either precision's key.
     ``stop_after_step`` (tests only) raises ``KeyboardInterrupt`` after that step, like a
     killed run. ``make_pixelwise(n, generator, device, w) -> (maps (n, C, w, w), normals
     (n, 3))`` (C: :func:`input_channels`) makes the per-pixel rows of ``params.pixelwise`` (default:
@@ -270,7 +277,7 @@ def train(params, data: TrainingData, out_dir: Path, run_key: str, info: DistInf
     run there, normally (last validation, checkpoint, ``model.pt``): a budget of time, say. The steps it allows then depend on the clock,
     so such a run is not reproducible from its params alone (under torchrun every rank
     must answer alike)."""
-    trainer = Trainer(params, data, out_dir, run_key, info, device, init_state, init_sha)
+    trainer = Trainer(params, data, out_dir, key_for, info, device, init_state, init_sha)
     trainer.make_pixelwise = make_pixelwise or pixelwise_maker(params)
     trainer.resume()
     trainer.choose_precision()
@@ -279,12 +286,20 @@ def train(params, data: TrainingData, out_dir: Path, run_key: str, info: DistInf
     return trainer.finish()
 
 
+def _plain(record: dict | None) -> dict | None:
+    """``record`` as JSON reads it back: the same bytes in a checkpoint whether the record
+    was measured now, read from a cache or from a checkpoint (pickle writes a string that
+    two places share once, two equal strings twice)."""
+    return None if record is None else json.loads(json.dumps(record))
+
+
 class Trainer:
     """One training run of this process: model, optimiser, data stream, step and history."""
 
-    def __init__(self, params, data: TrainingData, out_dir: Path, run_key: str, info: DistInfo,
+    def __init__(self, params, data: TrainingData, out_dir: Path, key_for: Callable[[str], str], info: DistInfo,
                  device: torch.device, init_state: dict | None = None, init_sha: str | None = None):
-        self.params, self.data, self.run_key, self.info, self.device = params, data, run_key, info, device
+        self.params, self.data, self.key_for, self.info, self.device = params, data, key_for, info, device
+        self.run_key: str | None = None  # key_for(self.precision), once resume / choose_precision settled it
         self.out_dir = Path(out_dir)
         self.ckpt_dir = self.out_dir / "checkpoints"
         self.init_sha = init_sha
@@ -301,12 +316,11 @@ class Trainer:
         self.procs = None  # the processes sharing each step (step_processes > 1), while run_steps runs
         self.step_processes = 1  # how many processes shared the last run_steps' steps
         self.step_process_seconds = None  # the training process's time on its rows and waiting, then
-        # the precision the steps run in (choose_precision: train.precision, or the pick of "auto"),
-        # how it was chosen, and the run's segments [first step, precision] (kept in the checkpoints)
-        self.precision = params.precision if params.precision != "auto" else "fp32"
-        self.precision_choice: dict | None = None
-        self.segments: list = []
-        self.resumed_precision: str | None = None
+        # the precision every step of the run takes (resume: the checkpoint's; choose_precision:
+        # train.precision, "auto" resolved once) and how it was chosen (kept in the checkpoints)
+        self.precision: str | None = None
+        self.precision_choice: dict | None = None  # TrainChoice.record(): the choice and its measurement
+        self.precision_source = "checkpoint"  # how this call got it: probe, cache, params or checkpoint
         # the mean of the weights at the checkpoints from optimiser.average_from on (0: off)
         self.average = WeightAverage(params.optimiser.average_from)
 
@@ -358,9 +372,10 @@ class Trainer:
         RNG states (this rank's), step and history. Under torchrun rank 0 chooses (and
         keeps) the checkpoint and the others read the same file."""
         info, params = self.info, self.params
+        keys = {prec: self.key_for(prec) for prec in (PRECISIONS if params.precision == "auto" else (params.precision,))}
         state = None
         if self.main:
-            state = load_training_state(self.ckpt_dir, self.run_key) if self.ckpt_dir.is_dir() else None
+            state = load_training_state(self.ckpt_dir, keys.values()) if self.ckpt_dir.is_dir() else None
         if info.enabled:
             resume_step = broadcast(None if state is None else int(state["step"]), info)
             if not self.main and resume_step is not None:
@@ -379,42 +394,36 @@ class Trainer:
             set_rng_states(cpu_rng, cuda_rng, self.device)
             self.step, self.history = int(state["step"]), state["history"]
             self.average.load_state_dict(state.get("average"))
-            # checkpoints older than the record stepped in their run's precision (auto was fp32 then)
-            self.resumed_precision = state.get("precision", self.precision)
-            self.precision_choice = state.get("precision_choice")  # kept when no step is left to probe for
-            self.segments = [list(seg) for seg in state.get("precision_segments", [[0, self.resumed_precision]])]
+            # the run's precision is its key's: every segment of it steps alike
+            self.run_key = state["run_key"]
+            self.precision = next(prec for prec, key in keys.items() if key == self.run_key)
+            self.precision_choice = _plain(state.get("precision_choice"))
             if info.enabled and self.main and state.get("world_size", 1) != info.world_size:
                 tqdm.write(f"train: resuming a checkpoint of {state.get('world_size', 1)} process(es) with "
                            f"{info.world_size}: the data order differs from here on")
         self.model.train()
 
     def choose_precision(self) -> None:
-        """The precision of this call's steps: ``train.precision``, or with ``auto`` the pick
-        of :func:`cnnps.train.precision.choose_train_precision` (rank 0 probes, every
-        rank takes its answer). A resume in another precision than its checkpoint's says so
-        in one line and goes on; each change starts a segment."""
+        """The precision of every step of the run, settled once: a resumed run keeps its
+        checkpoint's (:meth:`resume`); a new one takes
+        :func:`cnnps.train.precision.resolve` (``train.precision``, or with ``auto`` this
+        machine's cached answer or a probe; rank 0 resolves, every rank takes its answer)."""
         p = self.params
-        if p.precision == "auto" and self.step < self.total_steps:
+        if self.run_key is None:
             choice = None
             if self.main:
-                from cnnps.train.precision import choose_train_precision
+                from cnnps.train.precision import resolve
 
-                choice = choose_train_precision(self.raw, p, self.device,
-                                                p.data.batch_size // self.info.world_size).as_dict()
-            choice = broadcast(choice, self.info)
-            self.precision, self.precision_choice = choice["precision"], choice
-            if self.main and p.progress:
-                tqdm.write(f"train: precision {self.precision} ({choice['reason']})", file=sys.stderr)
-        elif p.precision != "auto":
-            self.precision = p.precision
-        else:  # auto with no step left: the precision the checkpoint stepped in
-            self.precision = self.resumed_precision or self.precision
-        if self.resumed_precision and self.resumed_precision != self.precision and self.main:
-            tqdm.write(f"train: resuming at step {self.step} in {self.precision}; the checkpoint stepped in "
-                       f"{self.resumed_precision}" + (f" ({self.precision_choice['reason']})"
-                                                      if self.precision_choice else ""), file=sys.stderr)
-        if not self.segments or self.segments[-1][1] != self.precision:
-            self.segments.append([self.step, self.precision])
+                made = resolve(self.raw, p, self.device, p.data.batch_size // self.info.world_size)
+                choice = (made.record(), made.source)
+            choice, self.precision_source = broadcast(choice, self.info)
+            self.precision_choice = _plain(choice)
+            self.precision = self.precision_choice["precision"]
+            self.run_key = self.key_for(self.precision)
+        if self.main and p.progress and p.precision == "auto":
+            how = self.precision_choice or {}
+            said = f"the checkpoint's, step {self.step}" if self.step else f"{self.precision_source}: {how.get('reason', '')}"
+            tqdm.write(f"train: precision {self.precision} ({said})", file=sys.stderr)
 
     # -- validation and checkpoints ----------------------------------------------------
 
@@ -459,7 +468,6 @@ class Trainer:
                 "history": self.history,
                 "precision": self.precision,
                 "precision_choice": self.precision_choice,
-                "precision_segments": self.segments,
                 "average": self.average.state_dict(),
             },
             self.params.keep_checkpoints,
@@ -713,10 +721,10 @@ class Trainer:
             "samples_per_s": round(ran * p.data.batch_size / self.seconds, 1) if ran > 0 and self.seconds > 0 else None,
             "seconds": self.clock.summary(self.seconds) if self.clock is not None else None,
             "device": str(self.device),
-            "precision": self.precision,  # what this call's steps ran in
+            "precision": self.precision,  # what every step of the run ran in
             "precision_requested": p.precision,
-            "precision_choice": self.precision_choice,  # auto: the probe's rates and reason
-            "precision_segments": self.segments,  # [first step, precision] of every segment of the run
+            "precision_choice": self.precision_choice,  # the run's choice and what was timed for it
+            "precision_source": self.precision_source,  # how this call got it: probe, cache, params, checkpoint
             "processes": info.world_size,
             "step_processes": self.step_processes,  # this run's processes sharing each step (1: none)
             "step_process_seconds": self.step_process_seconds,  # with helpers: own rows / waiting for theirs
@@ -727,6 +735,7 @@ class Trainer:
                 final.cpu().to(memory_format=torch.contiguous_format),  # the file holds plain NCHW weights
                 config={"w": self.data.w, "dropout": p.dropout},
                 meta={"steps": step, "val_mean_deg": v.get("val_mean_deg"), "val_median_deg": v.get("val_median_deg"),
+                      "precision": self.precision,
                       "data_manifest_sha256": self.data.manifest_sha256, "params": dataclasses.asdict(p),
                       "min_lights": self._fewest_lights(),
                       **({"average": v["average"]} if "average" in v else {}),

@@ -11,6 +11,7 @@ model file (:mod:`cnnps.models.checkpoint`), which holds the weights only.
 from __future__ import annotations
 
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 
 import torch
@@ -45,17 +46,20 @@ def read_training_state(path: Path) -> dict:
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
-def load_training_state(ckpt_dir: Path, run_key: str) -> dict | None:
-    """The newest readable checkpoint of this run key; others are deleted, each with one
-    line on stderr naming it (a checkpoint of other settings, data or code version: say a
-    changed default such as ``train.cpu.dropout_masks``; the run starts from its beginning)."""
+def load_training_state(ckpt_dir: Path, run_key: str | Iterable[str]) -> dict | None:
+    """The newest readable checkpoint of this run key (or of any of these keys: a run whose
+    precision is still to be chosen, :mod:`cnnps.train.precision`); others are deleted, each
+    with one line on stderr naming it (a checkpoint of other settings, data or code version:
+    say a changed default such as ``train.cpu.dropout_masks``; the run starts from its
+    beginning)."""
+    keys = {run_key} if isinstance(run_key, str) else set(run_key)
     for path in reversed(list_checkpoints(ckpt_dir)):
         try:
             state = read_training_state(path)
         except Exception:  # noqa: BLE001 - any failure to read: not a finished checkpoint
             path.unlink(missing_ok=True)  # unreadable: cannot be one we finished writing
             continue
-        if state.get("run_key") == run_key and state.get("format") == CKPT_FORMAT:
+        if state.get("run_key") in keys and state.get("format") == CKPT_FORMAT:
             return state
         print(f"train: {path}: a checkpoint of other settings or data (its run key differs): removed",
               file=sys.stderr)

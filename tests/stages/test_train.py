@@ -34,7 +34,9 @@ def fresh_copy(src, dst):
 
 
 REPO = Path(__file__).resolve().parents[2]
-BASE = dict(data={"batch_size": 32, "shuffle_buffer": 1000}, cpu={"threads": 1}, progress=False, log_every=10)
+# fp32 stated: the tests below compare runs bit for bit (train.precision: auto is tested on its own)
+BASE = dict(data={"batch_size": 32, "shuffle_buffer": 1000}, cpu={"threads": 1}, progress=False, log_every=10,
+            precision="fp32")
 
 
 def params(base=BASE, **keys) -> train.Params:
@@ -529,40 +531,94 @@ def test_auto_step_processes_start_for_long_runs_only(dataset, tmp_path, monkeyp
     assert (short["step_processes"], long["step_processes"]) == (1, 2)
 
 
-def test_auto_precision_is_recorded_and_a_resume_in_another_precision_says_so(dataset, tmp_path, monkeypatch,
-                                                                              capsys):
-    from cnnps.train import precision
+def _model_weights(run_dir):
+    from cnnps.models.checkpoint import load_checkpoint
 
-    p = params(max_steps=12, checkpoint_every=5, val_every=0)
-    assert p.precision == "auto"
-    d = fresh_copy(dataset, tmp_path / "d")
-    picks = iter(["fp32", "bf16"])  # the first machine picks fp32, the one that resumes bf16
-    monkeypatch.setattr(precision, "choose_train_precision", lambda model, p, device, rows: (
-        precision.TrainChoice(next(picks), "probe (test)")))
+    return load_checkpoint(run_dir / "train/model.pt")[0].state_dict()
+
+
+def test_auto_chooses_once_per_run_though_the_precisions_speeds_cross(tmp_path, monkeypatch, capsys):
+    """train.precision: auto on a simulated bf16-capable CPU (tests/support/simulated_steps):
+    bf16 steps twice as fast as fp32 at the run's start; the run is killed at step 7, the
+    speeds cross (now fp32 is twice as fast) and the run resumes: it keeps bf16 with no probe
+    and ends with the weights of an uninterrupted bf16 run. A new run of the same params
+    takes this machine's cached answer (bf16, no probe); without the cache it probes and
+    steps in fp32, under the fp32 run key."""
+    from tests.support.simulated_steps import SimulatedSteps
+
+    monkeypatch.setenv("CNNPS_CACHE_DIR", str(tmp_path / "cache"))
+    cpu = SimulatedSteps({"fp32": 10.0, "bf16": 20.0}).install(monkeypatch)
+    p = params(pixelwise={"share": 1.0, "w": 16}, max_steps=12, checkpoint_every=5, val_every=0, val_max_rows=100,
+               precision="auto")
+    a = tmp_path / "a"
     with pytest.raises(KeyboardInterrupt):
-        train.run(p, d, _stop_after_step=7)
-    assert capsys.readouterr().err.count("train: resuming") == 0
-    state = torch.load(d / "train/checkpoints/step-00000005.pt", weights_only=True)
-    assert state["precision"] == "fp32" and state["precision_segments"] == [[0, "fp32"]]
-    metrics = train.run(p, d)
-    err = capsys.readouterr().err
-    assert err.count("train: resuming at step 5 in bf16; the checkpoint stepped in fp32 (probe (test))") == 1, err
-    assert metrics["precision"] == "bf16" and metrics["precision_requested"] == "auto"
-    assert metrics["precision_choice"]["reason"] == "probe (test)"
-    assert metrics["precision_segments"] == [[0, "fp32"], [5, "bf16"]]
-    saved = json.loads((d / "train/metrics.json").read_text())
-    assert saved["precision_segments"] == [[0, "fp32"], [5, "bf16"]]
-    # auto shares the fp32 run key: an explicit fp32 run resumes these checkpoints
-    assert train.run_key(p, "m") == train.run_key(replace(p, precision="fp32"), "m")
-    assert train.run_key(p, "m") != train.run_key(replace(p, precision="bf16"), "m")
+        train.run(p, a, _stop_after_step=7)
+    assert cpu.timed == ["fp32"] * 4 + ["bf16"] * 4  # one probe: a warm-up and three timed steps each
+    state = torch.load(a / "train/checkpoints/step-00000005.pt", weights_only=True)
+    assert state["precision"] == "bf16" and "source" not in state["precision_choice"]
+    assert "bf16 2.00x fp32: bf16" in state["precision_choice"]["reason"]
+    cpu.rates, cpu.timed = {"fp32": 20.0, "bf16": 10.0}, []
+    resumed = train.run(p, a)
+    assert cpu.timed == [] and resumed["precision"] == "bf16" and resumed["precision_requested"] == "auto"
+    assert resumed["precision_source"] == "checkpoint"
+    assert resumed["precision_choice"] == state["precision_choice"]  # the run's one choice, as first measured
+    assert "precision_segments" not in resumed
+    b = tmp_path / "b"
+    train.run(replace(p, precision="bf16"), b)  # the same run, uninterrupted, asked for in bf16
+    assert cpu.timed == []
+    for k, v in _model_weights(b).items():
+        assert torch.equal(_model_weights(a)[k], v), k
+    from cnnps.models.checkpoint import load_checkpoint
+
+    assert load_checkpoint(a / "train/model.pt")[2]["precision"] == "bf16"
+    c = train.run(p, tmp_path / "c")  # a new run on this machine: the cached answer, though fp32 is faster now
+    assert cpu.timed == [] and c["precision"] == "bf16" and c["precision_source"] == "cache"
+    assert c["precision_choice"] == state["precision_choice"]  # the same choice, recorded alike
+    (tmp_path / "cache/train_precision.json").unlink()
+    d = train.run(p, tmp_path / "d")  # without it: a probe, which now picks fp32
+    assert cpu.timed == ["fp32"] * 4 + ["bf16"] * 4
+    assert d["precision"] == "fp32" and "bf16 0.50x fp32" in d["precision_choice"]["reason"]
+    key = torch.load(sorted((tmp_path / "d/train/checkpoints").glob("*.pt"))[-1], weights_only=True)["run_key"]
+    from cnnps.train.loop import pixelwise_only_data
+
+    manifest = pixelwise_only_data(16).manifest_sha256
+    assert state["run_key"] == train.run_key(p, manifest, precision="bf16")
+    assert key == train.run_key(p, manifest, precision="fp32") != state["run_key"]
+
+
+def test_a_checkpoint_never_passes_for_another_precision(tmp_path, monkeypatch, capsys):
+    """The run key holds the precision a run steps in: an auto run that chose bf16 is resumed
+    by a bf16 run and resumes one, while an fp32 run removes its checkpoints and starts
+    over; a run key without a precision to step in is refused."""
+    from tests.support.simulated_steps import SimulatedSteps
+
+    monkeypatch.setenv("CNNPS_CACHE_DIR", str(tmp_path / "cache"))
+    cpu = SimulatedSteps({"fp32": 10.0, "bf16": 30.0}).install(monkeypatch)
+    p = params(pixelwise={"share": 1.0, "w": 16}, max_steps=8, checkpoint_every=3, val_every=0, val_max_rows=100,
+               precision="auto")
+    with pytest.raises(KeyboardInterrupt):
+        train.run(p, tmp_path / "a", _stop_after_step=4)
+    capsys.readouterr()
+    m = train.run(replace(p, precision="bf16"), tmp_path / "a")
+    assert "removed" not in capsys.readouterr().err and m["precision_source"] == "checkpoint"
+    with pytest.raises(KeyboardInterrupt):
+        train.run(p, tmp_path / "b", _stop_after_step=4)
+    cpu.timed = []
+    m = train.run(replace(p, precision="fp32"), tmp_path / "b")
+    assert "a checkpoint of other settings or data (its run key differs): removed" in capsys.readouterr().err
+    assert m["precision"] == "fp32" and m["precision_source"] == "params" and cpu.timed == []
+    assert train.run_key(p, "m", precision="bf16") == train.run_key(replace(p, precision="bf16"), "m")
+    assert train.run_key(p, "m", precision="fp32") == train.run_key(replace(p, precision="fp32"), "m")
+    with pytest.raises(ValueError, match="the precision the run steps in"):
+        train.run_key(p, "m")
 
 
 def test_a_finished_auto_run_finished_again_keeps_its_precision_record(dataset, tmp_path):
-    p = params(max_steps=6, checkpoint_every=3, val_every=0)
+    p = params(max_steps=6, checkpoint_every=3, val_every=0, precision="auto")
     d = fresh_copy(dataset, tmp_path / "f")
     first = train.run(p, d)
     again = train.run(p, d)  # nothing left to step: no probe, the checkpoint's record
-    for key in ("precision", "precision_requested", "precision_choice", "precision_segments"):
+    for key in ("precision", "precision_requested", "precision_choice"):
         assert again[key] == first[key], key
     assert first["precision_choice"]["precision"] == first["precision"]
 

@@ -41,6 +41,7 @@ STEPS = 14  # crosses an epoch boundary (asserted below)
 TRAIN = dict(
     max_steps=STEPS, dropout=0.0, seed=0, log_every=1, val_every=0, checkpoint_every=5, keep_checkpoints=3,
     progress=False, data={"batch_size": BATCH, "shuffle_buffer": 1000}, optimiser={"lr": 1e-3}, cpu={"threads": 1},
+    precision="fp32",  # stated: one process and two are compared step for step
 )
 
 

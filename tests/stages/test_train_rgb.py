@@ -16,7 +16,7 @@ from cnnps.stages import train
 
 RGB = {"share": 1.0, "w": 16, "rgb": True, "effects": {"cast_shadow": 0.2, "noise": 0.01, "quantisation": 0.5}}
 BASE = dict(data={"batch_size": 32}, cpu={"threads": 1}, progress=False, log_every=2, max_steps=6,
-            checkpoint_every=3, val_every=0, val_max_rows=100, pixelwise=RGB)
+            checkpoint_every=3, val_every=0, val_max_rows=100, pixelwise=RGB, precision="fp32")
 
 
 def params(**keys) -> train.Params:
@@ -61,8 +61,10 @@ def test_rgb_params_need_per_pixel_maps_only_and_key_the_run():
     # at false the run key is the one of the runs before the key existed (no pixelwise_rgb in it)
     from cnnps.infra.hashing import stable_hash
 
-    assert train.run_key(grey, "m") == stable_hash([grey.result_key(), "m"], compact=False)
-    assert train.run_key(rgb, "m") != train.run_key(train.Params(max_steps=5, pixelwise={"share": 1.0}), "m")
+    assert train.run_key(grey, "m", precision="fp32") == stable_hash([{**grey.result_key(), "precision": "fp32"}, "m"],
+                                                                     compact=False)
+    assert (train.run_key(rgb, "m", precision="fp32")
+            != train.run_key(train.Params(max_steps=5, pixelwise={"share": 1.0}), "m", precision="fp32"))
     assert train.Params.from_record(dataclasses.asdict(rgb)) == rgb
 
 

@@ -37,7 +37,9 @@ what the *last* run did, not what the outputs are:
   only the missing images, so this count is smaller after a kill);
 - extract ``scene-<id>.json``: ``seconds`` (wall time of the scene's extraction);
 - train ``metrics.json``: ``samples_per_s``, ``seconds`` (speed and time split of the last call) and
-  ``precision_choice`` (what the last call's ``train.precision: auto`` probe timed);
+  ``precision_source`` (how the last call got the run's precision: a probe, this machine's
+  cached answer or, resumed, the checkpoint; the choice itself, ``precision_choice``, is
+  compared);
 - eval ``metrics.json``: ``seconds`` (wall time).
 
 A record with an excluded field that carries a ``checksum`` of its own content
@@ -72,7 +74,7 @@ OUTPUT_DIRS = {s: s for s in STAGES}  # data_dir/<folder> each stage writes (and
 EXCLUDED_FIELDS: dict[tuple[str, str], tuple[str, ...]] = {
     ("render", "*/scene.json"): ("render_seconds", "images_rendered_last_run"),
     ("extract", "scene-*.json"): ("seconds",),
-    ("train", "metrics.json"): ("samples_per_s", "seconds", "precision_choice"),
+    ("train", "metrics.json"): ("samples_per_s", "seconds", "precision_source"),
     ("eval", "metrics.json"): ("seconds",),
     ("eval", "testset/*/scene.json"): ("render_seconds", "images_rendered_last_run"),
 }

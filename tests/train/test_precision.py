@@ -1,5 +1,5 @@
 """``train.precision: auto``: the pick rule, a probe that leaves the run untouched, and the
-choice and segments a run records."""
+choice a run records, and the cache that makes it once per machine."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ def _fake_steps(monkeypatch, rates: dict, losses: dict, available: bool = True) 
 
     def fake(model, params, device, precision, maps, normals):
         calls.append(precision)
-        return rates[precision], losses[precision]
+        return rates[precision], losses[precision], 1.0
 
     monkeypatch.setattr(tp, "time_steps", fake)
     monkeypatch.setattr("cnnps.models.precision_probe.bf16_available", lambda device: available)
@@ -68,3 +68,52 @@ def _probe_batch(n: int):
 
     maps, normals = probe_maps(n, w=8)
     return torch.from_numpy(maps).unsqueeze(1), torch.from_numpy(normals)
+
+
+# -- once per machine: resolve() and its cache ---------------------------------------------
+
+
+@pytest.fixture
+def simulated(monkeypatch, tmp_path):
+    """A bf16-capable CPU whose bf16 steps run 1.5x fp32's; the cache in ``tmp_path``."""
+    from tests.support.simulated_steps import SimulatedSteps
+
+    monkeypatch.setenv("CNNPS_CACHE_DIR", str(tmp_path))
+    return SimulatedSteps({"fp32": 4.0, "bf16": 6.0}).install(monkeypatch)
+
+
+def test_a_named_precision_is_taken_as_it_is(simulated):
+    for name in ("fp32", "bf16"):
+        choice = tp.resolve(CNNPS(w=8), Params(precision=name), torch.device("cpu"), 16)
+        assert (choice.precision, choice.source, choice.reason) == (name, "params", f"train.precision: {name}")
+    assert simulated.timed == []
+
+
+def test_auto_probes_once_per_machine_and_step_then_takes_the_cached_answer(simulated, tmp_path, monkeypatch):
+    model, cpu = CNNPS(w=8), torch.device("cpu")
+    first = tp.resolve(model, Params(), cpu, 16)
+    assert first.precision == "bf16" and first.source == "probe" and first.rates == {"fp32": 4.0, "bf16": 6.0}
+    assert first.cpu_share == 1.0 and not first.under_load and len(simulated.timed) == 8
+    simulated.rates = {"fp32": 6.0, "bf16": 4.0}  # the speeds cross: the answer for this machine stays
+    again = tp.resolve(model, Params(), cpu, 16)
+    assert again.precision == "bf16" and again.source == "cache" and len(simulated.timed) == 8
+    assert again.record() == first.record() and again.age_seconds is not None
+    other = tp.resolve(model, Params(), cpu, 32)  # another batch is another step: probed
+    assert other.precision == "fp32" and other.source == "probe" and other.key != first.key
+    assert "32 rows" in other.key and "| cpu |" in other.key and "CNNPS w8 c1" in other.key
+    monkeypatch.setattr(tp, "now", lambda: first.probed_at + tp.CACHE_MAX_AGE_S + 1)  # 30 days on
+    old = tp.resolve(model, Params(), cpu, 16)
+    assert old.source == "probe" and old.precision == "fp32" and "too old" in old.reason
+    (tmp_path / tp.CACHE_FILE).write_text("{not json")  # a damaged cache: probed, and written anew
+    assert tp.resolve(model, Params(), cpu, 16).source == "probe"
+    assert tp.resolve(model, Params(), cpu, 16).source == "cache"
+
+
+def test_a_probe_under_load_says_so_and_its_answer_is_kept(simulated):
+    """Threads that got a third of their CPUs' time: the reason says so, and the answer is
+    cached all the same, so that the next run of these params steps alike."""
+    simulated.cpu_share = 1 / 3
+    choice = tp.resolve(CNNPS(w=8), Params(), torch.device("cpu"), 16)
+    assert choice.under_load and choice.cpu_share == pytest.approx(1 / 3, abs=1e-3)
+    assert "under load (its threads got 33% of their CPUs' time)" in choice.reason
+    assert tp.resolve(CNNPS(w=8), Params(), torch.device("cpu"), 16).source == "cache"
