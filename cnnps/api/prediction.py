@@ -3,7 +3,7 @@
 Two entry points share every step, so they agree bit for bit on the same data:
 :func:`predict` (images in memory, a :class:`Prediction` back, nothing written) and
 :func:`predict_folder` (a capture folder of any size in bounded memory, the outputs of
-:mod:`cnnps.api.prediction_outputs` written into OUT_DIR all at once).
+:mod:`cnnps.api.prediction_outputs` written into OUT_DIR all at once, one writer at a time).
 
 The steps: check the options (:func:`check_options`, from :func:`predict`'s declared
 types and the solver registry); prepare the solver once (:mod:`cnnps.api.solvers`: the
@@ -43,6 +43,7 @@ from cnnps.api.solvers import check_solver_options, prepare_solver, solver_class
 from cnnps.infra.errors import ConfigError, InputError
 from cnnps.infra.machine import Device
 from cnnps.infra.options import Count, Positive, UnitFraction, check_arguments, label
+from cnnps.infra.output_folder import OutputFolder
 from cnnps.io.capture import SATURATION_LEVEL, Grey
 from cnnps.io.srgb import Linearize
 from cnnps.ps.camera import camera_for
@@ -228,6 +229,7 @@ def predict_folder(
     scratch_dir=None,
     memory_limit: int | None = None,
     progress: bool = True,
+    command: str = "cnnps.predict_folder",
     **options,
 ) -> dict:
     """Predict normals for the capture folder ``capture_dir``; write the outputs into
@@ -242,6 +244,10 @@ def predict_folder(
     write report.html (:mod:`cnnps.io.report`); scratch_dir: where the pixel stack's temporary file goes
     when it does not fit in ``memory_limit`` bytes (default: OUT_DIR's parent folder;
     256 MiB).
+
+    One writer per OUT_DIR (:class:`cnnps.infra.output_folder.OutputFolder`): while another
+    holds it, FolderBusy at once naming OUT_DIR and the holder (``command`` names this call
+    there). OUT_DIR ends with its earlier outputs (a failed or killed call) or the new ones.
 
     Returns what ``prediction.json`` holds plus ``capture``, ``out_dir`` and, when the
     capture has ground truth, the error statistics (``mean_deg``, ``median_deg``, ...).
@@ -258,33 +264,33 @@ def predict_folder(
         raise InputError(capture_dir, "capture folder not found" if not capture_dir.exists() else "not a folder")
     outputs.check_out_dir(out_dir, capture_dir)
     write_surface = outputs.surface_writer() if depth else None
-
-    capture = scan_capture(capture_dir, drop=drop, grey=opts["grey"], linearize=opts["linearize"])
-    camera = camera_for(capture.intrinsics)
-    solver = prepare_solver(opts)
-    warnings = solver.warnings(capture.n_images)
-    scratch = out_dir.resolve().parent if scratch_dir is None else Path(scratch_dir)
-    limit = DEFAULT_MEMORY_LIMIT if memory_limit is None else int(memory_limit)
-    with build_pixel_stack(capture, scratch_dir=scratch, memory_limit=limit, saturation=_saturation(opts["saturated"]),
-                           progress=progress) as stack:
-        t_load = time.perf_counter() - t0
-        lights = _light_model(capture.lights, capture.light_positions, camera, opts)
-        found = capture_normals(stack, capture.mask, solver, camera, lights, tile_pixels=opts["tile_pixels"],
-                                progress=progress)
-        record = {"capture": str(capture_dir),
-                  **outputs.make_record(solver, camera, found, stack, n_images=capture.n_images,
-                                        image_size=capture.shape, options=opts, dropped=capture.dropped)}
-    warnings += outputs.scale_warning(found.lights)
-    notes = capture.notes + found.notes
-    scored = (None if capture.normal_gt is None
-              else outputs.score(found.normal, capture.normal_gt, capture.mask, capture_dir, notes))
-    if write_surface is not None and camera.intrinsics is not None:  # depth along the optical axis
-        scale = found.lights.get("start_distance", opts["distance"] or 1.0)
-        write_surface = functools.partial(write_surface, intrinsics=camera.intrinsics, distance=scale)
-    finish = functools.partial(outputs.finish_record, t0=t0, t_load=t_load, notes=notes,
-                               linearize=opts["linearize"], warnings=warnings)
-    outputs.write_outputs(out_dir, found.normal, capture.mask, record, scored, write_surface, finish,
-                          found.counts.confidence, report)
+    with OutputFolder(out_dir, command) as out:  # FolderBusy at once while another writes OUT_DIR
+        capture = scan_capture(capture_dir, drop=drop, grey=opts["grey"], linearize=opts["linearize"])
+        camera = camera_for(capture.intrinsics)
+        solver = prepare_solver(opts)
+        warnings = solver.warnings(capture.n_images)
+        scratch = out_dir.resolve().parent if scratch_dir is None else Path(scratch_dir)
+        limit = DEFAULT_MEMORY_LIMIT if memory_limit is None else int(memory_limit)
+        with build_pixel_stack(capture, scratch_dir=scratch, memory_limit=limit, saturation=_saturation(opts["saturated"]),
+                               progress=progress) as stack:
+            t_load = time.perf_counter() - t0
+            lights = _light_model(capture.lights, capture.light_positions, camera, opts)
+            found = capture_normals(stack, capture.mask, solver, camera, lights, tile_pixels=opts["tile_pixels"],
+                                    progress=progress)
+            record = {"capture": str(capture_dir),
+                      **outputs.make_record(solver, camera, found, stack, n_images=capture.n_images,
+                                            image_size=capture.shape, options=opts, dropped=capture.dropped)}
+        warnings += outputs.scale_warning(found.lights)
+        notes = capture.notes + found.notes
+        scored = (None if capture.normal_gt is None
+                  else outputs.score(found.normal, capture.normal_gt, capture.mask, capture_dir, notes))
+        if write_surface is not None and camera.intrinsics is not None:  # depth along the optical axis
+            scale = found.lights.get("start_distance", opts["distance"] or 1.0)
+            write_surface = functools.partial(write_surface, intrinsics=camera.intrinsics, distance=scale)
+        finish = functools.partial(outputs.finish_record, t0=t0, t_load=t_load, notes=notes,
+                                   linearize=opts["linearize"], warnings=warnings)
+        outputs.write_outputs(out, found.normal, capture.mask, record, scored, write_surface, finish,
+                              found.counts.confidence, report)
     result = dict(record)
     if scored is not None:
         result.update(scored.stats)

@@ -1,7 +1,11 @@
 """What a prediction writes: its record (``prediction.json``) and the files of OUT_DIR.
 
-OUT_DIR is written all at once (a temporary folder renamed at the end, so a failure leaves
-OUT_DIR as it was): ``normal.npy`` (H x W x 3 float32 unit normals in the capture frame,
+OUT_DIR is written whole, by one writer at a time (:mod:`cnnps.infra.output_folder`): a
+prediction holds OUT_DIR's lock from its start (a second one is refused at once, one line
+naming the folder and the holder, exit status 2) and writes its files into a work folder
+beside OUT_DIR that replaces OUT_DIR by a rename at the end, so OUT_DIR holds the earlier
+complete outputs or the new ones, never a mix, whatever stops a run (an error, SIGKILL).
+The files: ``normal.npy`` (H x W x 3 float32 unit normals in the capture frame,
 zeros outside the mask), ``normal.png`` ((n + 1) / 2), ``prediction.json`` (the record);
 ``confidence.npy`` (H x W float32 in [0, 1], 0 outside the mask) and ``confidence.png``
 when the method measures it;
@@ -20,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from cnnps.infra.errors import CnnpsError, ConfigError, InputError
+from cnnps.infra.output_folder import OutputFolder
 
 
 @dataclass
@@ -205,17 +210,16 @@ def normal_picture(normal: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return rgb
 
 
-def write_outputs(out_dir: Path, normal, mask, record: dict, scored, write_surface, finish,
+def write_outputs(out: OutputFolder, normal, mask, record: dict, scored, write_surface, finish,
                   confidence: np.ndarray | None = None, report: bool = True) -> None:
     """normal.npy, normal.png, confidence.npy + .png with a ``confidence`` map, error.png +
     metrics.json with a score, the surface files with ``write_surface``, prediction.json
     (``finish(record)`` completes it first), then report.html with ``report``; all at
-    once (atomic folder)."""
-    from cnnps.infra.atomic import atomic_dir
+    once (:meth:`OutputFolder.replace`: ``out`` must be held)."""
     from cnnps.io.images import write_png
     from cnnps.io.visualize import confidence_picture, score_picture
 
-    with atomic_dir(out_dir) as tmp:
+    with out.replace() as tmp:
         np.save(tmp / "normal.npy", normal)
         write_png(tmp / "normal.png", normal_picture(normal, mask))
         if confidence is not None:

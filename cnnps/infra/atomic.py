@@ -107,7 +107,7 @@ def filesystem_full(path: str | Path) -> bool:
     return st.f_files > 0 and free_inodes == 0
 
 
-def _out_of_space(exc: BaseException, path: Path, where: Path) -> OSError | None:
+def out_of_space(exc: BaseException, path: Path, where: Path) -> OSError | None:
     """The one-line error for ``exc``, raised while writing ``path`` (temporary at
     ``where``), when it means the disk is full (ENOSPC, a quota, or a library's own
     error on a full filesystem); None otherwise."""
@@ -152,7 +152,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         os.replace(tmp, path)
         fsync_path(path.parent)
     except BaseException as exc:
-        full = _out_of_space(exc, path, tmp)  # before the temp file (and the space it holds) goes
+        full = out_of_space(exc, path, tmp)  # before the temp file (and the space it holds) goes
         if full is None:
             raise
         raise full from exc
@@ -192,7 +192,7 @@ def atomic_dir(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
             os.replace(tmp, path)
             fsync_path(path.parent)
     except BaseException as exc:
-        full = _out_of_space(exc, path, tmp)
+        full = out_of_space(exc, path, tmp)
         if full is None:
             raise
         raise full from exc

@@ -53,7 +53,7 @@ def parse_drop(text: Optional[str]) -> Optional[list[int]]:
 @app.command("predict")
 def predict(
     capture_dir: Path = typer.Argument(..., help="Capture folder (DiLiGenT layout: filenames.txt, light_directions.txt, light_intensities.txt, mask.png, images)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder (written atomically): normal.npy, normal.png, and error.png + metrics.json when ground truth exists."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder, written whole, by one run at a time (a second run into it stops at once): normal.npy, normal.png, and error.png + metrics.json when ground truth exists."),
     model: Optional[Path] = typer.Option(None, "--model", help="CNN-PS checkpoint (default: the shipped cnnps/models/weights/cnnps_default.pt)."),
     method: Optional[str] = typer.Option(None, "--method", metavar="cnn|lambertian", help=f"cnn, or lambertian (least-squares baseline). (default: {_default('method')})"),
     rotations: Optional[str] = typer.Option(None, "--rotations", metavar="K", help=f"Test-time rotations averaged (cnn; 10 = the paper). (default: {_default('rotations')})"),
@@ -91,7 +91,7 @@ def predict(
              "shadow_threshold": (None if shadow_threshold is None
                                   else parse("--shadow-threshold", shadow_threshold, UnitFraction))}
     result = predict_folder(capture_dir, out, drop=parse_drop(drop), depth=depth, report=report, scratch_dir=scratch,
-                            progress=progress, **{k: v for k, v in given.items() if v is not None})
+                            progress=progress, command="cnnps predict", **{k: v for k, v in given.items() if v is not None})
     _report(result, capture_dir, out, verbose)
 
 

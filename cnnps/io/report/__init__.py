@@ -3,11 +3,11 @@
 :func:`report_html` makes the page from a prediction's arrays and record
 (:mod:`cnnps.io.report.page` says what it shows and how); :func:`write_report` writes it
 into a folder being written (``cnnps predict``'s OUT_DIR, inside its atomic write);
-:func:`rebuild_report` makes it again from a finished OUT_DIR (``cnnps report``), written
-atomically; :func:`notebook_html` is the page in an ``<iframe srcdoc>`` for a notebook
-(smaller maps). The page holds everything it shows: it makes no request, so it opens the
-same with no network. Large maps are averaged over blocks to at most
-:data:`~cnnps.io.report.data.RELIT_SIDE` cells a side (the mesh
+:func:`rebuild_report` makes it again from a finished OUT_DIR (``cnnps report``),
+written atomically while it holds the folder; :func:`notebook_html` is the page in an
+``<iframe srcdoc>`` for a notebook (smaller maps). The page holds everything it shows:
+it makes no request, so it opens the same with no network. Large maps are averaged over
+blocks to at most :data:`~cnnps.io.report.data.RELIT_SIDE` cells a side (the mesh
 :data:`~cnnps.io.report.data.MESH_SIDE` vertices), which keeps a 12-megapixel
 prediction's page at a few MB.
 """
@@ -75,14 +75,18 @@ def _read_json(path: Path) -> dict:
         raise InputError(path, f"cannot be read as JSON ({exc})") from None
 
 
+def _check_folder(out_dir: Path) -> None:
+    if not out_dir.is_dir():
+        raise InputError(out_dir, "not a folder" if out_dir.exists() else "folder not found")
+
+
 def folder_views(out_dir: Path) -> dict:
     """What :func:`report_html` needs, read from a predict OUT_DIR: the arrays, the record,
     the stats from metrics.json; the per-pixel errors again from the capture's ground
     truth when the capture (``record["capture"]``) can still be read, else error.png's
     picture. InputError naming ``out_dir`` when it is not a predict output folder."""
     out_dir = Path(out_dir)
-    if not out_dir.is_dir():
-        raise InputError(out_dir, "not a folder" if out_dir.exists() else "folder not found")
+    _check_folder(out_dir)
     missing = [n for n in (RECORD_FILE, NORMAL_FILE) if not (out_dir / n).is_file()]
     if missing:
         raise InputError(out_dir, f"not a cnnps predict output folder (no {' or '.join(missing)})")
@@ -130,12 +134,18 @@ def _rescored(record: dict, normals, mask, stats: dict, out_dir: Path) -> dict:
 
 def rebuild_report(out_dir) -> Path:
     """Make ``out_dir/report.html`` again from a finished predict OUT_DIR
-    (:func:`folder_views`), written atomically (temporary name, then rename). Returns its
-    path; InputError naming ``out_dir`` when it is not a predict output folder."""
+    (:func:`folder_views`), written atomically (temporary name, then rename), holding the
+    folder as one of its writers (:class:`cnnps.infra.output_folder.OutputFolder`:
+    FolderBusy at once while a prediction writes it). Returns its path; InputError naming
+    ``out_dir`` when it is not a predict output folder."""
     from cnnps.infra.atomic import atomic_path
+    from cnnps.infra.output_folder import OutputFolder
 
-    views = folder_views(Path(out_dir))
-    path = Path(out_dir) / REPORT_FILE
-    with atomic_path(path) as tmp:
-        Path(tmp).write_text(page_html(**views), encoding="utf-8")
+    out_dir = Path(out_dir)
+    _check_folder(out_dir)  # before the lock, which makes a work folder beside it
+    with OutputFolder(out_dir, "cnnps report"):
+        views = folder_views(out_dir)
+        path = out_dir / REPORT_FILE
+        with atomic_path(path) as tmp:
+            Path(tmp).write_text(page_html(**views), encoding="utf-8")
     return path
