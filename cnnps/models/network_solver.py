@@ -35,13 +35,16 @@ def default_model_path() -> Path:
 
 
 def resolve_model(model) -> Path:
-    """The checkpoint to run: ``model`` when it is a file (InputError otherwise), else the
-    shipped model, its SHA-256 checked (CnnpsError saying how to get one when absent)."""
+    """The checkpoint to run: ``model`` when it is a file (InputError otherwise; its SHA-256
+    checked when it is one of the shipped files, such as ``cnnps_v5.pt``), else the shipped
+    model, its SHA-256 checked (CnnpsError saying how to get one when absent)."""
     if model is not None:
         path = Path(model)
         if not path.is_file():
             raise InputError(path, "model file not found")
-        return path
+        from cnnps.models.shipped import verify_if_shipped
+
+        return verify_if_shipped(path)
     path = default_model_path()
     if not path.is_file():
         raise CnnpsError(

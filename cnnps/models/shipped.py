@@ -3,7 +3,8 @@
 ``cnnps_default.pt`` is a checkpoint (half-precision weights, see
 :mod:`cnnps.models.checkpoint`); ``cnnps_default.json`` is its provenance: preset, data hash,
 commit, validation error, date, and the file's SHA-256, which :func:`shipped_model_path`
-checks before the model is used.
+checks before the model is used. Earlier models kept beside it (``cnnps_v5.pt`` with
+``cnnps_v5.json``) are checked the same way when a path names them (:func:`verify_if_shipped`).
 """
 
 from __future__ import annotations
@@ -61,6 +62,18 @@ def verify_shipped(weights: str | Path) -> Path:
 def shipped_model_path(name: str = DEFAULT_NAME) -> Path:
     """Path of the verified shipped weights."""
     return verify_shipped(weights_path(name))
+
+
+def is_shipped(path: str | Path) -> bool:
+    """Whether ``path`` is a weights file of this folder: the default or a named earlier model
+    (``cnnps_v5.pt``), each with its provenance record beside it."""
+    p = Path(path)
+    return p.suffix == ".pt" and p.resolve().parent == WEIGHTS_DIR.resolve()
+
+
+def verify_if_shipped(path: str | Path) -> Path:
+    """``path``, its SHA-256 checked first when it is one of the shipped files (:func:`is_shipped`)."""
+    return verify_shipped(path) if is_shipped(path) else Path(path)
 
 
 def trained_min_lights(model_path: str | Path, meta: dict) -> int | None:

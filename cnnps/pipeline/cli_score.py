@@ -75,7 +75,9 @@ def _model(model: str) -> Path:
     path = Path(model)
     if not path.is_file():
         raise InputError(path, "model file not found" if not path.exists() else "not a file")
-    return path
+    from cnnps.models.shipped import verify_if_shipped
+
+    return verify_if_shipped(path)  # a shipped file named by its path (cnnps_v5.pt) is checked too
 
 
 @app.command("score")

@@ -1,6 +1,7 @@
 """The shipped-model record: the file is checked against its SHA-256 before use."""
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -72,3 +73,31 @@ def test_cli_records_data_and_the_starting_models_provenance(weights_dir, tmp_pa
     assert record["data"]["train_scenes"] == 2 and record["data"]["val_rows"] == 10
     assert record["train_meta"]["init_weights_sha256"] == "ab" * 32
     assert shipped.shipped_model_path() == weights_dir / f"{shipped.DEFAULT_NAME}.pt"
+
+
+def test_v5_kept_beside_the_default_loads_and_is_checked_by_its_path(weights_dir, tmp_path):
+    # cnnps_v5.pt (with cnnps_v5.json) matches its record, which nests the default's (v4's):
+    # v5 is v4 fine-tuned; `--model cnnps/models/weights/cnnps_v5.pt` checks its SHA-256
+    from cnnps.models.network_solver import resolve_model
+
+    real = Path(shipped.__file__).resolve().parent / "weights"  # the package's, before the fixture's
+    for name in (shipped.DEFAULT_NAME, "cnnps_v5"):
+        for suffix in (".pt", ".json"):
+            (weights_dir / f"{name}{suffix}").write_bytes((real / f"{name}{suffix}").read_bytes())
+    v5 = shipped.weights_path("cnnps_v5")
+    assert shipped.shipped_model_path("cnnps_v5") == v5 and resolve_model(v5) == v5
+    record = shipped.read_provenance(v5)
+    assert record["preset"] == "cpu-train-v5" and record["note"].startswith("v5 ")
+    assert record["init"]["sha256"] == shipped.read_provenance(shipped.weights_path())["sha256"]
+    model, _, meta = load_checkpoint(v5)
+    assert isinstance(model, CNNPS) and meta["min_lights"] == record["min_lights"] == 6
+
+    data = bytearray(v5.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    v5.write_bytes(bytes(data))
+    with pytest.raises(CnnpsError, match="damaged"):
+        resolve_model(v5)
+    elsewhere = tmp_path / "elsewhere"  # a checkpoint outside the folder has no record to check
+    elsewhere.mkdir()
+    (elsewhere / "v5.pt").write_bytes(bytes(data))
+    assert resolve_model(elsewhere / "v5.pt") == elsewhere / "v5.pt"
