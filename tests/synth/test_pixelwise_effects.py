@@ -53,7 +53,11 @@ def test_maps_with_the_new_effects_at_zero_are_the_recorded_ones(name):
     g = torch.Generator().manual_seed(20240)
     maps, normals = px.generate(8, generator=g, n_lights=300, sparse_fraction=0.2, effects=fx)
     sums, nxt = GOLDEN[name]
-    np.testing.assert_allclose(maps.double().sum((1, 2, 3)).numpy(), sums, rtol=1e-6, atol=1e-5)
+    # rtol 1e-4: each map is scaled by its brightest cell, often a specular peak x**k with k in the
+    # hundreds, which multiplies float32's rounding of x by k; CPUs whose vector kernels round
+    # differently (AVX2, AVX-512) move the whole map's sum by a few 1e-6 (seen: 2.4e-6 on an Intel
+    # Xeon with AMX); a change of the generator moves it by percents (default against old_on: 2-50 %)
+    np.testing.assert_allclose(maps.double().sum((1, 2, 3)).numpy(), sums, rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(normals[:, 2].numpy(), GOLDEN_NZ, rtol=0, atol=1e-6)
     assert torch.rand(1, generator=g).item() == nxt  # no extra draw: the generator is where it was
     # explicit zeros are the defaults, bit for bit
