@@ -20,6 +20,14 @@ train stage's resume key holds them). ``--pack DIR`` copies the plan, the metric
 model and the newest checkpoint (in pieces under 15 MiB) to DIR; ``--restore DIR`` puts
 them back into an empty data folder, for a machine that went cold between calls.
 
+    # 3. here, from the files the call returned: what the run's folder in git keeps
+    .venv/bin/python tools/gpu_recipe.py keep FILES_AT tools/runs/NAME
+
+``keep`` copies the plan, progress, metrics and measurement and, while the run is in
+progress, the float16 weights (``intermediate.pt``) that ``--restore`` continues from;
+once its plan is spent, only their record (``intermediate.json``: bytes, SHA-256, steps;
+``tools/run_weights.py``).
+
 Without a GPU both steps run on the CPU (``--device cpu``, a few steps; tests/tools run
 them so). ``PYTHONPATH=$PWD`` (in the checkout) puts ``cnnps`` on the path of a python3 that
 has no install of it; ``.venv/bin/python tools/gpu_recipe.py`` needs none.
@@ -38,6 +46,11 @@ import time
 from pathlib import Path
 
 from cnnps.train.openmp import prefer_passive_openmp
+
+try:
+    from tools import run_weights  # imported as tools.gpu_recipe (the tests)
+except ImportError:  # run as a script: its own folder is on the path
+    import run_weights
 
 PRESET = "gpu-train-pixelwise"  # --preset: another one (gpu-train-v5: model v5's maps)
 PIECE = 15 * 2**20  # bytes per piece of a packed checkpoint (a returned file may hold 16 MiB)
@@ -337,19 +350,23 @@ def restore(src: Path, data_dir: Path) -> None:
     ``intermediate.pt``, ``plan.json`` and ``progress.json`` (a run's folder in git), the
     weights as ``init.pt`` and the plan with ``offset`` = the steps done, so the run goes on
     from there with a fresh Adam (the one thing the carried file loses). A folder whose run
-    has made all its planned steps stops the call with one line (SystemExit)."""
+    has made all its planned steps stops the call with one line (SystemExit), as does one
+    whose weights are only recorded or are not the ones recorded
+    (:func:`tools.run_weights.carried_weights`)."""
     if newest_checkpoint(data_dir) is not None or not src.is_dir():
         return
     parts = sorted(src.glob("step-*.part*"))
     if not parts:
-        if (src / "intermediate.pt").is_file() and not (data_dir / "plan.json").is_file():
+        carried = (src / run_weights.WEIGHTS).is_file() or (src / run_weights.RECORD).is_file()
+        if carried and not (data_dir / "plan.json").is_file():
             plan = json.loads((src / "plan.json").read_text())
             done = int(json.loads((src / "progress.json").read_text())["steps_done"])
             if done >= int(plan["total_steps"]):
                 raise SystemExit(f"{src}: this run has spent its plan ({done} of {plan['total_steps']} steps); "
                                  "a new run takes a new folder")
+            weights = run_weights.carried_weights(src)
             data_dir.mkdir(parents=True, exist_ok=True)
-            shutil.copy(src / "intermediate.pt", data_dir / "init.pt")
+            shutil.copy(weights, data_dir / "init.pt")
             (data_dir / "plan.json").write_text(json.dumps({**plan, "offset": done, "init": "init.pt"}, indent=1) + "\n")
         return
     ckdir = data_dir / "train" / "checkpoints"
@@ -362,6 +379,26 @@ def restore(src: Path, data_dir: Path) -> None:
     os.replace(tmp, ckdir / f"{stem}.pt")
     if (src / "plan.json").is_file():
         shutil.copy(src / "plan.json", data_dir / "plan.json")
+
+
+KEPT = ("plan.json", "progress.json", "metrics.json", "measure.json", "gpu.txt", "train.log")
+
+
+def keep(src: Path, run: Path) -> Path | None:
+    """What the run's folder in git (``run``) keeps of the files a call returned
+    (``src``, what ``--pack`` and tools/gpu_v5.sh leave): the plan, progress, metrics,
+    measurement, GPU name and log, and the weights by :func:`tools.run_weights.carry`:
+    ``intermediate.pt`` while the run is in progress, their record alone once its plan is
+    spent. Returns the weights file in ``run``, or None."""
+    progress = json.loads((src / "progress.json").read_text())
+    run.mkdir(parents=True, exist_ok=True)
+    for name in KEPT:
+        if (src / name).is_file():
+            shutil.copy(src / name, run / name)
+    if not (src / run_weights.WEIGHTS).is_file():
+        return None
+    done, total = int(progress["steps_done"]), int(progress["total_steps"])
+    return run_weights.carry(run, src / run_weights.WEIGHTS, steps=done, planned=total, finished=done >= total)
 
 
 def main(argv=None) -> int:
@@ -395,9 +432,18 @@ def main(argv=None) -> int:
     t.add_argument("--pack")
     t.add_argument("--restore")
     t.add_argument("--progress", action="store_true")
+    k = sub.add_parser("keep", help="copy what the run's folder in git keeps from the files a call returned")
+    k.add_argument("src", type=Path, help="the returned files (the call's OUT)")
+    k.add_argument("run", type=Path, help="the run's folder in git (tools/runs/NAME)")
     args = ap.parse_args(argv)
     if args.cmd == "measure":
         measure(args)
+    elif args.cmd == "keep":
+        returned = (args.src / run_weights.WEIGHTS).is_file()
+        weights = keep(args.src, args.run)
+        print(f"{args.run}: " + ("no weights returned" if not returned else
+                                 f"in progress: {weights} and {run_weights.RECORD}" if weights else
+                                 f"plan spent: {run_weights.RECORD} only (the weights stay in {args.src})"))
     else:
         print(json.dumps(train(args)), flush=True)
     return 0

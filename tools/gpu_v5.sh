@@ -2,13 +2,16 @@
 # Model v5's maps from scratch on a lent GPU (preset gpu-train-v5), as one device call of at
 # most 10 minutes: the run's first call measures (batch size, precision, learning rate) and
 # fixes the plan; every call trains on from the run's folder in git, tools/runs/gpu-v5
-# (plan.json, progress.json, intermediate.pt: float16 weights; Adam restarts on each new machine),
-# and leaves in $OUT what that folder keeps next (7 files, ~5.5 MB; docs/pixelwise.md).
+# (plan.json, progress.json and, while the run is in progress, intermediate.pt: float16 weights,
+# checked against their record intermediate.json; Adam restarts on each new machine), and
+# leaves in $OUT the files that folder keeps next (7 files, ~5.5 MB; docs/pixelwise.md).
 #
 #   device run:  bash tools/gpu_v5.sh 420            (timeout_s 600; carry .whl if needed)
-#   then here:   cp FILES_AT/{plan,progress,metrics,measure}.json FILES_AT/intermediate.pt tools/runs/gpu-v5/
-#                cnnps score tools/runs/gpu-v5/intermediate.pt ../shared/data/{diligent/ballPNG,diligent-crop8/*PNG} \
+#   then here:   .venv/bin/python tools/gpu_recipe.py keep FILES_AT tools/runs/gpu-v5
+#                cnnps score FILES_AT/intermediate.pt ../shared/data/{diligent/ballPNG,diligent-crop8/*PNG} \
 #                    --pixels 2000 --exclude-from-mean ballPNG --out tools/runs/gpu-v5/score_p2000.json
+# (`keep` copies the JSON files and the weights while the run is in progress; once its plan
+# is spent, the weights' record alone: their bytes stay in FILES_AT, outside git.)
 #
 # The run in git (one H200, BUDGET=360) has spent its plan: a call on it stops with one line;
 # RUN=tools/runs/NAME starts another (docs/models.md, "On a GPU").

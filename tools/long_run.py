@@ -6,6 +6,7 @@ CPU-time ledger, and a fallback to committed weights.
     .venv/bin/python tools/long_run.py resume v4 [--root /work/runs] [--stages render extract train]
     .venv/bin/python tools/long_run.py resume fx --stages train eval --testset-from v4   # one rendered test set
     .venv/bin/python tools/long_run.py save v4 [--root /work/runs]      # then commit tools/runs/v4/
+    .venv/bin/python tools/long_run.py save v5 --final           # ended before its plan: the record, not the weights
     .venv/bin/python tools/long_run.py status v4
     .venv/bin/python tools/long_run.py study v4                  # a clone for `dvc exp run`
     .venv/bin/python tools/long_run.py exp v4 -- -n NAME -S train.optimiser.lr=1e-4   # one variant, timed
@@ -49,14 +50,19 @@ it often survives. So a run lives in ``ROOT/NAME/``:
   the CPU model of the machine it ran on.
 
 What git carries, in ``tools/runs/NAME/``: ``run.json`` (commit, preset, params),
-``ledger.json`` and at most one ``intermediate.pt`` (``save``: the newest checkpoint's
-weights in float16, replaced each time, never a second file). ``resume`` on a machine where
+``ledger.json`` and the newest checkpoint's weights in float16 (``save``; ``tools/run_weights.py``):
+while the run is in progress, the file itself (``intermediate.pt``, replaced each time,
+never a second file) and its record ``intermediate.json`` (bytes, SHA-256, steps); once
+the run is finished (its plan spent, or ``save --final``), the record alone: the weights
+stay in ``ROOT/NAME/intermediate.pt``, outside the tree. ``resume`` on a machine where
 ``ROOT/NAME`` is gone clones the same commit again and regenerates the data (the stages
 are deterministic and seeded; the ledger records the time it took again). If the train
-stage then has no checkpoint but ``intermediate.pt`` exists, training restarts from those
-weights with the rest of its schedule (:func:`continue_schedule`): the steps left, the
-milestones still ahead, the learning rate reached; Adam's moments start afresh (the one
-thing such a fallback loses).
+stage then has no checkpoint and the carried weights stop before the plan's end, training
+restarts from those weights with the rest of its schedule (:func:`continue_schedule`): the
+steps left, the milestones still ahead, the learning rate reached; Adam's moments start
+afresh (the one thing such a fallback loses). Weights put back by hand are checked
+against the record's SHA-256; weights that are only recorded stop ``resume`` with one
+line saying how to get them back.
 """
 
 from __future__ import annotations
@@ -72,6 +78,11 @@ import time
 from pathlib import Path
 
 import yaml
+
+try:
+    from tools import run_weights  # imported as tools.long_run (the tests)
+except ImportError:  # run as a script: its own folder is on the path
+    import run_weights
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -248,7 +259,7 @@ run_timed.base = 0.0
 class Run:
     def __init__(self, name: str, root: Path, carried: Path = CARRIED):
         self.name, self.dir = name, Path(root) / name
-        self.carried = Path(carried) / name  # in git: run.json, ledger.json, intermediate.pt
+        self.carried = Path(carried) / name  # in git: run.json, ledger.json, the weights or their record
         self.code, self.data = self.dir / "code", self.dir / "data"
         self.params, self.ledger = self.dir / "params.yaml", self.dir / "ledger.json"
 
@@ -293,12 +304,13 @@ class Run:
             self.create(rec["commit"], rec["preset"], rec.get("overrides", []))
             notes.append(f"cloned {rec['commit'][:12]} again into {self.code}")
         if not any((self.data / "train" / "checkpoints").glob("step-*.pt")):
-            w = self.carried / "intermediate.pt"
-            if w.is_file():
-                step = int(self._meta(w)["steps"])
+            w, kept = self.carried / run_weights.WEIGHTS, run_weights.read_record(self.carried)
+            if kept is not None or w.is_file():
+                step = int(kept["steps"]) if kept is not None else int(self._meta(w)["steps"])
                 params = yaml.safe_load(self.params.read_text())
                 base = rec["params"]["train"]
                 if step < int(base.get("max_steps") or 0):
+                    w = run_weights.carried_weights(self.carried)  # checked against the record, or one line
                     params["train"] = continue_schedule(base, step, str(w))
                     self.params.write_text(yaml.safe_dump(params, sort_keys=False))
                     notes.append(f"no checkpoint: training continues from {w.name} (step {step})")
@@ -647,10 +659,13 @@ class Run:
             t["cpu_hours"], t["wall_hours"] = round(t["cpu_hours"], 3), round(t["wall_hours"], 3)
         return out
 
-    def save(self) -> Path | None:
+    def save(self, final: bool = False) -> Path | None:
         """Ledger, the train and eval stages' ``metrics.json`` (as ``train_metrics.json``
         and ``eval_metrics.json``, when the stages have written them) and the newest
-        checkpoint's weights (float16) into git's folder (one weights file)."""
+        checkpoint's weights (float16) into git's folder: the weights file while the run
+        is in progress, their record alone once it is finished (its plan spent, or
+        ``final``: it ends here), the file then in ``ROOT/NAME/intermediate.pt``
+        (:func:`tools.run_weights.carry`). Returns the weights file."""
         dst = self.carried
         if self.ledger.is_file():
             shutil.copy(self.ledger, dst / "ledger.json")
@@ -662,12 +677,16 @@ class Run:
         cks = sorted((self.data / "train" / "checkpoints").glob("step-*.pt"))
         if not cks:
             return None
-        out = dst / "intermediate.pt"
+        out = self.dir / run_weights.WEIGHTS
         done = int(cks[-1].stem.split("-")[1]) + int(self._offset())
-        # float16, as the shipped weights: half the bytes in git; a fallback continues from
+        planned = int(self.record()["params"]["train"].get("max_steps") or 0)
+        # float16, as the shipped weights: half the bytes; a fallback continues from
         # weights rounded to 1 part in 2,000, far below what one training step changes
         self.export(cks[-1], out, meta={"steps": done, "run": self.name, "commit": self.record()["commit"]}, half=True)
-        return out
+        prev = run_weights.read_record(dst)  # a run ended with --final stays ended while its step is the same
+        ended = prev is not None and prev["finished"] and int(prev["steps"]) == done
+        carried = run_weights.carry(dst, out, steps=done, planned=planned, finished=final or ended or done >= planned)
+        return carried or out
 
     def _save_val_curve(self, dst: Path) -> None:
         """The train stage's validation log (steps counted from the run's start) with the
@@ -792,6 +811,8 @@ def main(argv=None) -> int:
     ap.add_argument("--poll", type=float, default=30.0)
     ap.add_argument("--carried", type=Path, default=CARRIED, help="the runs' folder in git")
     ap.add_argument("--model", type=Path, help="probe: score this weights file instead of the newest checkpoint")
+    ap.add_argument("--final", action="store_true",
+                    help="save: the run ends here before its plan is spent: git keeps the weights' record, not the weights")
     ap.add_argument("--name", dest="label", help="probe --model: the row's name in probes.json")
     ap.add_argument("--every", type=int, default=5000, help="curve: score the checkpoints at multiples of this step")
     ap.add_argument("--pixels", type=int, default=2000, help="curve: pixels per capture (cnnps score --pixels)")
@@ -853,8 +874,14 @@ def main(argv=None) -> int:
     if a.cmd == "stop":
         return run.stop()
     if a.cmd == "save":
-        out = run.save()
-        print(f"saved {run.carried}/ledger.json" + (f" and {out}" if out else " (no checkpoint yet)"))
+        out = run.save(final=a.final)
+        if out is None:
+            print(f"saved {run.carried}/ledger.json (no checkpoint yet)")
+        elif out.parent == run.carried:
+            print(f"saved {run.carried}/ledger.json and {out} (in progress)")
+        else:
+            print(f"saved {run.carried}/ledger.json and {run.carried / run_weights.RECORD} (finished: the weights "
+                  f"stay in {out}, outside git)")
         return 0
     print(json.dumps({"dir": str(run.dir), "exists": run.dir.is_dir(), "totals": run.totals()}, indent=1))
     return 0

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -15,7 +16,7 @@ import time
 import pytest
 import yaml
 
-from tools import long_run
+from tools import long_run, run_weights
 
 REPO = long_run.REPO
 
@@ -72,6 +73,7 @@ def test_a_run_outside_the_work_tree(tmp_path):
     from cnnps.models.network import CNNPS
 
     # save: the newest training checkpoint's weights become the one intermediate.pt in git
+    # (the run is in progress: step 10 of the preset's 250), with their record
     net = CNNPS(w=32)
     ck = root / "r" / "data" / "train" / "checkpoints"
     ck.mkdir(parents=True)
@@ -82,23 +84,60 @@ def test_a_run_outside_the_work_tree(tmp_path):
     assert not (carried / "r" / "eval_metrics.json").exists()  # no eval stage yet
     saved, _, meta = load_checkpoint(carried / "r" / "intermediate.pt")
     assert meta["steps"] == 10 and meta["commit"] == head
+    record = json.loads((carried / "r" / "intermediate.json").read_text())
+    assert record["steps"] == 10 and record["planned_steps"] == 250 and not record["finished"]
+    from cnnps.infra.hashing import file_sha256
+
+    assert record["sha256"] == file_sha256(carried / "r" / "intermediate.pt")
     # the weights exactly, rounded to float16 (what git keeps)
     assert all(torch.equal(v, net.state_dict()[k].half().float()) for k, v in saved.state_dict().items())
     assert json.loads((carried / "r" / "ledger.json").read_text())["calls"][0]["stage"] == "meshes"
 
     # the machine comes back bare: the clone and the data are gone, the weights of step 60 are in git
     shutil.rmtree(root)
-    save_checkpoint(carried / "r" / "intermediate.pt", CNNPS(w=32), meta={"steps": 60})
+    weights = carried / "r" / "intermediate.pt"
+    save_checkpoint(weights, CNNPS(w=32), meta={"steps": 60})
+    run_weights.carry(carried / "r", weights, steps=60, planned=100, finished=False)
     # (in the layout of the clone's preset: HEAD's code reads that one)
     rec["params"]["train"] = long_run.with_train_values(rec["params"]["train"], max_steps=100, lr=1e-3,
                                                         lr_milestones=[50, 80], lr_gamma=0.1)
     (carried / "r" / "run.json").write_text(json.dumps(rec))
+    # weights that are not the recorded ones (replaced by hand) are refused, naming the file
+    good = weights.read_bytes()
+    save_checkpoint(weights, CNNPS(w=32, dropout=0.1), meta={"steps": 60})
+    with pytest.raises(SystemExit, match=re.escape(f"{weights}: not the weights intermediate.json records")):
+        long_run.Run("r", root, carried).ensure()
+    weights.write_bytes(good)
     notes = long_run.Run("r", root, carried).ensure()
-    assert len(notes) == 2 and (root / "r" / "code" / ".git").is_dir()
+    assert len(notes) == 1 and (root / "r" / "code" / ".git").is_dir()  # cloned by the refused call
     train = yaml.safe_load((root / "r" / "params.yaml").read_text())["train"]
     assert train["init"] == str(carried / "r" / "intermediate.pt") and train["max_steps"] == 40
     assert long_run.train_value(train, "lr_milestones") == [20]
     assert long_run.train_value(train, "lr") == pytest.approx(1e-4)
+
+    # the run ends at step 80 of 100 (save --final): git keeps the weights' record, not the weights
+    ck.mkdir(parents=True)
+    torch.save({"model": net.state_dict(), "step": 20}, ck / "step-00000020.pt")
+    assert long_run.main(["save", "r", "--final", *args]) == 0
+    record = json.loads((carried / "r" / "intermediate.json").read_text())
+    assert not weights.exists() and record["finished"] and record["steps"] == 80
+    kept = root / "r" / "intermediate.pt"
+    assert record["kept"] == str(kept) and load_checkpoint(kept)[2]["steps"] == 80
+    assert long_run.main(["save", "r", *args]) == 0  # (a later save of the same step: still ended)
+    assert not weights.exists() and json.loads((carried / "r" / "intermediate.json").read_text())["finished"]
+    # resuming it on a bare machine needs the weights: one line naming the file and where they are
+    shutil.rmtree(ck)
+    with pytest.raises(SystemExit, match=re.escape(f"{weights}: not here; ") + ".*intermediate.json keeps only its SHA-256 .*"
+                                         + re.escape(f"step 80): it was written to {kept}")):
+        long_run.Run("r", root, carried).ensure()
+    shutil.copy(kept, weights)  # put back: checked against the record, then the run goes on from step 80
+    assert long_run.Run("r", root, carried).ensure() == ["no checkpoint: training continues from intermediate.pt (step 80)"]
+    # a run whose plan is spent keeps the record alone without --final
+    ck.mkdir(parents=True)
+    torch.save({"model": net.state_dict(), "step": 20}, ck / "step-00000020.pt")  # 80 + 20 = the plan's 100
+    assert long_run.main(["save", "r", *args]) == 0
+    record = json.loads((carried / "r" / "intermediate.json").read_text())
+    assert not weights.exists() and record["finished"] and record["steps"] == record["planned_steps"] == 100
 
 
 @pytest.mark.skipif(shutil.which("git") is None or not (REPO / ".git").exists(), reason="needs git and a clone")
