@@ -22,6 +22,12 @@ lists in its ``MOVED_KEYS`` (``{"lr": "optimiser.lr"}``) is refused with its new
 (negative counts, reversed bounds, ...) are the stages' own ``__post_init__``.
 :func:`load_all` validates every stage before any work starts.
 
+One source per setting: a ``Params`` whose ``FROM_SECTIONS`` maps one of its fields to other
+stages' keys (train's ``{"synthesis": {"materials": ("categories", "ranges"), "extract":
+("min_lights", ...)}}``) gets that field built from those stages' validated ``Params``
+(their values, or their defaults where the file leaves them out); the stage's own section
+setting it is a ConfigError naming the keys to edit instead.
+
 Stage modules are imported lazily (:func:`stage_module`) so ``cnnps --help`` stays
 fast and bpy is only imported by the render stage when it renders.
 """
@@ -358,12 +364,13 @@ _INPUT_CHECKS = {
 
 
 def build_params(config: Config, stage: str, check_files: bool = True) -> Any:
-    """The stage's validated ``Params`` from its section (plus the shared keys)."""
+    """The stage's validated ``Params`` from its section (plus the shared keys, and the
+    fields its ``FROM_SECTIONS`` fills from other stages' sections: :func:`from_sections`)."""
     module = stage_module(stage)
     cls = getattr(module, "Params", None)
     if cls is None or not dataclasses.is_dataclass(cls):
         raise ConfigError(f"stage {stage!r} has no Params dataclass")
-    extra = {"seed": config.seed, "executor": config.executor}
+    extra = {"seed": config.seed, "executor": config.executor, **from_sections(config, stage, cls)}
     params = build_dataclass(cls, config.sections[stage], f"{config.where}: {stage}", extra=extra)
     check = getattr(module, "check_inputs", None) or _INPUT_CHECKS.get(stage)
     if check_files and callable(check):  # optional: checks on files the params name (e.g. a mesh folder)
@@ -372,6 +379,30 @@ def build_params(config: Config, stage: str, check_files: bool = True) -> Any:
         except ConfigError as exc:
             raise ConfigError(_prefix(f"{config.where}: {stage}", str(exc))) from None
     return params
+
+
+def from_sections(config: Config, stage: str, cls: type) -> dict[str, Any]:
+    """``{field: its dataclass}`` for each field ``cls.FROM_SECTIONS`` fills from other
+    stages (``{field: {stage: keys}}``): each source stage's ``Params`` built from this
+    config (validated, without file checks) and the keys' values taken from it. A field
+    set in the stage's own section is a ConfigError naming the keys that set it."""
+    wanted = getattr(cls, "FROM_SECTIONS", None) or {}
+    hints = typing.get_type_hints(cls) if wanted else {}
+    out = {}
+    for name, sources in wanted.items():
+        keys = [f"{src}.{k}" for src, ks in sources.items() for k in ks]
+        if name in config.sections[stage]:
+            raise ConfigError(f"{config.where}: {stage}.{name} is not set in {stage}: it is "
+                              f"{', '.join(keys)} (one source for each)")
+        values = {}
+        for src, ks in sources.items():
+            built = build_params(config, src, check_files=False)
+            values.update({k: getattr(built, k) for k in ks})
+        try:
+            out[name] = hints[name](**values)
+        except (ConfigError, TypeError, ValueError) as exc:
+            raise ConfigError(f"{config.where}: {stage}.{name} (from {', '.join(keys)}): {exc}") from None
+    return out
 
 
 def load_all(config: Config, stages: list[str] | None = None, check_files: bool = True) -> dict[str, Any]:

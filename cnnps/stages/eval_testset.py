@@ -17,7 +17,8 @@ SPHERE = "sphere"
 
 
 def testset_plan(params) -> list[dict]:
-    """The synthetic test captures: shape x category x light set (names and seeds)."""
+    """The synthetic test captures: shape x category x light set (names and seeds); each
+    category's materials are drawn from its ``params.ranges`` (:func:`build_testset`)."""
     from cnnps.infra.hashing import entropy_seed
 
     base = params.seed + TEST_SEED_OFFSET
@@ -90,7 +91,7 @@ def build_rig_twins(params, data_dir: Path) -> list[Path]:
                 meshes[c["shape"]], root / rig_name(c["name"], rig), lights=c["lights"],
                 size=twin_size(params.size, rig), samples=params.samples, material=c["category"],
                 superpixels=params.superpixels, seed=c["seed"], jitter_deg=0.0, fov_deg=rig.fov_deg,
-                light_distance=rig.light_distance, progress=False,
+                light_distance=rig.light_distance, progress=False, ranges=params.ranges.get(c["category"]),
             )
         )
     return out
@@ -98,7 +99,9 @@ def build_rig_twins(params, data_dir: Path) -> list[Path]:
 
 def build_testset(params, data_dir: Path) -> list[Path]:
     """Render (or reuse: each capture carries a content key) the synthetic test captures
-    under ``data_dir/eval/testset/<shape>-<category>-<lights>/``; return their folders."""
+    under ``data_dir/eval/testset/<shape>-<category>-<lights>/``, each category's materials
+    drawn from ``params.ranges`` (its key holds them where they are not the defaults);
+    return their folders."""
     from cnnps.infra.stage_folders import prune_stale
     from cnnps.synth.capture_render import RENDER_MARKERS, render_capture
 
@@ -116,6 +119,7 @@ def build_testset(params, data_dir: Path) -> list[Path]:
             render_capture(
                 meshes[c["shape"]], root / c["name"], lights=c["lights"], size=params.size, samples=params.samples,
                 material=c["category"], superpixels=params.superpixels, seed=c["seed"], jitter_deg=0.0,
+                ranges=params.ranges.get(c["category"]),
             )
         )
     return out

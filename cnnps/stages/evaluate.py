@@ -2,8 +2,10 @@
 
 The test set follows the spirit of CyclesPSTest: a sphere and two strongly non-convex
 procedural shapes that training never sees (their own seeds), covered with
-``superpixels`` superpixels of the Specular and the Metallic material categories, lit by
-17 and by 305 uniform (not jittered) lights. It is built with the synthesis library
+``superpixels`` superpixels of the Specular and the Metallic material categories drawn
+from ``ranges`` (its own BSDF ranges, the paper's by default: a fixed yardstick whatever
+``materials.ranges`` trains on), lit by 17 and by 305 uniform (not jittered) lights. It
+is built with the synthesis library
 (:mod:`cnnps.synth`: meshes, superpixel materials, :func:`cnnps.synth.capture_render.render_capture`)
 under ``data_dir/eval/testset/`` and cached there like any stage output (unchanged
 captures are not re-rendered). Blender (bpy, the ``cnnps[render]`` extra) is needed only
@@ -49,7 +51,7 @@ non-finite image stops the stage, naming it.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -79,6 +81,7 @@ from cnnps.stages.eval_testset import (  # noqa: F401 (part of this stage's API)
     test_mesh,
     testset_plan,
 )
+from cnnps.synth.bsdf import MaterialRanges
 
 
 @dataclass(frozen=True)
@@ -114,6 +117,11 @@ class Params:
 
     ``test_shapes``: ``sphere`` and/or procedural kinds (:data:`cnnps.synth.procedural.PROCEDURAL_KINDS`);
     ``synthetic: false`` skips the synthetic test set (real captures only).
+    ``categories``: the test set's material categories; ``ranges``: their BSDF ranges, a
+    :class:`cnnps.synth.bsdf.MaterialRanges` or per-category overrides of the defaults as
+    ``materials.ranges`` takes them (``{"metallic": {"roughness": [0.1, 0.5]}}``); the
+    test set's own, not ``materials.ranges``: editing what training draws from leaves the
+    yardstick as it is.
     ``real_captures``: capture folders (DiLiGenT layout) also scored; without ground
     truth only their pictures are made. ``real_subsets``: image counts n; each real
     capture is scored again from n of its images, drawn by the seeded rule of
@@ -137,6 +145,7 @@ class Params:
     test_shapes: tuple[str, ...] = (SPHERE, "bowl", "holed")
     superpixels: int = 100
     categories: tuple[str, ...] = ("specular", "metallic")
+    ranges: MaterialRanges = field(default_factory=MaterialRanges)  # the test set's BSDF ranges (not materials')
     light_sets: tuple[int, ...] = (17, 305)
     size: int = 64
     samples: int = 16
@@ -162,6 +171,10 @@ class Params:
         for name in ("test_shapes", "categories", "light_sets", "rotations", "real_captures", "real_subsets",
                      "real_exclude_from_mean"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
+        if isinstance(self.ranges, dict):
+            object.__setattr__(self, "ranges", MaterialRanges.from_dict(self.ranges))
+        if not isinstance(self.ranges, MaterialRanges):
+            raise ConfigError(f"eval.ranges must be a mapping of categories, got {self.ranges!r}")
         if self.synthetic:
             if not self.test_shapes:
                 raise ConfigError("eval.test_shapes is empty (set eval.synthetic: false to score real captures only)")

@@ -10,7 +10,8 @@ averaging, through the batched inference of ``cnnps predict``, always in fp32) r
 ``val_every`` steps and at the end.
 
 This module holds the stage's ``Params`` (nested: ``optimiser``, ``data``, ``pixelwise``,
-``cpu``; see :class:`Params`), its run key and :func:`run`; the machinery is in
+``cpu``, and ``synthesis``, filled from ``materials`` and ``extract``; see :class:`Params`),
+its run key and :func:`run`; the machinery is in
 :mod:`cnnps.train` (:mod:`~cnnps.train.loop`, :mod:`~cnnps.train.optimiser`,
 :mod:`~cnnps.train.resume`, :mod:`~cnnps.train.validation`,
 :mod:`~cnnps.train.distributed`, and the CPU and GPU speed modules named below).
@@ -65,6 +66,14 @@ Per-pixel maps (``pixelwise.share``) are made ``pixelwise.ahead`` steps ahead
 (:mod:`cnnps.train.maps_ahead`) from a generator seeded by the step, so they are the same
 made ahead or in the step. What each setting costs or gains: ``docs/performance.md``.
 
+What per-pixel maps are drawn from: the material categories and BSDF ranges of
+``materials.categories`` / ``materials.ranges`` and the light subsets of
+``extract.min_lights``, ``max_lights``, ``cone_min_deg``, ``cone_max_deg`` and
+``sparse_min_lights``, the settings the renders and shards are made with
+(:class:`SynthesisParams`, filled by the config layer); their own settings are
+``pixelwise.lights`` (the light set's size), ``pixelwise.sparse_fraction`` and
+``pixelwise.effects``. ``docs/pipeline.md`` has the table of which setting feeds which data.
+
 Colour maps (``pixelwise.rgb: true``, with ``pixelwise.share: 1``): the network takes
 (B, 4, w, w) maps, the grey map then R, G, B (:func:`cnnps.synth.pixelwise.generate` with
 ``rgb=True``), validation maps too; a grey ``init`` is widened to 4 input channels with
@@ -88,6 +97,7 @@ from typing import Annotated, ClassVar, Literal
 from cnnps.infra.errors import ConfigError
 from cnnps.infra.hashing import stable_hash
 from cnnps.infra.options import Range, check_fields
+from cnnps.synth.bsdf import CATEGORIES, DEFAULT_CATEGORIES, MaterialRanges
 from cnnps.train.openmp import prefer_passive_openmp  # torch-free (torch loads in run)
 
 # cnnps.synth.pixelwise.EFFECT_NAMES (named here: this module loads without torch)
@@ -163,6 +173,9 @@ class PixelwiseParams:
     # colour maps: the network takes (B, 4, w, w), the grey map then R, G, B (cnnps.synth.pixelwise.generate
     # with rgb=True); needs share: 1 (the shards are grey); a grey train.init is widened (colour filters at 0)
     rgb: bool = False
+    # directions in each batch's light set (a jittered spiral, cnnps.synth.pixelwise.default_lights): the
+    # per-pixel counterpart of render.lights; a map takes k <= min(extract.max_lights, lights) of them
+    lights: Annotated[int, Range(ge=3)] = 1300
 
     def __post_init__(self):
         check_fields(self, "train.pixelwise.")
@@ -174,6 +187,66 @@ class PixelwiseParams:
                                   f"effects (cnnps.synth.pixelwise.Effects): {', '.join(PIXELWISE_EFFECTS)}")
             if not 0.0 <= float(v) <= 1.0:
                 raise ConfigError(f"train.pixelwise.effects.{k} must be a number in [0, 1], got {v!r}")
+
+
+@dataclass(frozen=True)
+class SynthesisParams:
+    """``train.synthesis``: the settings per-pixel maps share with the rendered training
+    data, each with one source in params.yaml: ``categories`` and ``ranges`` are
+    ``materials.categories`` and ``materials.ranges`` (what the rendered scenes' materials
+    are drawn from), the light-subset rules are extract's (``extract.min_lights``,
+    ``max_lights``, ``cone_min_deg``, ``cone_max_deg``, ``sparse_min_lights``: what the
+    shards' maps are cut by). The config layer fills this section from those keys
+    (:data:`Params.FROM_SECTIONS`); a params file's ``train:`` cannot set it. The defaults
+    are those sections' defaults, so ``Params()`` in Python draws what an empty params file
+    does. :func:`cnnps.train.loop.pixelwise_maker` hands every field to
+    :func:`cnnps.synth.pixelwise.generate`."""
+
+    categories: tuple[str, ...] = DEFAULT_CATEGORIES
+    ranges: MaterialRanges = field(default_factory=MaterialRanges)
+    min_lights: int = 50
+    max_lights: int = 1300
+    cone_min_deg: float = 20.0
+    cone_max_deg: float = 90.0
+    sparse_min_lights: int = 6  # sparse maps (train.pixelwise.sparse_fraction): k log-uniform in [this, min_lights)
+
+    def __post_init__(self):
+        if isinstance(self.ranges, Mapping):
+            object.__setattr__(self, "ranges", MaterialRanges.from_dict(dict(self.ranges)))
+        if not isinstance(self.ranges, MaterialRanges):
+            raise ConfigError(f"train.synthesis.ranges must be a mapping, got {self.ranges!r}")
+        if isinstance(self.categories, str):
+            raise ConfigError("train.synthesis.categories must be a list of category names")
+        cats = tuple(str(c).lower() for c in self.categories)
+        object.__setattr__(self, "categories", cats)
+        unknown = [c for c in cats if c not in CATEGORIES]
+        if not cats or unknown or len(set(cats)) != len(cats):
+            raise ConfigError(f"train.synthesis.categories must name distinct categories of "
+                              f"{', '.join(CATEGORIES)}, got {list(cats)}")
+        if not 1 <= self.min_lights <= self.max_lights:
+            raise ConfigError(f"train.synthesis: need 1 <= min_lights <= max_lights, "
+                              f"got {self.min_lights} and {self.max_lights}")
+        if not 0.0 < self.cone_min_deg <= self.cone_max_deg <= 180.0:
+            raise ConfigError(f"train.synthesis: need 0 < cone_min_deg <= cone_max_deg <= 180, "
+                              f"got {self.cone_min_deg}, {self.cone_max_deg}")
+        if self.sparse_min_lights < 1:
+            raise ConfigError(f"train.synthesis.sparse_min_lights must be >= 1, got {self.sparse_min_lights}")
+
+    def changed(self) -> dict:
+        """The settings not at their defaults, as plain data (what a run key holds);
+        ``ranges`` only for the categories drawn."""
+        default = SynthesisParams()
+        out: dict = {}
+        if self.categories != default.categories:
+            out["categories"] = list(self.categories)
+        ranges = {c: self.ranges.get(c).to_dict() for c in self.categories
+                  if self.ranges.get(c) != default.ranges.get(c)}
+        if ranges:
+            out["ranges"] = ranges
+        for name in ("min_lights", "max_lights", "cone_min_deg", "cone_max_deg", "sparse_min_lights"):
+            if getattr(self, name) != getattr(default, name):
+                out[name] = getattr(self, name)
+        return out
 
 
 @dataclass(frozen=True)
@@ -205,7 +278,8 @@ class CpuParams:
         check_fields(self, "train.cpu.")
 
 
-SECTIONS = {"optimiser": OptimiserParams, "data": DataParams, "pixelwise": PixelwiseParams, "cpu": CpuParams}
+SECTIONS = {"optimiser": OptimiserParams, "data": DataParams, "pixelwise": PixelwiseParams, "cpu": CpuParams,
+            "synthesis": SynthesisParams}
 
 # Where each key of the flat train section (params files, model-file records and run keys
 # written before the sections) lives now: flat name -> "section.key".
@@ -220,8 +294,18 @@ MOVED_KEYS = {
 
 
 # Section keys that came after the sections, with their defaults: left out of the flat
-# params (and so of the run key) at that default.
-NEW_KEYS = {"pixelwise.rgb": False, "optimiser.average_from": 0}
+# params (and so of the run key) at that default. (``synthesis``'s keys: SynthesisParams.changed.)
+NEW_KEYS = {"pixelwise.rgb": False, "optimiser.average_from": 0, "pixelwise.lights": 1300}
+
+# Sections of the train params filled from other stages' sections by the config layer
+# (cnnps.pipeline.config.build_params): section -> {stage: keys}. dvc.yaml's train stage lists
+# each "stage.key" among its params (tests/pipeline/test_dvc.py checks it).
+FROM_SECTIONS = {
+    "synthesis": {
+        "materials": ("categories", "ranges"),
+        "extract": ("min_lights", "max_lights", "cone_min_deg", "cone_max_deg", "sparse_min_lights"),
+    },
+}
 
 
 def _section(cls: type, value, name: str):
@@ -249,14 +333,20 @@ class Params:
           pixelwise: {share: 0.5, effects: {ambient: 0.05}}
           cpu: {threads: 2}
 
+    and a fifth, ``synthesis`` (:class:`SynthesisParams`), that the config layer fills from
+    ``materials`` and ``extract`` (:data:`FROM_SECTIONS`), so per-pixel maps draw the
+    materials and light subsets the renders and shards do.
+
     A key of the flat section that preceded them (``train: {lr: 0.001}``) is refused with
     its new place (``train.lr moved to train.optimiser.lr``; :data:`MOVED_KEYS`). In Python
     a section is its dataclass or a mapping of its keys:
-    ``Params(max_steps=10, optimiser={"lr": 1e-4})``.
+    ``Params(max_steps=10, optimiser={"lr": 1e-4}, synthesis={"categories": ["metallic"]})``.
     """
 
     # flat key -> "section.key", for the one-line error of cnnps.pipeline.config
     MOVED_KEYS: ClassVar[dict[str, str]] = MOVED_KEYS
+    # section -> {stage: keys} the config layer fills it from (cnnps.pipeline.config.build_params)
+    FROM_SECTIONS: ClassVar[dict[str, dict[str, tuple[str, ...]]]] = FROM_SECTIONS
 
     epochs: int = 10
     max_steps: int = 0  # 0 = no limit; otherwise stop after this many optimiser steps
@@ -279,6 +369,7 @@ class Params:
     data: DataParams = field(default_factory=DataParams)
     pixelwise: PixelwiseParams = field(default_factory=PixelwiseParams)
     cpu: CpuParams = field(default_factory=CpuParams)
+    synthesis: SynthesisParams = field(default_factory=SynthesisParams)  # from materials and extract
 
     def __post_init__(self):
         for name, cls in SECTIONS.items():
@@ -298,6 +389,11 @@ class Params:
         if self.pixelwise.share >= 1.0 and not self.max_steps:
             raise ConfigError("train.pixelwise.share: 1 (per-pixel maps only) needs train.max_steps: "
                               "there are no epochs")
+        syn = self.synthesis
+        if self.pixelwise.share and self.pixelwise.sparse_fraction and syn.sparse_min_lights >= syn.min_lights:
+            raise ConfigError(f"train.pixelwise.sparse_fraction needs extract.sparse_min_lights < extract.min_lights "
+                              f"(a sparse map has fewer lights than a dense one), got {syn.sparse_min_lights} "
+                              f"and {syn.min_lights}")
         if self.pixelwise.rgb and self.pixelwise.share < 1.0:
             raise ConfigError(f"train.pixelwise.rgb: true needs train.pixelwise.share: 1.0 (the rendered shards "
                               f"hold grey maps only), got share {self.pixelwise.share}")
@@ -326,12 +422,15 @@ class Params:
     def flat(self) -> dict:
         """The params as one flat mapping, each key under its flat name (:data:`MOVED_KEYS`):
         what :meth:`result_key` hashes, so run keys do not depend on the sections. A
-        section key added after the sections (:data:`NEW_KEYS`) is ``<section>_<key>``
-        and only there when it is not at its default, so the runs started before it keep
-        their keys."""
+        section key added after the sections (:data:`NEW_KEYS`, and ``synthesis``'s:
+        :meth:`SynthesisParams.changed`) is ``<section>_<key>`` and only there when it is
+        not at its default, so the runs started before it keep their keys."""
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in SECTIONS}
         back = {new: old for old, new in MOVED_KEYS.items()}
+        d.update({f"synthesis_{key}": value for key, value in self.synthesis.changed().items()})
         for name in SECTIONS:
+            if name == "synthesis":
+                continue
             for key, value in asdict(getattr(self, name)).items():
                 place = f"{name}.{key}"
                 if place in NEW_KEYS:
@@ -344,12 +443,16 @@ class Params:
     def result_key(self) -> dict:
         """Params that change the trained weights (a resume needs them equal), under their
         flat names. ``init`` enters :func:`run_key` as the SHA-256 of its weights, not as a
-        path."""
+        path. Without per-pixel maps (``pixelwise.share: 0``) the per-pixel light set and
+        ``synthesis`` change nothing (the shards' manifest, in the key, holds what made them)."""
         d = self.flat()
         for k in ("epochs", "max_steps", "val_every", "val_max_rows", "checkpoint_every", "keep_checkpoints",
                   "log_every", "threads", "num_workers", "prefetch", "progress", "shards", "init",
                   "keep_freed_memory", "pixelwise_ahead", "step_processes"):
             d.pop(k)
+        if not self.pixelwise.share:
+            for k in [k for k in d if k.startswith("synthesis_") or k == "pixelwise_lights"]:
+                d.pop(k)
         d["lr_milestones"] = list(self.optimiser.lr_milestones)
         return d
 

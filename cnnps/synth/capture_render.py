@@ -138,6 +138,7 @@ from cnnps.io.capture import (
     write_scene,
 )
 from cnnps.io.capture.files import read_depth_gt, read_light_positions
+from cnnps.synth.bsdf import CategoryRanges, MaterialRanges
 
 VERSION = 1  # bump when what is written for the same inputs changes (part of every render key)
 # what a capture is covered with: white Lambertian, or a materials-stage category on superpixels
@@ -883,10 +884,12 @@ def load_mesh_arg(mesh) -> tuple[Any, dict]:
     return load_mesh(path), {"mesh": str(path), "mesh_sha256": file_sha256(path) if path.is_file() else None}
 
 
-def capture_material(material: str, superpixels: int, seed: int):
+def capture_material(material: str, superpixels: int, seed: int, ranges=None):
     """The renderer material of a capture: the white Lambertian dict for ``lambertian``,
     else a callable ``mask -> material dict`` drawing the category on ``superpixels``
-    superpixels of the mask with ``seed``; a ConfigError for an unknown category."""
+    superpixels of the mask with ``seed`` from ``ranges`` (a
+    :class:`cnnps.synth.bsdf.CategoryRanges` or :class:`~cnnps.synth.bsdf.MaterialRanges`;
+    None = the category's default ranges); a ConfigError for an unknown category."""
     if material not in MATERIAL_KINDS:
         raise ConfigError(f"material must be one of {', '.join(MATERIAL_KINDS)}, got {material!r}")
     if superpixels < 1:
@@ -897,10 +900,21 @@ def capture_material(material: str, superpixels: int, seed: int):
     def mat(mask: np.ndarray) -> dict:
         from cnnps.synth.material_maps import sample_material_maps
 
-        maps = sample_material_maps(mask, material, superpixels, derive_seed(int(seed), "material"))
+        maps = sample_material_maps(mask, material, superpixels, derive_seed(int(seed), "material"), ranges)
         return principled_material(extend_maps(dict(maps.params), mask))
 
     return mat
+
+
+def changed_ranges(material: str, ranges) -> dict | None:
+    """The ranges ``material`` is drawn from as plain data where they differ from its
+    defaults, else None (lambertian, no ``ranges``, or the defaults): what a capture's
+    key and ``scene.json`` add, so captures at the default ranges keep their keys."""
+    if material == "lambertian" or ranges is None:
+        return None
+    cr = ranges if isinstance(ranges, CategoryRanges) else ranges.get(material)
+    default = MaterialRanges().get(material)
+    return None if cr == default else cr.to_dict()
 
 
 def capture_lights(p: RenderSettings) -> np.ndarray:
@@ -913,7 +927,7 @@ def capture_lights(p: RenderSettings) -> np.ndarray:
 
 
 def render_capture(mesh, out_dir: str | Path, settings: CaptureSettings | None = None, *, progress: bool = True,
-                   **options) -> Path:
+                   ranges=None, **options) -> Path:
     """Render one capture folder of ``mesh`` and return its path: what :func:`cnnps.render`,
     ``cnnps render`` and the eval stage's test set (orthographic captures and rig twins) run.
 
@@ -921,12 +935,15 @@ def render_capture(mesh, out_dir: str | Path, settings: CaptureSettings | None =
         ``procedural:<kind>[:seed]``.
     settings: a :class:`CaptureSettings` (default: its defaults); ``options``: fields of it
         to change (``lights=12, fov_deg=40.0``), validated before the mesh is loaded.
+    ranges: the BSDF ranges a category material is drawn from (:func:`capture_material`;
+        None = the category's defaults, as a materials-stage category's).
 
     The scene: the mesh, the material (:func:`capture_material`: white Lambertian, or a
     category drawn on superpixels of Blender's mask with ``derive_seed(seed, "material")``),
     the spiral's light directions (:func:`capture_lights`), the camera and the light model.
     Its key hashes the mesh, material, superpixels and :meth:`RenderSettings.picture_params`
-    (plus environment, fov_deg and light_distance when used: :func:`capture_key`), so a
+    (plus ranges other than the category's defaults, :func:`changed_ranges`, and
+    environment, fov_deg and light_distance when used: :func:`capture_key`), so a
     rerun skips a complete folder and resumes a partial one (:func:`render_into`).
 
     Example: ``render_capture("procedural:blob", "blob", lights=20, size=64, fov_deg=40.0)``.
@@ -938,11 +955,14 @@ def render_capture(mesh, out_dir: str | Path, settings: CaptureSettings | None =
     vertices = np.asarray(tm.vertices, dtype=np.float64)
     faces = np.asarray(tm.faces, dtype=np.int64)
     mesh_hash = bytes_sha256(vertices.astype(np.float32).tobytes(), faces.astype(np.int64).tobytes())
-    scene = Scene(vertices, faces, capture_material(p.material, p.superpixels, p.seed), capture_lights(p),
+    scene = Scene(vertices, faces, capture_material(p.material, p.superpixels, p.seed, ranges), capture_lights(p),
                   fov_deg=p.fov_deg, light_distance=p.light_distance, environment=p.environment)
-    key = capture_key({"mesh": mesh_hash, "material": [p.material, p.superpixels], "params": p.picture_params(),
-                       "v": VERSION}, p.environment, fov_deg=p.fov_deg, light_distance=p.light_distance)
+    changed = changed_ranges(p.material, ranges)
+    inputs = {"mesh": mesh_hash, "material": [p.material, p.superpixels], "params": p.picture_params(), "v": VERSION}
+    key = capture_key({**inputs, "ranges": changed} if changed else inputs, p.environment, fov_deg=p.fov_deg,
+                      light_distance=p.light_distance)
     out = Path(out_dir)
-    meta = {"mesh_sha256": mesh_hash, "material": p.material, "superpixels": p.superpixels, **info}
+    meta = {"mesh_sha256": mesh_hash, "material": p.material, "superpixels": p.superpixels,
+            **({"ranges": changed} if changed else {}), **info}
     render_into(out, scene, p, key=key, meta=meta, progress=progress, desc=out.name)
     return out

@@ -5,9 +5,9 @@ Logothetis et al., ICCV 2021): no mesh and no renderer, one BSDF evaluation per
 ``docs/pixelwise.md``.
 
 - :func:`generate` ``(batch_size, *, generator, device, ...)`` -> ``(maps (B, 1, w, w),
-  normals (B, 3))`` float32: per pixel a normal (:func:`sample_normals`), a material
-  (:func:`sample_materials`, the materials stage's ``materials.ranges``), a light subset
-  by the extract rules (:func:`light_subsets`), radiance from :func:`shade`, the effects
+  normals (B, 3))`` float32: per pixel a normal (:func:`sample_normals`), a material of
+  ``categories`` drawn from ``ranges`` (:func:`sample_materials`), a light subset by the
+  extract stage's rules (:func:`light_subsets`), radiance from :func:`shade`, the effects
   of :class:`Effects` (global light, noise, and the camera: exposure, clipping, black level,
   quantisation, :func:`camera_response`; pixels mixing two surfaces), and the map
   (:func:`observation_maps_torch`); ``rgb=True`` adds R, G, B maps
@@ -21,6 +21,12 @@ Logothetis et al., ICCV 2021): no mesh and no renderer, one BSDF evaluation per
   each map scaled to a largest cell of 1).
 
 Frame: x right, y up, z toward the camera; orthographic view v = (0, 0, 1).
+
+This module takes every setting as an argument; its defaults are the paper's (every
+category of :data:`cnnps.synth.bsdf.DEFAULT_CATEGORIES` at its default ranges, 50 to 1300
+of 1300 lights in cones of 20 to 90 degrees). The train stage passes params.yaml's:
+``materials.categories`` and ``materials.ranges``, extract's light-subset keys, and
+``train.pixelwise``'s own (:func:`cnnps.train.loop.pixelwise_settings`).
 
 Example::
 
@@ -92,8 +98,9 @@ def sample_materials(
     """n paper-parameter rows (``base_color`` (n, 3), the others (n,), float32) and the
     category index of each row (into ``categories``, drawn uniformly).
 
-    Uniform draws from the same :class:`cnnps.synth.bsdf.MaterialRanges` (params.yaml's
-    ``materials.ranges``) with the same rules as :func:`cnnps.synth.bsdf.sample_parameters`,
+    Uniform draws from ``ranges`` (a :class:`cnnps.synth.bsdf.MaterialRanges`, or a mapping
+    of per-category overrides as params.yaml's ``materials.ranges``; None = the defaults)
+    with the same rules as :func:`cnnps.synth.bsdf.sample_parameters`,
     including the near-mirror exclusion (specular > ``high_specular`` draws roughness above
     ``high_specular_min_roughness``), but from a torch generator and on ``device``."""
     if ranges is None:
@@ -872,11 +879,14 @@ def generate(
 
     ``lights``: (m, 3) unit directions shared by the batch (frame: x right, y up, z toward
     the camera), or None: a jittered spiral of ``n_lights`` (:func:`default_lights`) drawn
-    from the generator. Steps: :func:`sample_normals`, :func:`sample_materials`,
-    :func:`light_subsets`, :func:`shade`, effects (:class:`Effects`: mixing at depth
-    discontinuities, cast shadows, inter-reflection, then gains, ambient, noise, then the
-    camera: exposure, clipping, black level, quantisation, :func:`camera_response`),
-    :func:`observation_maps_torch`.
+    from the generator. ``categories`` (each pixel's drawn uniformly) and ``ranges``: the
+    materials (:func:`sample_materials`; the second surfaces of ``boundary_mix`` too);
+    ``min_lights``, ``max_lights``, ``cone_min_deg``, ``cone_max_deg``, ``sparse_fraction``,
+    ``sparse_min_lights``: each pixel's light subset (:func:`light_subsets`). Steps:
+    :func:`sample_normals`, :func:`sample_materials`, :func:`light_subsets`, :func:`shade`,
+    effects (:class:`Effects`: mixing at depth discontinuities, cast shadows,
+    inter-reflection, then gains, ambient, noise, then the camera: exposure, clipping,
+    black level, quantisation, :func:`camera_response`), :func:`observation_maps_torch`.
 
     Order of the draws: lights (when None), normals, materials, light subsets, cast
     shadows (B x 4), inter-reflection (B x 7), gains (m), ambient (B), noise levels (B x 2),

@@ -16,8 +16,8 @@ resolved once: :mod:`cnnps.train.precision`),
 validation, checkpoints), :meth:`~Trainer.finish` (last validation, model file, metrics).
 
 ``params`` is the stage's ``Params`` dataclass (:class:`cnnps.stages.train.Params`: top-level
-keys and the sections ``optimiser``, ``data``, ``pixelwise``, ``cpu``), read by attribute
-(this layer does not import the stage). The stage's module docstring describes the
+keys and the sections ``optimiser``, ``data``, ``pixelwise``, ``cpu``, ``synthesis``), read
+by attribute (this layer does not import the stage). The stage's module docstring describes the
 behaviour: batch order, resuming, several processes, outputs.
 """
 
@@ -171,7 +171,6 @@ def open_training_data(extract_dir: str | Path, verify: bool = True) -> Training
     return TrainingData(manifest, manifest_url, manifest_sha256, w, train_files, val_files)
 
 
-PIXELWISE_MIN_LIGHTS = 50  # the fewest lights of a dense per-pixel map (cnnps.synth.pixelwise.generate)
 PIXELWISE_VAL_ROWS = 10000  # per-pixel validation maps when there are no val shards
 
 
@@ -208,24 +207,49 @@ def input_channels(params) -> int:
     return RGB_CHANNELS if getattr(params.pixelwise, "rgb", False) else 1
 
 
+def pixelwise_settings(params) -> dict:
+    """The keyword arguments of :func:`cnnps.synth.pixelwise.generate` that ``params`` sets:
+    the materials and light subsets of ``params.synthesis`` (``materials.categories`` /
+    ``ranges``, extract's light-subset rules), the light set's size, the sparse fraction
+    and the effects of ``params.pixelwise``, and ``rgb``."""
+    from cnnps.synth import pixelwise
+
+    px, syn = params.pixelwise, params.synthesis
+    return {
+        "categories": syn.categories, "ranges": syn.ranges, "n_lights": px.lights,
+        "min_lights": syn.min_lights, "max_lights": syn.max_lights,
+        "cone_min_deg": syn.cone_min_deg, "cone_max_deg": syn.cone_max_deg,
+        "sparse_fraction": px.sparse_fraction, "sparse_min_lights": syn.sparse_min_lights,
+        "effects": pixelwise.Effects(**{k: float(v) for k, v in px.effects.items()}),
+        "rgb": input_channels(params) > 1,
+    }
+
+
 def pixelwise_maker(params):
     """``(n, generator, device, w) -> (maps (n, C, w, w), normals (n, 3))``: per-pixel
-    training maps (:func:`cnnps.synth.pixelwise.generate`) with ``params.pixelwise``'s
-    effects and sparse fraction, C = 1, or 4 (grey, R, G, B) with ``rgb``; None when its
-    share is 0."""
+    training maps, :func:`cnnps.synth.pixelwise.generate` with every setting of
+    :func:`pixelwise_settings`, C = 1, or 4 (grey, R, G, B) with ``pixelwise.rgb``; None
+    when ``pixelwise.share`` is 0."""
     if not params.pixelwise.share:
         return None
     from cnnps.synth import pixelwise
 
-    effects = pixelwise.Effects(**{k: float(v) for k, v in params.pixelwise.effects.items()})
-    sparse_fraction = params.pixelwise.sparse_fraction
-    rgb = input_channels(params) > 1
+    settings = pixelwise_settings(params)
 
     def make(n, generator, device, w):
-        return pixelwise.generate(n, generator=generator, device=device, w=w, effects=effects,
-                                  sparse_fraction=sparse_fraction, rgb=rgb)
+        return pixelwise.generate(n, generator=generator, device=device, w=w, **settings)
 
     return make
+
+
+def pixelwise_fewest_lights(params) -> int:
+    """The fewest lights of any per-pixel map of ``params`` (:func:`cnnps.synth.pixelwise.light_subsets`'
+    bounds): ``min(synthesis.min_lights, pixelwise.lights)``, or with sparse maps
+    ``synthesis.sparse_min_lights`` below it."""
+    lo = min(params.synthesis.min_lights, params.pixelwise.lights)
+    if params.pixelwise.sparse_fraction > 0:
+        lo = max(1, min(params.synthesis.sparse_min_lights, lo))
+    return int(lo)
 
 
 def load_init_weights(init: str | None, w: int, in_channels: int = 1) -> tuple[dict | None, str | None]:
@@ -676,8 +700,7 @@ class Trainer:
         """The fewest lights of any training map (shards' and per-pixel ones)."""
         fewest = [fewest_lights(self.data.manifest)] if self.stream is not None else []
         if self.generated:
-            sparse = float(self.params.pixelwise.sparse_fraction) > 0
-            fewest.append(SPARSE_MIN_LIGHTS_DEFAULT if sparse else PIXELWISE_MIN_LIGHTS)
+            fewest.append(pixelwise_fewest_lights(self.params))
         fewest = [f for f in fewest if f is not None]
         return min(fewest) if fewest else None
 

@@ -128,6 +128,72 @@ def test_the_mesh_folder_is_a_dependency():
     assert "__pycache__/" in (REPO / ".dvcignore").read_text().split()  # byte code is not a change
 
 
+# ------------------------------------------------------------------ dvc.yaml: params
+
+
+def _listed_params(spec: dict) -> list[str]:
+    return [k for item in spec.get("params", []) for k in ([item] if isinstance(item, str) else item)]
+
+
+def test_train_reruns_when_what_its_per_pixel_maps_draw_from_changes():
+    """The train stage lists its section and each materials / extract key its per-pixel maps
+    are drawn from (train.synthesis, cnnps.stages.train.FROM_SECTIONS), not those sections whole."""
+    from cnnps.stages import train
+
+    drawn = [f"{stage}.{key}" for sources in train.FROM_SECTIONS.values() for stage, keys in sources.items()
+             for key in keys]
+    assert "materials.ranges" in drawn and "extract.max_lights" in drawn
+    assert _listed_params(_dvc_stages()["train"]) == ["seed", "train", *drawn]
+
+
+@pytest.mark.parametrize("name", ["params.yaml", "cnnps/presets/full.yaml"])
+def test_params_files_for_dvc_hold_every_listed_key(name):
+    """DVC refuses a stage whose listed param a params file leaves out: params.yaml and the
+    preset its header says to copy over it write every key dvc.yaml lists."""
+    params = yaml.safe_load((REPO / name).read_text())
+    for stage, spec in _dvc_stages().items():
+        for key in _listed_params(spec):
+            node = params
+            for part in key.split("."):
+                assert isinstance(node, dict) and part in node, f"{name}: {stage} lists {key}, the file has no {part}"
+                node = node[part]
+
+
+def test_dvc_status_names_the_stages_whose_params_changed(tmp_path):
+    """``dvc status`` on the real params lists, with no-op commands: editing a BSDF range or
+    a light-subset key makes train stale beside its own stage; editing any other key of
+    materials, extract, render or eval does not."""
+    if shutil.which("git") is None:
+        pytest.skip("git is not installed")
+    stages = {name: {"cmd": "python -c pass", "params": spec["params"]} for name, spec in _dvc_stages().items()}
+    (tmp_path / "dvc.yaml").write_text(yaml.safe_dump({"stages": stages}, sort_keys=False))
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    _sh(["git", "init", "-q"], tmp_path)
+    dvc(tmp_path, "init", "-q")
+    dvc(tmp_path, "config", "core.analytics", "false")
+
+    def stale_after(section: str, key: str, value) -> list[str]:
+        edited = yaml.safe_load(yaml.safe_dump(params))
+        edited[section][key] = value
+        (tmp_path / "params.yaml").write_text(yaml.safe_dump(edited, sort_keys=False))
+        status = dvc(tmp_path, "status")
+        return [s for s in cfg.STAGES if re.search(rf"^{s}:", status, re.M)]
+
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    dvc(tmp_path, "repro", "-q")
+    assert UP_TO_DATE in dvc(tmp_path, "status")
+    assert stale_after("materials", "ranges", {"specular": {"roughness": [0.2, 0.3]}}) == ["materials", "train"]
+    assert stale_after("materials", "categories", ["metallic"]) == ["materials", "train"]
+    for key, value in (("min_lights", 40), ("max_lights", 1300), ("cone_min_deg", 10.0), ("cone_max_deg", 80.0),
+                       ("sparse_min_lights", 4)):
+        assert stale_after("extract", key, value) == ["extract", "train"], key
+    assert stale_after("materials", "superpixels", 100) == ["materials"]
+    assert stale_after("extract", "rotations", 4) == ["extract"]
+    assert stale_after("render", "samples", 4) == ["render"]
+    assert stale_after("eval", "ranges", {"metallic": {"roughness": [0.4, 0.6]}}) == ["eval"]
+    assert stale_after("train", "max_steps", 10) == ["train"]
+
+
 # ------------------------------------------------------------------ dvc repro, for real
 
 

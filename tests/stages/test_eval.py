@@ -467,3 +467,43 @@ def test_rig_twins_are_rendered_through_the_rig_at_the_size_of_their_capture(tmp
                       rig=ev.Rig(fov_deg=70.0, light_distance=None, size=64))
     ev.build_rig_twins(fixed, tmp_path)
     assert [m[4] for m in made] == [64]
+
+
+def test_the_test_set_draws_its_materials_from_its_own_ranges(tmp_path, monkeypatch):
+    """``eval.ranges`` (default: the paper's ranges, as before any edit) reaches every test
+    capture and its rig twin, and only ``eval.ranges``: ``materials.ranges`` trains, the
+    test set stays the yardstick. A capture at the default ranges keeps its key."""
+    import yaml
+
+    from cnnps.pipeline import config as cfg
+    from cnnps.stages import eval_testset
+    from cnnps.synth import capture_render
+    from cnnps.synth.bsdf import MaterialRanges
+
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump({"materials": {"ranges": {"metallic": {"roughness": [0.6, 0.7]}}},
+                                    "eval": {"categories": ["metallic"], "test_shapes": ["bowl"], "light_sets": [10],
+                                             "ranges": {"metallic": {"roughness": [0.4, 0.45]}}}}))
+    params = cfg.build_params(cfg.load_config(path), "eval", check_files=False)
+    assert params.ranges.metallic.roughness == (0.4, 0.45) and ev.Params().ranges == MaterialRanges()
+
+    got = []
+
+    def fake_render(mesh, out_dir, **kw):
+        got.append(kw["ranges"])
+        return Path(out_dir)
+
+    monkeypatch.setattr(capture_render, "render_capture", fake_render)
+    monkeypatch.setattr(eval_testset, "test_mesh", lambda shape, seed: shape)
+    ev.build_testset(params, tmp_path)
+    ev.build_rig_twins(ev.Params(**{**params.__dict__, "rig": ev.Rig()}), tmp_path)
+    assert [r.roughness for r in got] == [(0.4, 0.45)] * 2
+
+    # the renderer's material draws from them; the key holds them only where they are not the defaults
+    mask = np.ones((24, 24), bool)
+    material = capture_render.capture_material("metallic", 8, 3, params.ranges.metallic)(mask)
+    assert 0.4 <= np.min(material["Roughness"]) and np.max(material["Roughness"]) <= 0.45
+    assert capture_render.changed_ranges("metallic", MaterialRanges()) is None
+    assert capture_render.changed_ranges("metallic", None) is None
+    assert capture_render.changed_ranges("lambertian", params.ranges) is None
+    assert capture_render.changed_ranges("metallic", params.ranges)["roughness"] == [0.4, 0.45]

@@ -419,7 +419,8 @@ def test_per_pixel_maps_only_train_without_shards_and_resume_exactly(tmp_path):
     from cnnps.models.checkpoint import load_checkpoint
 
     _model, config, meta = load_checkpoint(a / "train/model.pt")
-    assert config["w"] == 16 and meta["min_lights"] == loop.PIXELWISE_MIN_LIGHTS  # cnnps predict warns below it
+    # cnnps predict warns below the fewest lights of a training map: extract.min_lights' default here
+    assert config["w"] == 16 and meta["min_lights"] == loop.pixelwise_fewest_lights(p) == 50
     with pytest.raises(Exception, match="train.max_steps"):
         train.Params(pixelwise={"share": 1.0})
 
