@@ -63,8 +63,8 @@ def tile_normals(stack, mask: np.ndarray, solver: Solver, camera, lights, *, til
                  progress: bool) -> tuple[np.ndarray, TileCounts]:
     """(H, W, 3) float32 unit normals (zeros outside ``mask``) of one pass over the
     :class:`cnnps.io.pixel_store.PixelStack` ``stack``, and what was counted on the way.
-    ``camera``: :mod:`cnnps.ps.camera`'s Orthographic or Pinhole; ``lights``: a bound
-    light model of :mod:`cnnps.ps.lights`."""
+    ``camera``: a :class:`cnnps.ps.camera.Camera`; ``lights``: a bound
+    :class:`cnnps.ps.lights.LightModel`."""
     from cnnps.io.capture import SATURATION_LEVEL
     from cnnps.ps.rotation import normalize
 

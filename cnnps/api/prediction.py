@@ -10,8 +10,8 @@ types and the solver registry); prepare the solver once (:mod:`cnnps.api.solvers
 network with its precision and threads, or least squares); put each image's mask pixels
 into a :class:`cnnps.io.pixel_store.PixelStack` (from the arrays, or every file read once,
 in memory up to 256 MiB, else a temporary file); compute normals tile by tile
-(:mod:`cnnps.api.normals`) under the capture's camera (:mod:`cnnps.ps.camera`) and light
-model (:mod:`cnnps.ps.lights`); record, score against ground truth, write.
+(:mod:`cnnps.api.normals`) under the capture's camera and light model, each looked up by
+name (:mod:`cnnps.api.cameras`, :mod:`cnnps.api.light_models`); record, score, write.
 
 Images: integer images (uint8, uint16) are made linear by ``linearize`` ("srgb" decodes
 the sRGB curve, "none" or None takes them as linear; None with 8-bit images adds a
@@ -32,6 +32,8 @@ from typing import Literal
 import numpy as np
 
 from cnnps.api import prediction_outputs as outputs
+from cnnps.api.cameras import camera_factory, make_camera
+from cnnps.api.light_models import light_model_factory, make_light_model
 from cnnps.api.normals import DEFAULT_TILE_PIXELS, capture_normals
 from cnnps.api.prediction_inputs import (
     check_arrays,
@@ -46,9 +48,7 @@ from cnnps.infra.options import Count, Positive, UnitFraction, check_arguments, 
 from cnnps.infra.output_folder import OutputFolder
 from cnnps.io.capture import SATURATION_LEVEL, Grey
 from cnnps.io.srgb import Linearize
-from cnnps.ps.camera import camera_for
-from cnnps.ps.lights import DistantLights, PointLights
-from cnnps.ps.near_lights import DEFAULT_ROUNDS, DEFAULT_TOLERANCE
+from cnnps.ps.near_lights import DEFAULT_ROUNDS, DEFAULT_TOLERANCE, directions_from_positions
 from cnnps.ps.sparse_fill import SparseFill
 
 Method = str  # a solver's registry name (cnnps.api.solvers.SOLVERS): "cnn", "lambertian", ...
@@ -65,6 +65,9 @@ def check_options(values: dict) -> dict:
     0``, spelled ``--rotations`` on the command line); returns them checked."""
     values = check_arguments(predict, values)
     check_solver_options(values)
+    for name, factory in (("camera_model", camera_factory), ("light_model", light_model_factory)):
+        if values.get(name) is not None:
+            factory(values[name])  # a ConfigError listing the registry's names when unknown
     return values
 
 
@@ -78,13 +81,6 @@ def with_defaults(options: dict) -> dict:
     if unknown:
         raise ConfigError(f"unknown option {label(unknown[0])!r}; options are: {', '.join(params)}")
     return {n: options.get(n, p.default) for n, p in params.items()}
-
-
-def _light_model(lights, positions, camera, opts):
-    if positions is None:
-        return DistantLights(lights)
-    return PointLights(positions, camera.intrinsics, distance=opts["distance"], rounds=opts["rounds"],
-                       tolerance=opts["depth_tolerance"])
 
 
 def _saturation(saturated: str):
@@ -115,6 +111,8 @@ def predict(
     saturated: Saturated = "exclude",
     sparse_fill: SparseFill = "auto",
     tile_pixels: Count = DEFAULT_TILE_PIXELS,
+    camera_model: str | None = None,
+    light_model: str | None = None,
     distance: Positive | None = None,
     rounds: Count = DEFAULT_ROUNDS,
     depth_tolerance: Positive = DEFAULT_TOLERANCE,
@@ -158,6 +156,9 @@ def predict(
         sparse_fill: "auto" (below 50 images), "on" or "off": virtual Lambertian
             observations for pixels a Lambertian fit explains (:mod:`cnnps.ps.sparse_fill`).
         tile_pixels: mask pixels computed at a time (memory ~ tile_pixels x m x 8 bytes).
+        camera_model, light_model: registry names (:mod:`cnnps.api.cameras`,
+            :mod:`cnnps.api.light_models`); None: what the arrays describe ("pinhole" with
+            ``intrinsics``, else "orthographic"; "point" with ``light_positions``, else "directional").
         distance: point lights: the object's median depth along the optical axis, in the
             unit of the positions (None: the lights' median distance from the camera). It
             starts the rounds and fixes the depth's scale, which normals cannot.
@@ -193,20 +194,19 @@ def predict(
     """
     t0 = time.perf_counter()
     opts = check_options({k: v for k, v in locals().items() if k not in _ARRAYS + ("t0",)})
-    camera = camera_for(None if intrinsics is None else check_intrinsics(intrinsics))
-    positions = None if light_positions is None else check_positions(light_positions, camera.intrinsics,
-                                                                     np.shape(images)[0])
+    intrinsics = None if intrinsics is None else check_intrinsics(intrinsics)
+    camera = make_camera(camera_model, intrinsics)
+    positions = None if light_positions is None else check_positions(light_positions, intrinsics, np.shape(images)[0])
     if positions is not None and lights is None:
-        from cnnps.ps.near_lights import directions_from_positions
-
         lights = directions_from_positions(positions)
     images, lights, mask, intensities, normal_gt = check_arrays(images, lights, mask, intensities, normal_gt)
+    lighting = make_light_model(light_model, lights, positions, camera, opts)
     solver = prepare_solver(opts)
     warnings = solver.warnings(images.shape[0])
     with stack_from_arrays(images, mask, intensities, grey, linearize, _saturation(saturated)) as stack:
         t_load = time.perf_counter() - t0
-        found = capture_normals(stack, mask, solver, camera, _light_model(lights, positions, camera, opts),
-                                tile_pixels=opts["tile_pixels"], progress=progress)
+        found = capture_normals(stack, mask, solver, camera, lighting, tile_pixels=opts["tile_pixels"],
+                                progress=progress)
         record = outputs.make_record(solver, camera, found, stack, n_images=images.shape[0], image_size=mask.shape,
                                      options=opts)
     warnings += outputs.scale_warning(found.lights)
@@ -266,7 +266,8 @@ def predict_folder(
     write_surface = outputs.surface_writer() if depth else None
     with OutputFolder(out_dir, command) as out:  # FolderBusy at once while another writes OUT_DIR
         capture = scan_capture(capture_dir, drop=drop, grey=opts["grey"], linearize=opts["linearize"])
-        camera = camera_for(capture.intrinsics)
+        camera = make_camera(opts["camera_model"], capture.intrinsics)
+        lighting = make_light_model(opts["light_model"], capture.lights, capture.light_positions, camera, opts)
         solver = prepare_solver(opts)
         warnings = solver.warnings(capture.n_images)
         scratch = out_dir.resolve().parent if scratch_dir is None else Path(scratch_dir)
@@ -274,8 +275,7 @@ def predict_folder(
         with build_pixel_stack(capture, scratch_dir=scratch, memory_limit=limit, saturation=_saturation(opts["saturated"]),
                                progress=progress) as stack:
             t_load = time.perf_counter() - t0
-            lights = _light_model(capture.lights, capture.light_positions, camera, opts)
-            found = capture_normals(stack, capture.mask, solver, camera, lights, tile_pixels=opts["tile_pixels"],
+            found = capture_normals(stack, capture.mask, solver, camera, lighting, tile_pixels=opts["tile_pixels"],
                                     progress=progress)
             record = {"capture": str(capture_dir),
                       **outputs.make_record(solver, camera, found, stack, n_images=capture.n_images,

@@ -7,6 +7,9 @@ from typing import Annotated, Optional
 
 import typer
 
+from cnnps.api.cameras import CAMERAS
+from cnnps.api.light_models import LIGHT_MODELS
+from cnnps.api.solvers import SOLVERS
 from cnnps.infra.errors import ConfigError
 from cnnps.pipeline.app import app
 
@@ -55,7 +58,7 @@ def predict(
     capture_dir: Path = typer.Argument(..., help="Capture folder (DiLiGenT layout: filenames.txt, light_directions.txt, light_intensities.txt, mask.png, images)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder, written whole, by one run at a time (a second run into it stops at once): normal.npy, normal.png, and error.png + metrics.json when ground truth exists."),
     model: Optional[Path] = typer.Option(None, "--model", help="CNN-PS checkpoint (default: the shipped cnnps/models/weights/cnnps_default.pt)."),
-    method: Optional[str] = typer.Option(None, "--method", metavar="cnn|lambertian", help=f"cnn, or lambertian (least-squares baseline). (default: {_default('method')})"),
+    method: Optional[str] = typer.Option(None, "--method", metavar="|".join(SOLVERS), help=f"The normal solver, by its name in cnnps/api/solvers.py: cnn (the network), lambertian (least squares, the baseline) or another registered there. (default: {_default('method')})"),
     rotations: Optional[str] = typer.Option(None, "--rotations", metavar="K", help=f"Test-time rotations averaged (cnn; 10 = the paper). (default: {_default('rotations')})"),
     device: Optional[str] = typer.Option(None, "--device", metavar="auto|cpu|cuda", help=f"Where the network runs; auto = CUDA when available. (default: {_default('device')})"),
     precision: Optional[str] = typer.Option(None, "--precision", metavar="auto|fp32|bf16", help=f"auto: the fastest path within 0.05 deg of fp32 on this machine, measured once (about 1 s) and cached. (default: {_default('precision')})"),
@@ -69,6 +72,8 @@ def predict(
     depth: bool = typer.Option(False, "--depth", help="Also integrate the normals into depth.npy, depth.png and surface.ply."),
     report: bool = typer.Option(True, "--report/--no-report", help="Write report.html: the normals relit by a light you drag, the confidence, the errors, the surface and the record, in one page that opens from disk (`cnnps report OUT_DIR` makes it again)."),
     tile_pixels: Optional[str] = typer.Option(None, "--tile-pixels", metavar="N", help=f"Mask pixels processed at a time (memory ~ N x images x 8 bytes). (default: {_default('tile_pixels')})"),
+    camera_model: Optional[str] = typer.Option(None, "--camera-model", metavar="|".join(CAMERAS), help="The camera, by its name in cnnps/api/cameras.py. (default: pinhole when the capture has intrinsics.txt, else orthographic)"),
+    light_model: Optional[str] = typer.Option(None, "--light-model", metavar="|".join(LIGHT_MODELS), help="The lights, by their model's name in cnnps/api/light_models.py. (default: point when the capture has light_positions.txt, else directional)"),
     distance: Optional[str] = typer.Option(None, "--distance", metavar="D", help="Point lights (light_positions.txt): the object's median depth along the optical axis, in the positions' unit; starts the rounds and sets depth.npy's scale. (default: the lights' median distance from the camera)"),
     rounds: Optional[str] = typer.Option(None, "--rounds", metavar="N", help=f"Point lights: the most rounds of normals -> depth -> per-pixel lights. (default: {_default('rounds')})"),
     depth_tolerance: Optional[str] = typer.Option(None, "--depth-tolerance", metavar="T", help=f"Point lights: stop once a round changes the depth by less than this (median relative change). (default: {_default('depth_tolerance')})"),
@@ -81,7 +86,8 @@ def predict(
     from cnnps.infra.options import Count, Positive, UnitFraction, parse
 
     given = {"method": method, "device": device, "precision": precision, "grey": grey, "linearize": linearize,
-             "saturated": saturated, "sparse_fill": sparse_fill, "model": model,
+             "saturated": saturated, "sparse_fill": sparse_fill, "model": model, "camera_model": camera_model,
+             "light_model": light_model,
              "rotations": None if rotations is None else parse("--rotations", rotations, Count),
              "batch_size": None if batch_size is None else parse("--batch-size", batch_size, Count),
              "tile_pixels": None if tile_pixels is None else parse("--tile-pixels", tile_pixels, Count),

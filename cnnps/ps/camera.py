@@ -18,6 +18,10 @@ The K test-time rotations about z compose after R: v = +z is fixed by them, so t
 valid (rotation averaging happens in the view-aligned frame, then Rᵀ takes the answer
 back). :func:`view_rotations` gives the smallest such rotation (about the axis v × z).
 
+Cameras. A camera is anything with the attribute and two methods of :class:`Camera`; two
+are built in, each a registry entry of :mod:`cnnps.api.cameras` (name -> factory):
+``orthographic`` (:class:`Orthographic`) and ``pinhole`` (:class:`Pinhole`).
+
 Near lights. A point light at P with radiant intensity I lights a surface point X from
 the direction l = (P − X) / |P − X| with irradiance I / |P − X|² on a surface facing it
 (:func:`point_light_directions`).
@@ -33,7 +37,11 @@ array([0., 0., 1.])
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
+
+from cnnps.infra.errors import ConfigError
 
 OPENCV_TO_CAPTURE = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes (x right, y down, z forward) -> capture frame
 
@@ -110,6 +118,24 @@ def point_light_directions(points: np.ndarray, positions: np.ndarray, intensitie
     return dirs, scale
 
 
+class Camera(Protocol):
+    """What prediction asks of a camera: the tile loop its views, the record its description.
+
+    Frame: the capture frame (x right, y up, z toward the camera); pixel (row, col) with
+    row 0 on top and (0, 0) the centre of the top-left pixel.
+    """
+
+    intrinsics: np.ndarray | None  # (3, 3) K (OpenCV convention) of a pinhole camera; None: no K (orthographic)
+
+    def views(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray | None:
+        """(P, 3) unit view directions (from the surface toward the camera) of the pixels
+        ``rows``, ``cols`` (P,), or None when every view is +z (what the solvers take as
+        orthographic)."""
+
+    def record(self) -> dict:
+        """What ``prediction.json`` says of the camera: ``{"model": ..., ...}``."""
+
+
 class Orthographic:
     """The orthographic camera: every pixel looks along -z, so every view is +z.
 
@@ -147,7 +173,13 @@ class Pinhole:
         return {"model": "perspective", "intrinsics": self.intrinsics.tolist()}
 
 
-def camera_for(intrinsics) -> Orthographic | Pinhole:
-    """The camera a capture describes: :class:`Pinhole` with intrinsics, else
-    :class:`Orthographic`."""
-    return Orthographic() if intrinsics is None else Pinhole(intrinsics)
+def orthographic(intrinsics: np.ndarray | None) -> Orthographic:
+    """The ``orthographic`` camera (``intrinsics`` are not used)."""
+    return Orthographic()
+
+
+def pinhole(intrinsics: np.ndarray | None) -> Pinhole:
+    """The ``pinhole`` camera of the capture's ``intrinsics`` (3, 3), which it needs."""
+    if intrinsics is None:
+        raise ConfigError("camera pinhole needs intrinsics (intrinsics.txt)")
+    return Pinhole(intrinsics)

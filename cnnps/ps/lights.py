@@ -1,17 +1,13 @@
 """Light models: what gives each tile of pixels its lights.
 
-Two models, one interface:
+A light model is anything with the three methods of :class:`LightModel` (the tile loop,
+:mod:`cnnps.api.normals`, calls nothing else). Two are built in, each a registry entry of
+:mod:`cnnps.api.light_models` (name -> factory):
 
-- :class:`DistantLights`: one direction per image, shared by every pixel;
-- :class:`PointLights`: one position per image near the object (pinhole camera needed).
-  Each pixel's lights come from its surface point, which the rounds of
+- ``directional``, :class:`DistantLights`: one direction per image, shared by every pixel;
+- ``point``, :class:`PointLights`: one position per image near the object (pinhole camera
+  needed). Each pixel's lights come from its surface point, which the rounds of
   :func:`cnnps.ps.near_field.run_rounds` find together with the normals.
-
-``tile(values, rows, cols)`` gives a tile's values (divided by the lights' fall-off where
-there is one) and its lights: (m, 3) shared or (n, m, 3) per pixel. ``solve(normals_with,
-...)`` runs the passes of normals the model needs: one for distant lights; rounds of
-normals and depth for point lights. ``normals_with(lights, final)`` computes the capture's
-normals under a bound light model (``final=False`` may use a cheaper solver).
 
 Frame: the capture frame (x right, y up, z toward the camera, origin at the optical centre).
 
@@ -25,9 +21,11 @@ Frame: the capture frame (x right, y up, z toward the camera, origin at the opti
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Callable
+from typing import Callable, Protocol
 
 import numpy as np
+
+from cnnps.infra.errors import ConfigError
 
 NEAR_TILE_BYTES = 1 << 27  # per-pixel light directions of one tile under point lights (and their copies)
 
@@ -43,6 +41,32 @@ class Lit:
     record: dict
     depth: np.ndarray | None = None
     notes: list[str] = field(default_factory=list)
+
+
+class LightModel(Protocol):
+    """What the tile loop asks of a light model (:func:`cnnps.api.normals.capture_normals`).
+
+    Frame: the capture frame (x right, y up, z toward the camera); every direction is a
+    unit vector from the surface toward the light.
+    """
+
+    def tile(self, values: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A tile's values and lights. ``values``: (n, m) float32 observations of n mask
+        pixels under m images, each divided by its light's intensity; ``rows``, ``cols``: (n,)
+        the pixels' image coordinates (row 0 on top). Returns (values (n, m) float32, divided
+        by any fall-off the model has; lights (m, 3) shared by the tile or (n, m, 3) each
+        pixel's own)."""
+
+    def max_tile_pixels(self, m: int) -> int | None:
+        """The most pixels a tile under ``m`` images may hold for memory's sake (None: no bound)."""
+
+    def solve(self, normals_with: Callable, *, mask: np.ndarray, values: Callable, final_pass: bool) -> Lit:
+        """The capture's normals: the passes the model needs. ``normals_with(model, final)``
+        runs one pass of the tile loop under ``model`` (a light model; ``final=False`` may use
+        a cheaper solver) and returns ((H, W, 3) normals, its counts); ``mask``: (H, W) bool;
+        ``values(index)``: the (n, m) values of mask pixels ``index``; ``final_pass``: the
+        cheaper solver differs, so a model with several passes ends with one ``final=True``.
+        Returns a :class:`Lit`."""
 
 
 @dataclass
@@ -113,3 +137,20 @@ class PointLights:
                 f"change {report['final_change']:.2g}"
                 + ("" if report["converged"] else f" (tolerance {report['tolerance']:g} not reached)"))
         return Lit(field_.normal, field_.counts, report, field_.depth, [note])
+
+
+def directional(directions: np.ndarray, positions: np.ndarray | None, camera, options: dict) -> DistantLights:
+    """The ``directional`` light model: the capture's ``directions`` (m, 3) (point lights'
+    seen from the optical axis at their median distance when it has positions)."""
+    return DistantLights(directions)
+
+
+def point(directions: np.ndarray, positions: np.ndarray | None, camera, options: dict) -> PointLights:
+    """The ``point`` light model: the capture's ``positions`` (m, 3) seen by its pinhole
+    ``camera``, with ``options``' ``distance``, ``rounds`` and ``depth_tolerance``."""
+    if positions is None:
+        raise ConfigError("light model point needs light positions (light_positions.txt)")
+    if camera.intrinsics is None:
+        raise ConfigError("light model point needs a pinhole camera (intrinsics)")
+    return PointLights(positions, camera.intrinsics, distance=options["distance"], rounds=options["rounds"],
+                       tolerance=options["depth_tolerance"])
