@@ -17,11 +17,9 @@ are imported on first use.
 
 from __future__ import annotations
 
-import importlib
 from typing import Callable
 
-from cnnps.infra.errors import ConfigError
-from cnnps.infra.options import label
+from cnnps.infra.registry import lookup
 from cnnps.ps.camera import Camera
 
 CAMERAS: dict[str, str | Callable[..., Camera]] = {
@@ -37,13 +35,7 @@ def register_camera(name: str, factory: str | Callable[..., Camera]) -> None:
 
 def camera_factory(name: str) -> Callable[..., Camera]:
     """The factory of camera ``name``; a ConfigError listing the names when it is unknown."""
-    if name not in CAMERAS:
-        raise ConfigError(f"{label('camera_model')} must be one of {', '.join(CAMERAS)}, got {name!r}")
-    entry = CAMERAS[name]
-    if isinstance(entry, str):
-        module, _, attr = entry.partition(":")
-        entry = CAMERAS[name] = getattr(importlib.import_module(module), attr)
-    return entry
+    return lookup(CAMERAS, name, "camera_model")
 
 
 def default_camera(intrinsics) -> str:

@@ -19,11 +19,9 @@ import path (``"module:function"``) are imported on first use.
 
 from __future__ import annotations
 
-import importlib
 from typing import Callable
 
-from cnnps.infra.errors import ConfigError
-from cnnps.infra.options import label
+from cnnps.infra.registry import lookup
 from cnnps.ps.lights import LightModel
 
 LIGHT_MODELS: dict[str, str | Callable[..., LightModel]] = {
@@ -39,13 +37,7 @@ def register_light_model(name: str, factory: str | Callable[..., LightModel]) ->
 
 def light_model_factory(name: str) -> Callable[..., LightModel]:
     """The factory of light model ``name``; a ConfigError listing the names when it is unknown."""
-    if name not in LIGHT_MODELS:
-        raise ConfigError(f"{label('light_model')} must be one of {', '.join(LIGHT_MODELS)}, got {name!r}")
-    entry = LIGHT_MODELS[name]
-    if isinstance(entry, str):
-        module, _, attr = entry.partition(":")
-        entry = LIGHT_MODELS[name] = getattr(importlib.import_module(module), attr)
-    return entry
+    return lookup(LIGHT_MODELS, name, "light_model")
 
 
 def default_light_model(positions) -> str:

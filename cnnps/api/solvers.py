@@ -13,10 +13,10 @@ heavy (the network's solver imports torch only when it prepares).
 
 from __future__ import annotations
 
-import importlib
 
 from cnnps.infra.errors import ConfigError
 from cnnps.infra.options import label
+from cnnps.infra.registry import lookup
 from cnnps.ps.solver import Solver
 
 SOLVERS: dict[str, str | type[Solver]] = {
@@ -32,21 +32,13 @@ def register(name: str, solver: str | type[Solver]) -> None:
 
 def solver_class(name: str) -> type[Solver]:
     """The class of method ``name``; a ConfigError listing the methods when it is unknown."""
-    if name not in SOLVERS:
-        raise ConfigError(f"{label('method')} must be one of {', '.join(SOLVERS)}, got {name!r}")
-    entry = SOLVERS[name]
-    if isinstance(entry, str):
-        module, _, attr = entry.partition(":")
-        entry = SOLVERS[name] = getattr(importlib.import_module(module), attr)
-    return entry
+    return lookup(SOLVERS, name, "method")
 
 
 def check_solver_options(options: dict) -> None:
     """``options["method"]`` is a known method, and no option another method owns
     (:attr:`Solver.only_options`) is set for it."""
     method = options.get("method")
-    if not isinstance(method, str):
-        raise ConfigError(f"{label('method')} must be one of {', '.join(SOLVERS)}, got {method!r}")
     solver_class(method)
     for name in SOLVERS:
         if name == method:

@@ -424,12 +424,14 @@ def _choose_threads(model, device, precision, batch_size, maps, rate_all, thread
     return pick, rates
 
 
-def _read_cache(path: Path) -> dict:
+def read_cache(path: Path, version: int = CACHE_VERSION) -> dict:
+    """The cache file ``path`` (``{"version": version, "choices": {key: answer}}``), or {}
+    when it is missing, unreadable or of another version."""
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError):
         return {}
-    if not isinstance(data, dict) or data.get("version") != CACHE_VERSION or not isinstance(data.get("choices"), dict):
+    if not isinstance(data, dict) or data.get("version") != version or not isinstance(data.get("choices"), dict):
         return {}
     return data
 
@@ -458,7 +460,7 @@ def choose_precision(model: nn.Module, device: torch.device, model_sha256: str,
     path = cache_dir() / CACHE_FILE
     stale = ""
     if use_cache:
-        hit = _read_cache(path).get("choices", {}).get(key)
+        hit = read_cache(path).get("choices", {}).get(key)
         if isinstance(hit, dict) and hit.get("precision") in CANDIDATES:
             probed_at = hit.get("probed_at")
             age = now() - probed_at if isinstance(probed_at, (int, float)) else None
@@ -475,7 +477,7 @@ def choose_precision(model: nn.Module, device: torch.device, model_sha256: str,
     choice.key = key
     choice.reason += stale
     if use_cache and not choice.under_load:
-        data = _read_cache(path) or {"version": CACHE_VERSION, "choices": {}}
+        data = read_cache(path) or {"version": CACHE_VERSION, "choices": {}}
         entry = {k: v for k, v in choice.as_dict().items() if k not in ("cached", "key", "age_seconds", "under_load")}
         data["choices"][key] = {**entry, "device": device.type}
         _write_cache(path, data)
@@ -497,7 +499,7 @@ def report_rate(key: str, maps_per_second: float) -> bool:
     if not math.isfinite(rate) or rate <= 0:
         return False
     path = cache_dir() / CACHE_FILE
-    data = _read_cache(path)
+    data = read_cache(path)
     entry = data.get("choices", {}).get(key) if data else None
     if not isinstance(entry, dict) or entry.get("device", "cpu") != "cpu":
         return False

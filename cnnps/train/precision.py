@@ -202,16 +202,6 @@ def cache_key(model, params, device: torch.device, batch_rows: int) -> str:
     return f"{where} | torch {torch.__version__} | {device.type} | {net} | {int(batch_rows)} rows | {step}"
 
 
-def _read_cache(path) -> dict:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    if not isinstance(data, dict) or data.get("version") != CACHE_VERSION or not isinstance(data.get("choices"), dict):
-        return {}
-    return data
-
-
 def resolve(model, params, device: torch.device, batch_rows: int) -> TrainChoice:
     """The precision a new run of ``params`` steps in (never called for a resume: that keeps
     its checkpoint's): ``train.precision`` when it names one, else this machine's cached
@@ -221,11 +211,11 @@ def resolve(model, params, device: torch.device, batch_rows: int) -> TrainChoice
     if params.precision != "auto":
         return TrainChoice(params.precision, f"train.precision: {params.precision}", source="params")
     from cnnps.infra.atomic import write_text
-    from cnnps.models.precision_probe import cache_dir
+    from cnnps.models.precision_probe import cache_dir, read_cache
 
     key = cache_key(model, params, device, batch_rows)
     path = cache_dir() / CACHE_FILE
-    data = _read_cache(path)
+    data = read_cache(path, CACHE_VERSION)
     hit = data.get("choices", {}).get(key) if data else None
     stale = ""
     if isinstance(hit, dict) and hit.get("precision") in PRECISIONS:

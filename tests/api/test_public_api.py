@@ -20,7 +20,7 @@ API = ("predict", "predict_folder", "load_capture", "calibrate", "integrate", "r
 EXAMPLE_MODULES = ("cnnps.api", "cnnps.api.prediction", "cnnps.api.surfaces", "cnnps.api.calibration",
                    "cnnps.api.rendering", "cnnps.infra.options", "cnnps.ps.least_squares", "cnnps.ps.camera",
                    "cnnps.ps.near_lights", "cnnps.ps.point_light_calibration", "cnnps.io.raw",
-                   "cnnps.api.solvers", "cnnps.api.cameras", "cnnps.api.light_models", "cnnps.ps.lights", "cnnps.ps.solver", "cnnps.models.inference",
+                   "cnnps.api.solvers", "cnnps.api.cameras", "cnnps.api.light_models", "cnnps.infra.registry", "cnnps.ps.lights", "cnnps.ps.solver", "cnnps.models.inference",
                    "cnnps.ps.confidence",
                    "cnnps.train.step_processes", "cnnps.train.optimiser", "cnnps.stages.train")
 
