@@ -124,7 +124,10 @@ def test_local_pool_gives_up_after_second_death(tmp_path):
         LocalExecutor(workers=2).map(always_crash, [(str(tmp_path), 7), (str(tmp_path), 8)], desc="doomed")
     assert "\n" not in str(info.value)
     runs = attempts(tmp_path)
-    assert set(runs) <= {7, 8} and 1 <= runs.get(7, 0) <= 2
+    # job 0 (7) is given up after two broken pools; it may have been in both without starting
+    # (job 8 can crash the pool before job 7 reaches the second worker), so only: no job ran
+    # more than twice, and a crash happened
+    assert runs and set(runs) <= {7, 8} and all(1 <= n <= 2 for n in runs.values()), runs
 
 
 def test_input_error_from_a_worker_arrives_intact(tmp_path):
