@@ -7,12 +7,21 @@
   READMEs) names a file that exists, and every ``#anchor`` into a Markdown file matches
   one of its headings by GitHub's slug rules.
 - Every ``docs/NAME.md#anchor`` a docstring, comment or params file points to resolves.
+- Code and the architecture page describe the present: no narrating phrases ("as before",
+  "previously", "used to") in ``cnnps/`` or ``docs/ARCHITECTURE.md``, no model versions
+  (``v5``, ``v3.1``) in the package's module docstrings (a model's history is in
+  ``CHANGELOG.md`` and ``docs/models.md``), and every repository path (``cnnps/...``,
+  ``docs/...``, ``tests/...``, ``benchmarks/...``, ``tools/...``) a docstring or comment of
+  the package or a page of ``docs/`` names exists.
 """
 
 from __future__ import annotations
 
 import ast
+import glob
+import io
 import re
+import tokenize
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -187,3 +196,110 @@ def test_presets_named_in_docs_and_code_exist():
                 if name not in presets:
                     problems.append(f"{path.relative_to(REPO)}: {name}: no cnnps/presets/{name}.yaml: {line.strip()}")
     assert not problems, "\n".join(problems)
+
+
+# ----------------------------------------------------------------------------- describe, don't narrate
+
+# "is used to compute" describes; "used to compute" (it once did) narrates
+NARRATING = re.compile(
+    r"\bas before\b|\bpreviously\b"
+    r"|(?<!\bis )(?<!\bare )(?<!\bbe )(?<!\bbeen )(?<!\bbeing )(?<!\bget )(?<!\bgets )\bused to\b",
+    re.IGNORECASE,
+)
+# a model version: v1 ... v9, v3.1 (a file or page named after one, cnnps_v5.pt or
+# docs/models.md#v31-..., is a name, taken out first by REPO_FILE)
+MODEL_VERSION = re.compile(r"\bv[1-9](?:\.\d+)?\b")
+REPO_FILE = re.compile(r"[\w./-]+\.(?:md|py|yaml|yml|json|pt)(?:#[\w-]+)?")
+# module docstrings that may name model versions: none. A module about model files by name
+# would go here, with the reason.
+VERSIONS_ALLOWED: set[str] = set()
+# a repository-relative path: one of the tracked top folders at the start of a token
+REPO_PATH = re.compile(r"(?<![\w./~$<>-])((?:cnnps|docs|tests|benchmarks|tools)/[\w./*-]*)")
+
+
+def narrating(text: str) -> list[str]:
+    return [m.group(0) for m in NARRATING.finditer(text)]
+
+
+def model_versions(text: str) -> list[str]:
+    return MODEL_VERSION.findall(REPO_FILE.sub("", text))
+
+
+def missing_paths(text: str, root: Path = REPO) -> list[str]:
+    """The repository paths ``text`` names that do not exist under ``root`` (a glob
+    matching nothing counts; a placeholder such as ``docs/recipes/NAME.yaml`` does not)."""
+    out = []
+    for m in REPO_PATH.finditer(text):
+        path = m.group(1).rstrip(".-")
+        if any(part.split(".")[0].isupper() for part in path.split("/")):  # NAME, PAGE: a placeholder
+            continue
+        found = glob.glob(str(root / path)) if "*" in path else (root / path).exists()
+        if not found:
+            out.append(path)
+    return out
+
+
+def comments(path: Path):
+    """(line, text) of every comment of the module."""
+    for tok in tokenize.generate_tokens(io.StringIO(path.read_text()).readline):
+        if tok.type == tokenize.COMMENT:
+            yield tok.start[0], tok.string
+
+
+def test_the_narration_checks_tell_history_from_description(tmp_path):
+    history = [
+        "a plain ``tqdm``, redrawn in place as before.",
+        "Previously the key held the environment strength.",
+        "The stage used to write one shard a scene.",
+    ]
+    present = [
+        "the light files are written before the first image",
+        "a manifest without the entry is hashed as it is on disk",
+        "the scale is used to compare depths",
+    ]
+    assert all(narrating(t) for t in history), [t for t in history if not narrating(t)]
+    assert not any(narrating(t) for t in present), [t for t in present if narrating(t)]
+    assert model_versions("Model v5 is such a mean; v3.1 a mid-point.") == ["v5", "v3.1"]
+    assert model_versions("``cnnps_v5.pt``, docs/models.md#v31-the-mid-point-of-v2-and-v3, cpu-train-v4.yaml") == []
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "here.md").write_text("")
+    text = "docs/here.md, docs/gone.md, see docs/recipes/NAME.yaml and docs/*.md; tests/*.py; x/docs/gone.md"
+    assert missing_paths(text, tmp_path) == ["docs/gone.md", "tests/*.py"]
+
+
+def test_code_and_architecture_describe_the_present():
+    problems = []
+    for path in sorted([*PACKAGE.rglob("*.py"), REPO / "docs/ARCHITECTURE.md"]):
+        for n, line in enumerate(path.read_text().splitlines(), 1):
+            problems += [f"{path.relative_to(REPO)}:{n}: {p!r}: {line.strip()}" for p in narrating(line)]
+    assert not problems, (
+        "narration of the code's history; say what the code does now (history belongs in "
+        "CHANGELOG.md and docs/models.md):\n" + "\n".join(problems)
+    )
+
+
+def test_module_docstrings_name_no_model_versions():
+    problems = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        name = str(path.relative_to(REPO))
+        tree = ast.parse(path.read_text())
+        doc = ast.get_docstring(tree, clean=False)
+        if doc is None or name in VERSIONS_ALLOWED:
+            continue
+        for i, line in enumerate(doc.splitlines()):
+            problems += [f"{name}:{tree.body[0].lineno + i}: {v}: {line.strip()}" for v in model_versions(line)]
+    assert not problems, (
+        "module docstrings name model versions; describe the code and point to docs/models.md "
+        "for the models:\n" + "\n".join(problems)
+    )
+
+
+def test_repository_paths_in_code_comments_and_docs_exist():
+    problems = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for n, line in [*docstrings(path), *comments(path)]:
+            problems += [f"{path.relative_to(REPO)}:{n}: {p}: {line.strip()}" for p in missing_paths(line)]
+    for path in sorted((REPO / "docs").glob("*.md")):
+        for n, line in enumerate(path.read_text().splitlines(), 1):
+            problems += [f"{path.relative_to(REPO)}:{n}: {p}: {line.strip()}" for p in missing_paths(line)]
+    assert not problems, "paths that are not in the repository:\n" + "\n".join(problems)

@@ -25,15 +25,14 @@ Checksums (integrity, not cache keys: nothing is keyed on them):
   way that still parses) is told apart from the one a stage wrote. The checksum is the
   SHA-256 of ``json.dumps(record without "checksum", indent=indent)``, i.e. of the bytes
   the stage would have written without it: for ``manifest.json`` (indent 1) that is the
-  manifest hash the train stage's run key always used, so adding the entry changed no key.
+  SHA-256 of the manifest without the entry, so the entry changes no run key.
   Wall-time fields (``skip``: ``scene.json``'s ``render_seconds``, a scene marker's
   ``seconds``) are left out, so two runs writing the same content write the same checksum.
 
 The VALUES these give are part of the caches: a change re-renders (or re-extracts)
-everything, so each function reproduces exactly what the stages computed before they
-shared this module (the ``compact`` flag of :func:`stable_hash` and the byte order of
-:func:`derive_seed64` are such historical details). Add a new function rather than
-changing one.
+everything, so each function's values are fixed, details included (the ``compact`` flag
+of :func:`stable_hash`, the byte order of :func:`derive_seed64`). Add a new function
+rather than changing one.
 """
 
 from __future__ import annotations
@@ -168,7 +167,7 @@ def add_json_checksum(record: dict, *, indent: int | None, skip: tuple[str, ...]
 
 def json_checksum_ok(record: dict, *, indent: int | None, skip: tuple[str, ...] = ()) -> bool | None:
     """True when ``record``'s ``"checksum"`` matches its content, False when it does not
-    (edited by hand, or damaged), None when it has none (written before checksums)."""
+    (edited by hand, or damaged), None when it has none."""
     if not isinstance(record, dict) or CHECKSUM not in record:
         return None
     return record[CHECKSUM] == json_checksum(record, indent=indent, skip=skip)

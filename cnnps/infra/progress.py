@@ -6,7 +6,7 @@ Every progress bar of the package is made by :func:`progress_bar`. It returns a
 
 ``tty``
     The stream is a terminal (or a Jupyter output area, which also honours ``\\r``): a
-    plain ``tqdm``, redrawn in place as before.
+    plain ``tqdm``, redrawn in place.
 ``plain``
     Any other stream (a pipe, a file, CI logs): a :class:`PlainBar`. Nothing is drawn in
     place, so there are no ``\\r`` redraws and no cursor movement: one line (ending in a

@@ -296,9 +296,8 @@ def manifest_digest(extract_dir: str | Path, manifest: dict | None = None) -> st
     """The manifest's SHA-256 as the train stage keys its runs on it, after checking it.
 
     A manifest with a ``checksum`` entry must match it (else InputError: edited by hand
-    or damaged); its digest is that checksum, which equals the SHA-256 of the file the
-    extract stage wrote before manifests carried one. A manifest without the entry
-    (written before) is hashed as it is on disk.
+    or damaged); its digest is that checksum, which equals the SHA-256 of the same manifest
+    written without the entry. A manifest without the entry is hashed as it is on disk.
     """
     path = shard_path(extract_dir, MANIFEST)
     if manifest is None:

@@ -20,8 +20,8 @@ checkpoint (``sha256sum`` format; :func:`write_sha256_file`, written by the trai
 for ``model.pt``) is verified too, when present: it covers every byte of the file.
 The bytes of a checkpoint depend only on its content (saved through memory, so the zip's
 folder name is not the temporary file's random name).
-``in_channels`` (1: grey maps; 4: grey, R, G, B) is read as 1 when absent: the files
-written before colour models existed load unchanged.
+``in_channels`` (1: grey maps; 4: grey, R, G, B) is read as 1 when absent: a file without
+it holds a grey model.
 Weights can be stored in half precision (``half=True``: 5.3 MB
 instead of 10.6 MB for w = 32); they are loaded back as float32.
 """
@@ -228,7 +228,7 @@ def _load_checkpoint(path: str | Path, device: str | torch.device) -> tuple[CNNP
     config = payload["config"]
     try:
         w, dropout = int(config["w"]), float(config["dropout"])
-        in_channels = int(config.get("in_channels", 1))  # files before colour models: grey
+        in_channels = int(config.get("in_channels", 1))  # absent: a grey model
         if not math.isfinite(dropout):
             raise ValueError("dropout is not finite")
         model = CNNPS(w=w, dropout=dropout, in_channels=in_channels)

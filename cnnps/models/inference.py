@@ -7,7 +7,7 @@ averages (``cnnps.ps.rotation.average_rotated_predictions``). Only one chunk's m
 at a time, so memory stays bounded for any image size.
 
 Speed (``docs/performance.md``): a CNNPS model is never run as trained.
-On CPU it runs as ``cnnps.models.network.FastCNNPS`` (linear layers folded: ~20 % fewer
+On CPU it runs as ``cnnps.models.network.FastCNNPS`` (linear layers folded: fewer
 operations; no dropout; no concatenations; ReLU and partial sums fused into oneDNN
 convolutions), in fp32 or with its own bf16 weights (precision="bf16"; no autocast); on
 CUDA as ``FoldedCNNPS`` (bf16: under autocast); always channels_last,

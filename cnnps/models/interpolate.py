@@ -7,13 +7,13 @@ mean of several (a model soup).
 ``MIXED = (1 - alpha) * A + alpha * B``, tensor by tensor. It makes sense when B was
 fine-tuned from A (Wortsman et al., "Robust fine-tuning of zero-shot models", CVPR 2022):
 both then lie in one basin of the loss, and the mid-point often keeps most of what the
-fine-tune gained while giving back less of what it cost. Model v3.1 is such a mid-point of
-v2 and v3 (docs/models.md#v31-the-mid-point-of-v2-and-v3); the measurements chose alpha,
-not this module.
+fine-tune gained while giving back less of what it cost. Alpha is the caller's choice, made
+by measurement (docs/models.md#v31-the-mid-point-of-v2-and-v3: a shipped mid-point and how
+its alpha was chosen).
 
 ``--mean``: ``SOUP = (A + B + C + ...) / n``, tensor by tensor: the "uniform soup" of
 Wortsman et al. ("Model soups", ICML 2022), for fine-tunes of one model that differ in
-their seeds. Model v5 is such a mean (docs/models.md).
+their seeds (docs/models.md: the shipped models that are such means).
 
 The output's ``meta`` records alpha (or the mean's files) and each end's file, SHA-256 and meta; ``min_lights``
 (what ``cnnps predict`` warns below) is the larger of the two ends' values, the fewest

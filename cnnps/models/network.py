@@ -21,7 +21,7 @@ activation: it is linear and followed directly by the dense layer (``fold_for_in
 uses that).
 
 ``FoldedCNNPS`` is an inference-only equivalent (same outputs up to float rounding) that
-does ~20 % fewer operations: the transition's 1x1 convolution is moved after the average
+does fewer operations (docs/performance.md#the-roofline-on-an-avx2-only-cpu): the transition's 1x1 convolution is moved after the average
 pooling (both linear, one acts on channels and the other on space, so they commute) and
 the last 1x1 convolution is multiplied into the first dense layer.
 """

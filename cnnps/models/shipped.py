@@ -78,7 +78,7 @@ def verify_if_shipped(path: str | Path) -> Path:
 
 def trained_min_lights(model_path: str | Path, meta: dict) -> int | None:
     """The fewest lights the model's training maps had: the checkpoint's ``meta``, else, for
-    shipped weights trained before checkpoints recorded it, their provenance record."""
+    shipped weights whose checkpoint does not record it, their provenance record."""
     if meta.get("min_lights") is not None:
         return int(meta["min_lights"])
     path = Path(model_path)

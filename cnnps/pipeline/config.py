@@ -319,7 +319,7 @@ def build_dataclass(cls: type, values: dict[str, Any], where: str, extra: dict[s
     except Exception as exc:  # pragma: no cover - a broken stage module
         raise ConfigError(f"{where}: cannot read the parameter types of {cls.__name__} ({exc})") from exc
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
-    moved = getattr(cls, "MOVED_KEYS", None) or {}  # a key of an older layout -> its "section.key" now
+    moved = getattr(cls, "MOVED_KEYS", None) or {}  # a flat key -> its place, "section.key"
     for k, v in values.items():
         if k in moved and (k not in fields or not isinstance(v, dict)):
             file, _, section = where.rpartition(": ")

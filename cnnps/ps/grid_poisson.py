@@ -20,8 +20,8 @@ block's pins (:meth:`MaskGraph.coarsen`). So every level keeps the same compact 
 
 :func:`solve` runs conjugate gradients preconditioned by one symmetric V-cycle: damped
 Jacobi (weight 2/3) smoothing, coarse corrections scaled by OVERCORRECTION (plain
-aggregation under-corrects; Braess 1995), SuperLU below COARSEST unknowns. This is the
-aggregation multigrid of the integrator's earlier sparse-matrix form, now matrix-free.
+aggregation under-corrects; Braess 1995), SuperLU below COARSEST unknowns: aggregation multigrid, matrix-free (no level is stored
+as a sparse matrix).
 
 Memory (n mask pixels): per level 12 bytes a pixel of float32 weights, 8 of int32
 neighbours, 2 of flags, 4 of float32 diagonal and 4 of the int32 aggregate map, the coarse

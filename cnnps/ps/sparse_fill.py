@@ -15,15 +15,13 @@ wrong) gets no virtual observations at all, so the network alone decides there. 
 fit is made on the lit observations (value > 0) and judged on the dark ones too: the model
 says a dark observation is an attached shadow, max(b . l, 0) = 0. Three or four lit values
 fit almost any b, and without the dark ones a fit pointing at a light the pixel never saw
-would pass; a pixel in a cast shadow goes to the second chance. (The second fit is judged
-on its lit observations only: judging it on the dark ones too cost the synthetic non-convex
-captures at 6 and 10 lights; docs/results.md.)
+would pass; a pixel in a cast shadow goes to the second chance. The second fit is judged
+on its lit observations only.
 
-Used only below ``FILL_BELOW`` images (:func:`should_fill`). The defaults were chosen by
-measurement on the eval stage's synthetic captures, not on BALL
-(docs/results.md#few-images-the-lambertian-fill): 90 virtual lights (with ~10 real ones, a
-map about as full as DiLiGenT's 96), a residual gate of 0.1 and the second chance. Filling
-every cell of the cone instead is worse: the training maps never hold more than ~200 lights.
+Used only below ``FILL_BELOW`` images (:func:`should_fill`), with ``VIRTUAL_LIGHTS``
+virtual lights (with ~10 real ones, a map about as full as DiLiGenT's 96), the residual
+gate ``RESIDUAL_MAX`` and the second chance; the measurements behind these defaults and
+the alternatives measured: docs/results.md#few-images-the-lambertian-fill.
 
 All arrays follow :func:`cnnps.ps.obsmap.observation_maps`: intensities (P, m) already
 divided by the light intensities, lights (m, 3) unit vectors (x right, y up, z to the

@@ -185,7 +185,7 @@ class Params:
         d = asdict(self)
         for k in ("executor", "workers", "output"):
             d.pop(k)
-        for k, default in ADDED_LATER.items():  # absent = default: earlier keys, caches and manifests stay valid
+        for k, default in OMITTED_AT_DEFAULT.items():  # absent = default: the keys of format 1
             if d[k] == default:
                 d.pop(k)
         if not self.sparse_fraction:  # no sparse pixels: their size has no effect on the rows
@@ -193,10 +193,10 @@ class Params:
         return d
 
 
-# Params added after format 1's keys were fixed: left out of manifest_params() and
-# row_key() at these (their "off") values, so a Params that leaves them alone has the
-# same cache keys and manifest as before they existed.
-ADDED_LATER = {
+# Params outside format 1's keys: left out of manifest_params() and row_key() at these
+# (their "off") values, so a Params that leaves them alone has format 1's cache keys and
+# manifest.
+OMITTED_AT_DEFAULT = {
     "ambient_max": 0.0,
     "intensity_error": 0.0,
     "direction_error_deg": 0.0,
@@ -259,7 +259,7 @@ class SceneJob:
 
 def check_render_folder(folder: Path, meta: dict) -> None:
     """InputError naming the first file of a rendered scene that does not match the
-    checksums its ``scene.json`` records (none for a folder rendered before them)."""
+    checksums its ``scene.json`` records (nothing to check when it records none)."""
     problems = folder_problems(folder, meta)
     if problems:
         path, problem = problems[0]

@@ -10,8 +10,8 @@ device, workers or threads), plus the scene's environment strength when it has o
 folder holding the current key and all its images is skipped. Render folders of scenes
 no longer in ``materials/`` are removed (``prune``).
 
-Environment light (``env_fraction``, ``env_max``; off by default, and then every key and
-image is what it was before the option existed): a drawn share of the scenes is also lit
+Environment light (``env_fraction``, ``env_max``; off by default, and then a scene's key and
+images are those of a scene in a black world): a drawn share of the scenes is also lit
 by a dim uniform white world (:func:`environment_strength`), so their attached shadows are
 not black, as in a real capture. It adds its term to *every* image of the scene; the light
 directions and intensities written are still the sun's, and ``scene.json`` records the
@@ -146,7 +146,7 @@ def _scene_jobs(params: Params, data_dir: Path) -> list[dict]:
                                  and p.name != "preview.png"])
         view_meta = read_json(view_dir / "view.json") or {}
         env = environment_strength(params, sdir.name)
-        # the key of a scene without an environment light is the one it had before the option existed
+        # a scene without an environment light: no environment term in its key (capture_key)
         key = capture_key({"mesh": mesh_sha, "material": mat_sha, "params": params.picture_params(), "v": VERSION}, env)
         jobs.append(
             {

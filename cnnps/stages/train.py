@@ -281,8 +281,8 @@ class CpuParams:
 SECTIONS = {"optimiser": OptimiserParams, "data": DataParams, "pixelwise": PixelwiseParams, "cpu": CpuParams,
             "synthesis": SynthesisParams}
 
-# Where each key of the flat train section (params files, model-file records and run keys
-# written before the sections) lives now: flat name -> "section.key".
+# The flat name of each section key -> its place, "section.key": run keys hash the flat
+# names (Params.flat), and a record holding the train section flat is read through it.
 MOVED_KEYS = {
     **{k: f"optimiser.{k}" for k in ("lr", "lr_milestones", "lr_gamma", "weight_decay", "fused_adam")},
     **{k: f"data.{k}" for k in ("shards", "batch_size", "shuffle_buffer", "prefetch", "num_workers")},
@@ -293,9 +293,9 @@ MOVED_KEYS = {
 }
 
 
-# Section keys that came after the sections, with their defaults: left out of the flat
-# params (and so of the run key) at that default. (``synthesis``'s keys: SynthesisParams.changed.)
-NEW_KEYS = {"pixelwise.rgb": False, "optimiser.average_from": 0, "pixelwise.lights": 1300}
+# Section keys with no flat name, with their defaults: in the flat params (and so in the
+# run key) as ``<section>_<key>`` only off that default. (``synthesis``'s keys: SynthesisParams.changed.)
+OMITTED_AT_DEFAULT = {"pixelwise.rgb": False, "optimiser.average_from": 0, "pixelwise.lights": 1300}
 
 # Sections of the train params filled from other stages' sections by the config layer
 # (cnnps.pipeline.config.build_params): section -> {stage: keys}. dvc.yaml's train stage lists
@@ -401,8 +401,7 @@ class Params:
     @classmethod
     def from_record(cls, record: Mapping) -> Params:
         """The params a model file or ``metrics.json`` recorded (``meta["params"]``), in
-        sections or flat as files written before the sections hold them (each flat key
-        put in its section, :data:`MOVED_KEYS`).
+        sections or flat (each flat key put in its section, :data:`MOVED_KEYS`).
 
         >>> Params.from_record({"lr": 1e-4, "batch_size": 64, "max_steps": 10}).optimiser.lr
         0.0001
@@ -422,9 +421,9 @@ class Params:
     def flat(self) -> dict:
         """The params as one flat mapping, each key under its flat name (:data:`MOVED_KEYS`):
         what :meth:`result_key` hashes, so run keys do not depend on the sections. A
-        section key added after the sections (:data:`NEW_KEYS`, and ``synthesis``'s:
+        section key with no flat name (:data:`OMITTED_AT_DEFAULT`, and ``synthesis``'s:
         :meth:`SynthesisParams.changed`) is ``<section>_<key>`` and only there when it is
-        not at its default, so the runs started before it keep their keys."""
+        not at its default, so a Params that leaves it at its default keys its runs without it."""
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in SECTIONS}
         back = {new: old for old, new in MOVED_KEYS.items()}
         d.update({f"synthesis_{key}": value for key, value in self.synthesis.changed().items()})
@@ -433,8 +432,8 @@ class Params:
                 continue
             for key, value in asdict(getattr(self, name)).items():
                 place = f"{name}.{key}"
-                if place in NEW_KEYS:
-                    if value != NEW_KEYS[place]:
+                if place in OMITTED_AT_DEFAULT:
+                    if value != OMITTED_AT_DEFAULT[place]:
                         d[f"{name}_{key}"] = value
                     continue
                 d[back[place]] = value

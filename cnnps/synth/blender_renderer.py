@@ -14,7 +14,7 @@ The rest of the code sees :class:`BlenderRenderer` only (kubric-style)::
     depth = r.render_depth()                    # (S,S) float32, 5 - z; NaN off the object
     img = r.render_point((1.5, 1.0, 3.0), 1.0)  # one point light, radiant intensity 1
 
-Scene set-up (measured facts in ``shared/notes/blender5-facts.md``):
+Scene set-up:
 
 - factory settings, empty scene; Cycles; black world (Background strength 0), or with
   ``environment`` E > 0 a uniform white world of radiance E (Background colour white,
@@ -38,7 +38,7 @@ Scene set-up (measured facts in ``shared/notes/blender5-facts.md``):
   and a white Lambertian patch facing it at distance r reads intensity / r^2 (measured on
   a tilted Lambertian plane: per-pixel ratio to max(0, n.l) / r^2 is 1.0000 in median
   and mean). The sun is hidden during point renders and the point lamp during sun
-  renders, so a renderer that never calls render_point renders exactly as before;
+  renders, so a renderer that never calls render_point renders with its sun alone;
 - Gaussian pixel filter of 0.01 px: every camera sample goes through the pixel centre, so
   pixel (r, c) sees the surface at x = -1 + (c + .5) 2/S, y = 1 - (r + .5) 2/S;
 - no denoiser, no adaptive sampling, no sample clamping, no glossy filter, caustics on:
@@ -52,9 +52,8 @@ Scene set-up (measured facts in ``shared/notes/blender5-facts.md``):
   CAMERA_ORIGIN - P for the hit point P, whose blue is the depth along the optical axis
   5 - z for either camera (not the distance along the ray); Cycles' own Z pass is not used
   (a single-layer EXR holds RGBA only);
-- persistent data: the scene is synced once, each light only moves a lamp (measured with
-  a 1.3M-triangle sphere at 32 px, 1 sample: first render 0.88 s, then 0.47 s per
-  re-render after moving the point lamp, as after turning the sun);
+- persistent data: the scene is synced once, each light only moves a lamp, so a
+  re-render costs less than the first render (docs/performance.md#other-commands);
 - the seed is folded into Cycles' range 0 .. 2^31 - 1 (:func:`cycles_seed`);
 - Blender writes each picture into a private temp folder, locked (flock) while the
   renderer lives, so a later renderer removes the folders of SIGKILLed ones.

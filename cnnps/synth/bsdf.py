@@ -232,7 +232,7 @@ def ior_to_specular(ior):
 
 
 def blender_f0(inputs: dict) -> np.ndarray | float:
-    """Dielectric F0 Cycles derives from ``IOR`` and ``Specular IOR Level`` (for tests/checks)."""
+    """Dielectric F0 Cycles derives from ``IOR`` and ``Specular IOR Level`` (for tests and checks)."""
     ior = np.asarray(inputs["IOR"], dtype=np.float64)
     level = np.maximum(np.asarray(inputs["Specular IOR Level"], dtype=np.float64), 0.0)
     f0 = ((ior - 1.0) / (ior + 1.0)) ** 2 * 2.0 * level

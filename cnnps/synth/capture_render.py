@@ -59,8 +59,8 @@ lights and seeds, so the folder ends with the bytes it had; damaged light files 
 intrinsics) or an untrustworthy ``scene.json`` re-render the whole capture. Files of a
 killed run (no record yet) are checked by decoding (readable, finite) before they are
 kept. :func:`folder_problems` tells a reader (the extract stage) what does not match. The
-key does not depend on these entries, and a ``scene.json`` written before them (no
-``files``, no ``checksum``) is still complete as it was (only existence is checked).
+key does not depend on these entries, and a ``scene.json`` without them (no ``files``, no
+``checksum``) is complete when every file exists (only existence is checked).
 
 Mask and ground truth come from Blender itself (one extra 1-sample render, two with the
 pinhole camera): the mask is the alpha of the camera rays through the pixel centres,
