@@ -41,12 +41,10 @@ def agreement(size: int, n_lights: int, samples: int, per_category: int, seed: i
         return {"skipped": "bpy not installed"}
     from cnnps.io.capture import load_capture
     from cnnps.ps.obsmap import observation_maps
-    from cnnps.synth.capture_render import (
-        RenderSettings,
-        Scene,
-        principled_material,
-        render_into,
-    )
+    from cnnps.synth.capture_render import render_into
+    from cnnps.synth.render.materials import principled_material
+    from cnnps.synth.render.scene import Scene
+    from cnnps.synth.render.settings import RenderSettings
     from cnnps.synth.lights import hemisphere_lights
 
     mesh = trimesh.creation.icosphere(subdivisions=5, radius=0.9)

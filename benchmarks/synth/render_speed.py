@@ -30,7 +30,7 @@ from benchmarks.harness import measure, result_path, write_result
 
 
 def _scene(mesh_spec: str):
-    from cnnps.synth.capture_render import load_mesh_arg
+    from cnnps.synth.render.mesh_input import load_mesh_arg
 
     mesh, _ = load_mesh_arg(mesh_spec)
     return np.asarray(mesh.vertices), np.asarray(mesh.faces)
@@ -38,7 +38,7 @@ def _scene(mesh_spec: str):
 
 def _material(size: int) -> dict:
     """A per-pixel principled material (textures bound as in the stage)."""
-    from cnnps.synth.capture_render import extend_maps, principled_material
+    from cnnps.synth.render.materials import extend_maps, principled_material
     from cnnps.synth.material_maps import sample_material_maps
 
     yy, xx = np.mgrid[0:size, 0:size]

@@ -1,9 +1,9 @@
 """Render one synthetic capture folder with Blender Cycles: what :func:`cnnps.render` runs.
 
-Its keyword arguments are the fields of :class:`cnnps.synth.capture_render.CaptureSettings`
+Its keyword arguments are the fields of :class:`cnnps.synth.render.settings.CaptureSettings`
 with that class's defaults (read from it, so the two cannot drift apart); ``cnnps render``
 takes its option defaults from this signature, and the render stage's ``Params`` extend
-the same :class:`cnnps.synth.capture_render.RenderSettings`.
+the same :class:`cnnps.synth.render.settings.RenderSettings`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 from cnnps.infra.options import Count, Range, check_arguments
-from cnnps.synth.capture_render import CaptureSettings, Material
+from cnnps.synth.render.settings import CaptureSettings, Material
 
 RenderDevice = Literal["cpu", "gpu"]
 _DEFAULTS = CaptureSettings()
@@ -41,7 +41,7 @@ def render(
 ) -> Path:
     """Render ``mesh`` under ``lights`` lights into a capture folder and return its path.
 
-    Arguments (defaults: :class:`cnnps.synth.capture_render.CaptureSettings`):
+    Arguments (defaults: :class:`cnnps.synth.render.settings.CaptureSettings`):
         mesh: a mesh file (OBJ, PLY, OFF, STL, glTF; centred and scaled into the unit
             sphere), a ``trimesh.Trimesh`` in the camera frame, or
             ``"procedural:<kind>[:seed]"`` (blob, bowl, assembly, bumpy, holed).

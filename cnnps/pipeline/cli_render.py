@@ -1,7 +1,7 @@
 """The `cnnps render` command: one synthetic capture folder rendered with Blender Cycles.
 
 The library side is :func:`cnnps.render` (:func:`cnnps.synth.capture_render.render_capture`).
-Every option is a field of :class:`cnnps.synth.capture_render.CaptureSettings`, spelled
+Every option is a field of :class:`cnnps.synth.render.settings.CaptureSettings`, spelled
 as a flag (``jitter_deg`` -> ``--jitter-deg``), with the default of :func:`cnnps.render`'s
 signature (which reads it from that class). Blender (bpy, the ``cnnps[render]`` extra) is
 imported only when there are images to render, so `--help`, option checks and an already

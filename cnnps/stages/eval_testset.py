@@ -103,7 +103,8 @@ def build_testset(params, data_dir: Path) -> list[Path]:
     drawn from ``params.ranges`` (its key holds them where they are not the defaults);
     return their folders."""
     from cnnps.infra.stage_folders import prune_stale
-    from cnnps.synth.capture_render import RENDER_MARKERS, render_capture
+    from cnnps.synth.capture_render import render_capture
+    from cnnps.synth.render.rendered_folder import RENDER_MARKERS
 
     root = Path(data_dir) / "eval" / "testset"
     plan = testset_plan(params)

@@ -79,7 +79,7 @@ from cnnps.io.shards import (
     shard_schema,
 )
 from cnnps.ps.rotation import rotation_angles
-from cnnps.synth.capture_render import SCENE_TIMINGS, folder_problems
+from cnnps.synth.render.rendered_folder import SCENE_TIMINGS, folder_problems
 from cnnps.synth.training_samples import (
     STREAM_SPARSE,
     apply_capture_effects,

@@ -56,24 +56,19 @@ from cnnps.infra.executor import (
 from cnnps.infra.hashing import derive_seed, file_sha256, files_sha256
 from cnnps.infra.stage_folders import prune_stale, read_json
 from cnnps.io.capture import MASK_FILE
-from cnnps.synth.capture_render import (
-    RENDER_MARKERS,
-    VERSION,
-    RenderSettings,
-    Scene,
-    capture_key,
-    extend_maps,
-    finished,
-    lambertian_material,
-    principled_material,
-    render_into,
-)
+from cnnps.synth.capture_render import render_into
+from cnnps.synth.render.keys import VERSION, capture_key
+from cnnps.synth.render.materials import extend_maps, lambertian_material, principled_material
+from cnnps.synth.render.rendered_folder import RENDER_MARKERS
+from cnnps.synth.render.resume import finished
+from cnnps.synth.render.scene import Scene
+from cnnps.synth.render.settings import RenderSettings
 
 
 @dataclass(frozen=True)
 class Params(RenderSettings):
     """Parameters of the render stage (``render:`` in params.yaml): the render settings of
-    :class:`cnnps.synth.capture_render.RenderSettings` (size, samples, lights, jitter_deg,
+    :class:`cnnps.synth.render.settings.RenderSettings` (size, samples, lights, jitter_deg,
     min_elevation_deg, light_intensity, max_bounces, device, seed, threads: the names and
     defaults ``cnnps.render`` and ``cnnps render`` use too; params.yaml and the presets set
     the stage's own values) and how the scenes are run.

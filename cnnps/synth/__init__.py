@@ -6,9 +6,12 @@
 - :mod:`cnnps.synth.material_maps`: SLIC superpixel material maps;
 - :mod:`cnnps.synth.bsdf`: the paper's material ranges and their Blender 5 mapping;
 - :mod:`cnnps.synth.lights`: light directions on the hemisphere;
-- :mod:`cnnps.synth.capture_render`: the one capture renderer (a :class:`Scene` and
-  :class:`RenderSettings` in, a cached, resumable capture folder out; orthographic or
-  pinhole camera, suns or point lights);
+- :mod:`cnnps.synth.capture_render`: the one capture renderer (a ``Scene`` and
+  ``RenderSettings`` in, a cached, resumable capture folder out; orthographic or pinhole
+  camera, suns or point lights);
+- :mod:`cnnps.synth.render`: what the capture renderer needs no Blender for: settings,
+  scene, content keys, materials, the mesh a user names, the resume and checksum state
+  machine, and reading a rendered folder (what the extract stage imports);
 - :mod:`cnnps.synth.blender_renderer`: the in-process Cycles renderer, the only module
   that imports bpy (an optional extra, ``cnnps[render]``).
 """

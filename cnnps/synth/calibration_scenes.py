@@ -30,7 +30,7 @@ The balls: a smooth icosphere (subdivision 6, 40962 vertices; Blender's interpol
 vertex normals are then within about 0.01 degree of the sphere's) of radius
 ``ball_radius_px`` pixels in an image of :func:`ball_image_size` pixels, a little off
 centre (chrome and matte differently). The chrome ball is a white metal (Principled BSDF
-from :func:`cnnps.synth.capture_render.principled_material`: base colour 1, metallic 1,
+from :func:`cnnps.synth.render.materials.principled_material`: base colour 1, metallic 1,
 roughness :data:`CHROME_ROUGHNESS`). A perfect mirror under a sun of zero angular size
 would show a highlight smaller than a pixel; roughness 0.2 (GGX alpha 0.04) spreads it
 over a lobe of about 1.5 degrees half width at half maximum in normal angle, about a
@@ -94,7 +94,7 @@ def ball_mesh(placement: dict, subdivisions: int = BALL_SUBDIVISIONS):
 
 def chrome_material(roughness: float = CHROME_ROUGHNESS) -> dict:
     """A white metal (the chrome ball): Principled, base colour 1, metallic 1, no sheen."""
-    from cnnps.synth.capture_render import principled_material
+    from cnnps.synth.render.materials import principled_material
 
     return principled_material({"base_color": np.ones(3), "metallic": 1.0, "specular": 0.5,
                                 "roughness": float(roughness), "sheen": 0.0, "sheen_tint": 0.0})
@@ -125,17 +125,14 @@ def _check_lights(lights, intensities) -> tuple[np.ndarray, np.ndarray]:
 
 def _render(work: Path, name: str, mesh, material: dict, L: np.ndarray, size: int, samples: int, seed: int,
             max_bounces: int, environment: float, threads: int, device: str, progress: bool, extra: dict) -> Path:
-    from cnnps.infra.hashing import bytes_sha256
-    from cnnps.synth.capture_render import (
-        RenderSettings,
-        Scene,
-        capture_key,
-        render_into,
-    )
+    from cnnps.synth.capture_render import render_into
+    from cnnps.synth.render.keys import capture_key, mesh_sha256
+    from cnnps.synth.render.scene import Scene
+    from cnnps.synth.render.settings import RenderSettings
 
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
-    mesh_hash = bytes_sha256(vertices.astype(np.float32).tobytes(), faces.tobytes())
+    mesh_hash = mesh_sha256(vertices, faces)
     mat_key = {k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v) for k, v in material.items()}
     key = capture_key({"calibration_set": name, "mesh": mesh_hash, "material": mat_key,
                        "lights": np.round(L, 12).tolist(), "size": size, "samples": samples, "seed": seed,
@@ -198,13 +195,14 @@ def render_calibration_set(
     images are :func:`ball_image_size`); samples: the object's Cycles samples per pixel;
     ball_samples: the balls' (the sun is a delta light sampled at every pixel, so the
     balls need few); object_mesh: a Trimesh, a mesh file or ``procedural:<kind>[:seed]``
-    (:func:`cnnps.synth.capture_render.load_mesh_arg`); object_material: a renderer
+    (:func:`cnnps.synth.render.mesh_input.load_mesh_arg`); object_material: a renderer
     material dict (default: Lambertian of albedo :data:`OBJECT_ALBEDO`); parts: which of
     chrome, matte and object to make.
     Returns ``{"chrome": Path, "matte": Path, "object": Path, "truth": dict}`` (the parts made).
     """
     from cnnps.infra.atomic import write_text
-    from cnnps.synth.capture_render import lambertian_material, load_mesh_arg
+    from cnnps.synth.render.materials import lambertian_material
+    from cnnps.synth.render.mesh_input import load_mesh_arg
 
     L, E = _check_lights(lights, intensities)
     if not ball_radius_px >= 4:

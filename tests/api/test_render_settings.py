@@ -1,6 +1,6 @@
 """One set of render settings: :func:`cnnps.render`, ``cnnps render`` and the render stage
-share the names and defaults of :class:`cnnps.synth.capture_render.RenderSettings` (and
-:class:`~cnnps.synth.capture_render.CaptureSettings`, which adds the scene's material,
+share the names and defaults of :class:`cnnps.synth.render.settings.RenderSettings` (and
+:class:`~cnnps.synth.render.settings.CaptureSettings`, which adds the scene's material,
 camera and lights). No Blender needed."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ def _defaults(cls) -> dict:
 
 
 def test_the_shared_defaults():
-    from cnnps.synth.capture_render import CaptureSettings
+    from cnnps.synth.render.settings import CaptureSettings
 
     assert _defaults(CaptureSettings) == {
         "size": 128, "samples": 32, "lights": 40, "jitter_deg": 0.0, "min_elevation_deg": 5.0,
@@ -27,7 +27,7 @@ def test_the_shared_defaults():
 
 def test_the_api_keywords_are_the_capture_settings_with_their_defaults():
     import cnnps
-    from cnnps.synth.capture_render import CaptureSettings
+    from cnnps.synth.render.settings import CaptureSettings
 
     params = inspect.signature(cnnps.render).parameters
     api = {n: p.default for n, p in params.items() if p.kind is p.KEYWORD_ONLY and n != "progress"}
@@ -40,7 +40,7 @@ def test_the_cli_options_are_the_same_names_flags_and_defaults():
     import cnnps.pipeline.cli  # noqa: F401 (registers every command)
     from cnnps.pipeline import cli_render
     from cnnps.pipeline.app import app
-    from cnnps.synth.capture_render import CaptureSettings
+    from cnnps.synth.render.settings import CaptureSettings
 
     fields = _defaults(CaptureSettings)
     params = inspect.signature(cli_render.render).parameters
@@ -53,7 +53,7 @@ def test_the_cli_options_are_the_same_names_flags_and_defaults():
 
 def test_the_render_stage_extends_the_same_settings():
     from cnnps.stages.render import Params
-    from cnnps.synth.capture_render import CaptureSettings, RenderSettings
+    from cnnps.synth.render.settings import CaptureSettings, RenderSettings
 
     assert issubclass(Params, RenderSettings) and issubclass(CaptureSettings, RenderSettings)
     stage = _defaults(Params)

@@ -415,9 +415,9 @@ def install_enospc(fail_at: int, root: str | Path) -> dict:
     atomic.publish_mode = publish_mode
     shards.publish_mode = publish_mode
     try:
-        import cnnps.synth.capture_render as capture_render
+        import cnnps.synth.render.resume as resume
 
-        capture_render.publish_mode = publish_mode
+        resume.publish_mode = publish_mode
     except ImportError:  # pragma: no cover
         pass
     return state

@@ -51,7 +51,8 @@ def test_every_file_a_stage_hands_on_carries_a_matching_checksum(baseline):
     from cnnps.io.shards import MANIFEST_INDENT, load_manifest, shard_problem
     from cnnps.models.checkpoint import read_checkpoint
     from cnnps.stages.extract import MARKER_INDENT, MARKER_TIMINGS
-    from cnnps.synth.capture_render import SCENE_INDENT, SCENE_TIMINGS, folder_problems
+    from cnnps.io.capture import SCENE_INDENT
+    from cnnps.synth.render.rendered_folder import SCENE_TIMINGS, folder_problems
 
     data = baseline / "data"
     scenes = [d for root in (data / "render", data / "eval" / "testset") for d in sorted(root.iterdir()) if d.is_dir()]

@@ -479,6 +479,8 @@ def test_the_test_set_draws_its_materials_from_its_own_ranges(tmp_path, monkeypa
     from cnnps.stages import eval_testset
     from cnnps.synth import capture_render
     from cnnps.synth.bsdf import MaterialRanges
+    from cnnps.synth.render.keys import changed_ranges
+    from cnnps.synth.render.materials import capture_material
 
     path = tmp_path / "p.yaml"
     path.write_text(yaml.safe_dump({"materials": {"ranges": {"metallic": {"roughness": [0.6, 0.7]}}},
@@ -501,9 +503,9 @@ def test_the_test_set_draws_its_materials_from_its_own_ranges(tmp_path, monkeypa
 
     # the renderer's material draws from them; the key holds them only where they are not the defaults
     mask = np.ones((24, 24), bool)
-    material = capture_render.capture_material("metallic", 8, 3, params.ranges.metallic)(mask)
+    material = capture_material("metallic", 8, 3, params.ranges.metallic)(mask)
     assert 0.4 <= np.min(material["Roughness"]) and np.max(material["Roughness"]) <= 0.45
-    assert capture_render.changed_ranges("metallic", MaterialRanges()) is None
-    assert capture_render.changed_ranges("metallic", None) is None
-    assert capture_render.changed_ranges("lambertian", params.ranges) is None
-    assert capture_render.changed_ranges("metallic", params.ranges)["roughness"] == [0.4, 0.45]
+    assert changed_ranges("metallic", MaterialRanges()) is None
+    assert changed_ranges("metallic", None) is None
+    assert changed_ranges("lambertian", params.ranges) is None
+    assert changed_ranges("metallic", params.ranges)["roughness"] == [0.4, 0.45]

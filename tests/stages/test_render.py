@@ -99,7 +99,7 @@ def test_render_keys_without_environment_are_unchanged(materials_data):
     from cnnps.infra.hashing import file_sha256, files_sha256, stable_hash
     from cnnps.pipeline import config
     from cnnps.stages import render
-    from cnnps.synth.capture_render import VERSION, capture_key
+    from cnnps.synth.render.keys import VERSION, capture_key
 
     def key(params):
         return capture_key({"mesh": "m", "material": "t", "params": params.picture_params(), "v": VERSION})

@@ -172,7 +172,7 @@ def test_narrow_lobe_highlight_is_peakier_than_a_rough_one():
     the narrow highlight is that pixel (or two) and far brighter; the rough one is broad."""
     from cnnps.synth.blender_renderer import BlenderRenderer
     from cnnps.synth.bsdf import MaterialRanges
-    from cnnps.synth.capture_render import principled_material
+    from cnnps.synth.render.materials import principled_material
 
     lo, hi = MaterialRanges().narrow.roughness
     params = {"base_color": np.full(3, 0.5), "metallic": 0.0, "specular": 1.0, "sheen": 0.0, "sheen_tint": 0.0}

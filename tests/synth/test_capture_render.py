@@ -1,6 +1,6 @@
-"""Rendering capture folders (cnnps.synth.capture_render) and the `cnnps render` command:
-layout, physics on tiny Cycles scenes (32 x 32, few samples, 2 threads), resuming, and a
-clear error without Blender."""
+"""Rendering capture folders (cnnps.synth.capture_render, cnnps.synth.render) and the
+`cnnps render` command: layout, physics on tiny Cycles scenes (32 x 32, few samples, 2
+threads), resuming, and a clear error without Blender."""
 
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def sphere_capture(tmp_path_factory):
 
 
 def test_extend_maps_fills_outside_with_nearest():
-    from cnnps.synth.capture_render import extend_maps
+    from cnnps.synth.render.materials import extend_maps
 
     mask = np.zeros((5, 5), bool)
     mask[1:3, 1:3] = True
@@ -63,7 +63,7 @@ def test_extend_maps_fills_outside_with_nearest():
 
 def test_remove_temp_files_only_removes_atomic_temporaries(tmp_path):
     from cnnps.infra.atomic import atomic_path
-    from cnnps.synth.capture_render import remove_temp_files
+    from cnnps.synth.render.resume import remove_temp_files
 
     keep = ["000.exr", ".pending.json", ".hidden_user_file", "light_directions.txt", ".x.tmp"]
     for n in keep:
@@ -83,7 +83,7 @@ def test_new_scene_folder_gets_the_umask_mode(tmp_path):
     import stat
 
     from cnnps.io.capture import Capture
-    from cnnps.synth.capture_render import _start_folder
+    from cnnps.synth.render.resume import _start_folder
 
     lights = Capture(filenames=["0.exr", "1.exr"], lights=np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]),
                      intensities=np.ones((2, 3)))
@@ -97,7 +97,8 @@ def test_new_scene_folder_gets_the_umask_mode(tmp_path):
 
 
 def test_settings_are_validated_before_anything_is_loaded(tmp_path):
-    from cnnps.synth.capture_render import RenderSettings, render_capture
+    from cnnps.synth.capture_render import render_capture
+    from cnnps.synth.render.settings import RenderSettings
 
     assert RenderSettings().picture_params() == {
         "size": 128, "samples": 32, "lights": 40, "jitter_deg": 0.0, "min_elevation_deg": 5.0,
@@ -178,12 +179,9 @@ def _hand_made_capture(out: Path, names=("000.exr", "001.exr", "002.exr")) -> di
     """A finished capture folder written the way render_into writes one (no Blender)."""
     from cnnps.infra.hashing import add_json_checksum, file_record
     from cnnps.io.images import write_exr, write_png
-    from cnnps.synth.capture_render import (
-        GEOMETRY_FILES,
-        LIGHT_FILES,
-        SCENE_INDENT,
-        SCENE_TIMINGS,
-    )
+    from cnnps.io.capture import SCENE_INDENT
+    from cnnps.synth.render.rendered_folder import SCENE_TIMINGS
+    from cnnps.synth.render.scene import GEOMETRY_FILES, LIGHT_FILES
 
     out.mkdir(parents=True)
     rng = np.random.default_rng(0)
@@ -204,7 +202,8 @@ def _hand_made_capture(out: Path, names=("000.exr", "001.exr", "002.exr")) -> di
 def test_a_finished_folder_sheds_the_marker_a_kill_left_beside_scene_json(tmp_path):
     """A kill between writing scene.json and removing .pending.json leaves both: the folder
     is finished (nothing to render), and the next look at it removes the marker."""
-    from cnnps.synth.capture_render import PENDING_FILE, finished, is_complete
+    from cnnps.synth.render.rendered_folder import PENDING_FILE, is_complete
+    from cnnps.synth.render.resume import finished
 
     out = tmp_path / "cap"
     _hand_made_capture(out)
@@ -222,7 +221,7 @@ def _edit_scene_json(out: Path, edit) -> None:
 
 
 def test_folder_problems_find_each_damaged_file(tmp_path):
-    from cnnps.synth.capture_render import folder_problems, is_complete
+    from cnnps.synth.render.rendered_folder import folder_problems, is_complete
 
     out = tmp_path / "cap"
     _hand_made_capture(out)
@@ -241,7 +240,7 @@ def test_folder_problems_find_each_damaged_file(tmp_path):
 
 
 def test_an_edited_scene_json_vouches_for_nothing(tmp_path):
-    from cnnps.synth.capture_render import folder_problems, is_complete
+    from cnnps.synth.render.rendered_folder import folder_problems, is_complete
 
     out = tmp_path / "cap"
     _hand_made_capture(out)
@@ -256,7 +255,7 @@ def test_an_edited_scene_json_vouches_for_nothing(tmp_path):
 
 def test_decode_problem_without_a_record(tmp_path):
     from cnnps.io.images import write_exr
-    from cnnps.synth.capture_render import decode_problem
+    from cnnps.synth.render.rendered_folder import decode_problem
 
     out = tmp_path / "cap"
     _hand_made_capture(out)
@@ -274,12 +273,13 @@ def test_decode_problem_without_a_record(tmp_path):
 
 def test_capture_key_without_environment_is_the_old_key():
     from cnnps.infra.hashing import stable_hash
-    from cnnps.synth.capture_render import VERSION, RenderSettings, capture_key
+    from cnnps.synth.render.keys import VERSION, capture_key
+    from cnnps.synth.render.settings import MATERIAL_KINDS, RenderSettings
 
     inputs = {"mesh": "m", "material": ["lambertian", 20], "params": RenderSettings().picture_params(), "v": VERSION}
     assert capture_key(inputs) == capture_key(inputs, 0.0) == stable_hash(inputs)
     assert capture_key(inputs, 0.03) != capture_key(inputs) and capture_key(inputs, 0.03) != capture_key(inputs, 0.04)
-    assert "narrow" in __import__("cnnps.synth.capture_render", fromlist=["x"]).MATERIAL_KINDS
+    assert "narrow" in MATERIAL_KINDS
 
 
 # --------------------------------------------------------------------------- Cycles
@@ -461,15 +461,14 @@ def test_a_failed_re_render_puts_the_previous_capture_back(tmp_path, monkeypatch
     one is complete: a failure (a full disk) puts it back byte for byte; success removes it;
     a killed re-render followed by the old parameters takes it back without rendering."""
     pytest.importorskip("bpy")
-    import cnnps.synth.capture_render as cr
     from cnnps.io.images import write_exr as real_write_exr
-    from cnnps.synth.capture_render import (
-        RenderSettings,
-        Scene,
-        lambertian_material,
-        render_into,
-    )
+    from cnnps.synth.capture_render import render_into
     from cnnps.synth.lights import hemisphere_lights
+    from cnnps.synth.render.materials import lambertian_material
+    from cnnps.synth.render.rendered_folder import is_complete
+    from cnnps.synth.render.resume import previous_path
+    from cnnps.synth.render.scene import Scene
+    from cnnps.synth.render.settings import RenderSettings
 
     out = tmp_path / "cap"
     mesh = _sphere()
@@ -489,13 +488,13 @@ def test_a_failed_re_render_puts_the_previous_capture_back(tmp_path, monkeypatch
     with pytest.raises(OSError, match="No space left"):
         render_into(out, scene, settings, key="new", progress=False)
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
-    assert not cr.previous_path(out).exists() and [p.name for p in tmp_path.iterdir()] == ["cap"]
+    assert not previous_path(out).exists() and [p.name for p in tmp_path.iterdir()] == ["cap"]
     monkeypatch.setattr("cnnps.io.images.write_exr", real_write_exr)
     # killed half-way through a re-render: both versions on disk; going back takes the old one
-    out.rename(cr.previous_path(out))
+    out.rename(previous_path(out))
     out.mkdir()
     (out / ".pending.json").write_text('{"key": "new"}\n')
     assert render_into(out, scene, settings, key="old", progress=False)["skipped"]
-    assert {p.name: p.read_bytes() for p in out.iterdir()} == before and not cr.previous_path(out).exists()
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before and not previous_path(out).exists()
     render_into(out, scene, settings, key="new", progress=False)
-    assert cr.is_complete(out, "new") and not cr.previous_path(out).exists()
+    assert is_complete(out, "new") and not previous_path(out).exists()

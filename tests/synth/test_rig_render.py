@@ -2,7 +2,7 @@
 lights) that `cnnps predict` reads: least squares with each pixel's own lights recovers
 a Lambertian sphere rendered by Cycles, and its depth; treating the lights as distant
 does far worse. Rig captures are written by the one capture renderer, so a killed or
-damaged one resumes like every other (cnnps.synth.capture_render)."""
+damaged one resumes like every other (cnnps.synth.capture_render, cnnps.synth.render.resume)."""
 
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ def test_point_lights_need_a_pinhole_camera_and_stay_in_front_of_it(tmp_path):
 
 
 def test_rig_keys_leave_the_orthographic_sun_keys_alone():
-    from cnnps.synth.capture_render import capture_key
+    from cnnps.synth.render.keys import capture_key
 
     inputs = {"mesh": "m", "material": ["lambertian", 20], "params": {"size": 8}, "v": 1}
     keys = {capture_key(inputs), capture_key(inputs, fov_deg=40.0), capture_key(inputs, fov_deg=50.0),
@@ -80,7 +80,8 @@ def test_a_killed_rig_render_resumes_and_a_damaged_image_is_redone(tmp_path):
     finished folder is rendered again alone; other settings start the folder afresh."""
     from cnnps.infra.atomic import atomic_path
     from cnnps.io.capture import load_capture
-    from cnnps.synth.capture_render import folder_problems, is_complete, render_capture
+    from cnnps.synth.capture_render import render_capture
+    from cnnps.synth.render.rendered_folder import folder_problems, is_complete
 
     ref = render_capture(_sphere(), tmp_path / "ref", **RIG)
     meta = json.loads((ref / "scene.json").read_text())
