@@ -5,6 +5,7 @@ maps; nothing below imports it. This file, like ``openmp``, loads no torch.
 
 The loop and what it keeps:
 
+- ``params``: the train section's typed tree, ``Params`` (loads no torch either);
 - ``loop``: data set-up, resume, the step loop, the model file and ``metrics.json``
   (:func:`~cnnps.train.loop.train`, :class:`~cnnps.train.loop.Trainer`);
 - ``optimiser``: the model and Adam, the learning-rate schedule, one step;

@@ -15,10 +15,11 @@ resolved once: :mod:`cnnps.train.precision`),
 :meth:`~Trainer.load_validation`, :meth:`~Trainer.run_steps` (the step loop: logging,
 validation, checkpoints), :meth:`~Trainer.finish` (last validation, model file, metrics).
 
-``params`` is the stage's ``Params`` dataclass (:class:`cnnps.stages.train.Params`: top-level
-keys and the sections ``optimiser``, ``data``, ``pixelwise``, ``cpu``, ``synthesis``), read
-by attribute (this layer does not import the stage). The stage's module docstring describes the
-behaviour: batch order, resuming, several processes, outputs.
+``params`` is the train section's typed tree, :class:`cnnps.train.params.Params` (top-level
+keys and the sections ``optimiser``, ``data``, ``pixelwise``, ``cpu``, ``synthesis``), the
+stage's ``Params``; its fields hold the types, checks and defaults, read here as they are.
+The stage's module docstring describes the behaviour: batch order, resuming, several
+processes, outputs.
 """
 
 from __future__ import annotations
@@ -76,6 +77,7 @@ from cnnps.train.distributed import (
 )
 from cnnps.train.maps_ahead import made_ahead
 from cnnps.train.optimiser import compile_model, lr_at, make_model, set_lr, train_step
+from cnnps.train.params import Params
 from cnnps.train.precision import PRECISIONS
 from cnnps.train.resume import (
     CKPT_FORMAT,
@@ -95,7 +97,7 @@ from cnnps.train.validation import load_val, no_val, val_errors
 
 
 @contextmanager
-def training_processes(params) -> Iterator[tuple[DistInfo, torch.device]]:
+def training_processes(params: Params) -> Iterator[tuple[DistInfo, torch.device]]:
     """(this process's place in a torchrun job, its device), with torch's threads set and,
     under torchrun, the process group up for the duration (see :mod:`cnnps.train.distributed`)."""
     info = dist_env()
@@ -201,13 +203,13 @@ class GeneratedBatches:
         yield from made_ahead(self.make, range(self.skip, self.steps), self.device, self.ahead)
 
 
-def input_channels(params) -> int:
+def input_channels(params: Params) -> int:
     """The network's input channels for ``params``: :data:`cnnps.models.network.RGB_CHANNELS`
     (grey, R, G, B) with ``train.pixelwise.rgb``, else 1."""
-    return RGB_CHANNELS if getattr(params.pixelwise, "rgb", False) else 1
+    return RGB_CHANNELS if params.pixelwise.rgb else 1
 
 
-def pixelwise_settings(params) -> dict:
+def pixelwise_settings(params: Params) -> dict:
     """The keyword arguments of :func:`cnnps.synth.pixelwise.generate` that ``params`` sets:
     the materials and light subsets of ``params.synthesis`` (``materials.categories`` /
     ``ranges``, extract's light-subset rules), the light set's size, the sparse fraction
@@ -225,7 +227,7 @@ def pixelwise_settings(params) -> dict:
     }
 
 
-def pixelwise_maker(params):
+def pixelwise_maker(params: Params):
     """``(n, generator, device, w) -> (maps (n, C, w, w), normals (n, 3))``: per-pixel
     training maps, :func:`cnnps.synth.pixelwise.generate` with every setting of
     :func:`pixelwise_settings`, C = 1, or 4 (grey, R, G, B) with ``pixelwise.rgb``; None
@@ -242,7 +244,7 @@ def pixelwise_maker(params):
     return make
 
 
-def pixelwise_fewest_lights(params) -> int:
+def pixelwise_fewest_lights(params: Params) -> int:
     """The fewest lights of any per-pixel map of ``params`` (:func:`cnnps.synth.pixelwise.light_subsets`'
     bounds): ``min(synthesis.min_lights, pixelwise.lights)``, or with sparse maps
     ``synthesis.sparse_min_lights`` below it."""
@@ -287,7 +289,7 @@ def write_plots(out_dir: Path, history: dict) -> None:
 # -- the loop ---------------------------------------------------------------------------
 
 
-def train(params, data: TrainingData, out_dir: Path, key_for: Callable[[str], str], info: DistInfo,
+def train(params: Params, data: TrainingData, out_dir: Path, key_for: Callable[[str], str], info: DistInfo,
           device: torch.device, init_state: dict | None = None, init_sha: str | None = None, *,
           stop_after_step: int | None = None, make_pixelwise=None, until=None) -> dict:
     """Train (resuming the newest checkpoint of this run); returns the final metrics.
@@ -320,9 +322,10 @@ def _plain(record: dict | None) -> dict | None:
 class Trainer:
     """One training run of this process: model, optimiser, data stream, step and history."""
 
-    def __init__(self, params, data: TrainingData, out_dir: Path, key_for: Callable[[str], str], info: DistInfo,
+    def __init__(self, params: Params, data: TrainingData, out_dir: Path, key_for: Callable[[str], str], info: DistInfo,
                  device: torch.device, init_state: dict | None = None, init_sha: str | None = None):
-        self.params, self.data, self.key_for, self.info, self.device = params, data, key_for, info, device
+        self.params: Params = params
+        self.data, self.key_for, self.info, self.device = data, key_for, info, device
         self.run_key: str | None = None  # key_for(self.precision), once resume / choose_precision settled it
         self.out_dir = Path(out_dir)
         self.ckpt_dir = self.out_dir / "checkpoints"

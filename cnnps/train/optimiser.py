@@ -1,8 +1,7 @@
 """Training a CNN-PS: the model and its Adam optimiser, the learning-rate schedule, one step.
 
-``params`` here is the train stage's ``Params`` (:class:`cnnps.stages.train.Params`,
-its ``optimiser`` and ``cpu`` sections included), read by attribute only, so this layer
-does not depend on the stage.
+``params`` here is the train section's typed tree (:class:`cnnps.train.params.Params`,
+its ``optimiser`` and ``cpu`` sections included).
 
 None of the speed settings changes the model or the loss: ``channels_last`` (NHWC
 activations), ``optimiser.fused_adam`` (torch's fused kernel: the same algorithm,
@@ -21,16 +20,16 @@ import torch.nn.functional as F
 
 from cnnps.models.network import CNNPS
 from cnnps.models.train_layers import COUNTER_MASK_BITS
+from cnnps.train.params import OptimiserParams, Params
 
 
-def lr_at(optimiser, step: int) -> float:
+def lr_at(optimiser: OptimiserParams, step: int) -> float:
     """The learning rate of optimiser step ``step + 1`` (``step`` steps done): ``lr``
     times ``lr_gamma`` for every milestone already reached, of ``optimiser`` (the
     ``train.optimiser`` section). A step schedule does not depend on ``max_steps``, so
     raising ``max_steps`` still continues a finished run.
 
-    >>> from types import SimpleNamespace
-    >>> lr_at(SimpleNamespace(lr=1e-3, lr_gamma=0.5, lr_milestones=(10,)), 10)
+    >>> lr_at(OptimiserParams(lr=1e-3, lr_gamma=0.5, lr_milestones=(10,)), 10)
     0.0005
     """
     return optimiser.lr * optimiser.lr_gamma ** sum(step >= m for m in optimiser.lr_milestones)
@@ -51,7 +50,7 @@ def autocast(device: torch.device, precision: str):
     return nullcontext()
 
 
-def make_model(w: int, params, device: torch.device, in_channels: int = 1) -> tuple[CNNPS, torch.optim.Adam]:
+def make_model(w: int, params: Params, device: torch.device, in_channels: int = 1) -> tuple[CNNPS, torch.optim.Adam]:
     """A fresh CNN-PS of ``in_channels`` input channels (weights drawn after
     ``torch.manual_seed(params.seed)``) on ``device``, channels_last if asked, and its Adam
     optimiser."""
@@ -67,7 +66,7 @@ def make_model(w: int, params, device: torch.device, in_channels: int = 1) -> tu
     return model, opt
 
 
-def compile_model(model, params):
+def compile_model(model, params: Params):
     """``torch.compile(model)`` when ``params.compile``, else ``model``.
 
     Compilation happens lazily on the first call; :mod:`cnnps.train.loop` falls back

@@ -55,6 +55,8 @@ from dataclasses import asdict, dataclass, field
 
 import torch
 
+from cnnps.train.params import Params
+
 PRECISIONS = ("fp32", "bf16")
 WARM_STEPS = 1
 TIMED_STEPS = 3
@@ -102,7 +104,7 @@ class TrainChoice:
         return {k: v for k, v in asdict(self).items() if k not in ("source", "age_seconds")}
 
 
-def time_steps(model, params, device: torch.device, precision: str, maps: torch.Tensor,
+def time_steps(model, params: Params, device: torch.device, precision: str, maps: torch.Tensor,
                normals: torch.Tensor) -> tuple[float, float, float | None]:
     """(steps/s, the first step's loss, the CPU share of the timed steps: CPU seconds /
     (wall seconds x intra-op threads), None on a GPU) of ``precision`` on a copy of
@@ -129,7 +131,7 @@ def time_steps(model, params, device: torch.device, precision: str, maps: torch.
     return 1.0 / statistics.median(walls), first, share
 
 
-def choose_train_precision(model, params, device: torch.device, batch_rows: int) -> TrainChoice:
+def choose_train_precision(model, params: Params, device: torch.device, batch_rows: int) -> TrainChoice:
     """The probe (the module docstring, step 3): the precision that steps ``model`` (the
     run's network as built; its weights and the global RNG are left as they were) fastest
     on ``batch_rows`` rows, the rows of this process's batch. Not cached: :func:`resolve`."""
@@ -188,7 +190,7 @@ def choose_train_precision(model, params, device: torch.device, batch_rows: int)
     )
 
 
-def cache_key(model, params, device: torch.device, batch_rows: int) -> str:
+def cache_key(model, params: Params, device: torch.device, batch_rows: int) -> str:
     """What the cached answer is for: this machine (CPU model and flags and the CPUs this
     process may use, or the GPU's name), torch, the network and its input, the batch rows
     and the settings that change how a step runs on a CPU."""
@@ -202,7 +204,7 @@ def cache_key(model, params, device: torch.device, batch_rows: int) -> str:
     return f"{where} | torch {torch.__version__} | {device.type} | {net} | {int(batch_rows)} rows | {step}"
 
 
-def resolve(model, params, device: torch.device, batch_rows: int) -> TrainChoice:
+def resolve(model, params: Params, device: torch.device, batch_rows: int) -> TrainChoice:
     """The precision a new run of ``params`` steps in (never called for a resume: that keeps
     its checkpoint's): ``train.precision`` when it names one, else this machine's cached
     answer for the step (:func:`cache_key`) when under :data:`CACHE_MAX_AGE_S` old, else a

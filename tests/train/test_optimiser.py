@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from cnnps.stages.train import Params
+from cnnps.train.params import Params
 from cnnps.train.optimiser import lr_at, make_model
 
 

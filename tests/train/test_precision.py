@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from cnnps.models.network import CNNPS
-from cnnps.stages.train import Params
+from cnnps.train.params import Params
 from cnnps.train import precision as tp
 
 

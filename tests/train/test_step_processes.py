@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from cnnps.infra.errors import CnnpsError
 from cnnps.models.network import counter_dropout
 from cnnps.models.train_layers import MASK_BLOCK_ROWS, counter_keep
-from cnnps.stages.train import Params
+from cnnps.train.params import Params
 from cnnps.train.optimiser import make_model, train_step
 from cnnps.train.step_processes import StepProcesses, row_shares
 
