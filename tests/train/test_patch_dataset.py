@@ -1,7 +1,6 @@
 """The patch loader: b = 1 is the extract stage's row, training and prediction patches
 agree, realism per cell, determinism and resuming by skipping batches."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -132,9 +131,12 @@ def test_torch_dataset_and_options(files):
     assert patches.shape == (16, 3, 3, 1, W, W) and patches.dtype == torch.float32 and normals.shape == (16, 3)
     want = next(_stream(files, b=3).iter_epoch(1, 2))
     assert np.array_equal(patches.numpy(), want[0])
+    # two DataLoader worker processes: the same batches in the same order
+    two = [p for p, _ in torch.utils.data.DataLoader(ds, batch_size=None, num_workers=2)]
+    one = [p for p, _ in _stream(files, b=3).iter_epoch(1, 2)]
+    assert len(two) == len(one) and all(np.array_equal(a.numpy(), b) for a, b in zip(two, one))
     for bad in (dict(b=2), dict(b=0), dict(interpolation="cubic"), dict(rotations=-1)):
         with pytest.raises(ConfigError, match="patch"):
             PatchSampling(**bad)
     assert PatchSampling.from_settings(type("P", (), {"min_lights": 7, "rotations": 4})(), b=5) == \
         PatchSampling(min_lights=7, rotations=4, b=5)
-    assert isinstance(Path(files[0][0]), Path)
