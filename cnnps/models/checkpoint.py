@@ -21,7 +21,10 @@ for ``model.pt``) is verified too, when present: it covers every byte of the fil
 The bytes of a checkpoint depend only on its content (saved through memory, so the zip's
 folder name is not the temporary file's random name).
 ``in_channels`` (1: grey maps; 4: grey, R, G, B) is read as 1 when absent: a file without
-it holds a grey model.
+it holds a grey model. The model options ``arch`` (``cnnps`` | ``unet``), ``head``
+(``regression`` | ``heatmap``) and ``patch`` (1 | 3 | 5) are in the config when they differ
+from the paper's network (:mod:`cnnps.models.model_options`); a file without them holds
+that network.
 Weights can be stored in half precision (``half=True``: 5.3 MB
 instead of 10.6 MB for w = 32); they are loaded back as float32.
 """
@@ -41,7 +44,8 @@ import torch
 from cnnps.infra.atomic import atomic_path, write_text
 from cnnps.infra.errors import CnnpsError, InputError
 from cnnps.infra.hashing import file_sha256
-from cnnps.models.network import ARCH_VERSION, CNNPS
+from cnnps.models.model_options import MODEL_TYPES, build_model, options_of_config, recorded_options
+from cnnps.models.network import ARCH_VERSION
 
 FORMAT = "cnnps-checkpoint"
 FORMAT_VERSION = 1
@@ -73,24 +77,26 @@ def state_digest(state: dict[str, torch.Tensor]) -> str:
 
 def save_checkpoint(
     path: str | Path,
-    model: CNNPS,
+    model,
     config: dict | None = None,
     meta: dict | None = None,
     half: bool = False,
 ) -> Path:
     """Write ``model`` with its ``config`` and provenance ``meta`` atomically to ``path``.
 
-    ``config`` may carry anything JSON-like; ``w``, ``dropout``, ``in_channels`` and
-    ``arch_version`` are filled in from the model (a value that disagrees with the model
-    raises ValueError).
+    ``model``: a CNN-PS or a heat-map U-Net (:func:`cnnps.models.model_options.build_model`).
+    ``config`` may carry anything JSON-like; ``w``, ``dropout``, ``in_channels``,
+    ``arch_version`` and the model options that differ from the defaults (``arch``,
+    ``head``, ``patch``) are filled in from the model (a value that disagrees with the
+    model raises ValueError).
     ``half=True`` stores the weights as float16 (refused if a weight exceeds its range).
     """
-    if not isinstance(model, CNNPS):
-        raise TypeError(f"expected a CNNPS model, got {type(model).__name__}")
+    if not isinstance(model, MODEL_TYPES):
+        raise TypeError(f"expected a CNNPS or HeatmapUNet model, got {type(model).__name__}")
     config = _json_like(dict(config or {}), "config")
     meta = _json_like(dict(meta or {}), "meta")
     for key, value in (("w", model.w), ("dropout", model.dropout_p), ("in_channels", model.in_channels),
-                       ("arch_version", ARCH_VERSION)):
+                       ("arch_version", ARCH_VERSION), *recorded_options(model).items()):
         if key in config and config[key] != value:
             raise ValueError(f"config[{key!r}] = {config[key]!r} disagrees with the model ({value!r})")
         config[key] = value
@@ -209,7 +215,7 @@ def read_checkpoint(path: str | Path) -> dict:
     return payload
 
 
-def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> tuple[CNNPS, dict, dict]:
+def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> tuple[torch.nn.Module, dict, dict]:
     """Rebuild the model from ``path``: returns (model in eval mode, float32, on ``device``;
     config; meta). Every problem with the file raises ``InputError(path, ...)``."""
     try:
@@ -220,7 +226,7 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> tup
         raise InputError(path, f"could not load model ({type(exc).__name__}: {exc})") from exc
 
 
-def _load_checkpoint(path: str | Path, device: str | torch.device) -> tuple[CNNPS, dict, dict]:
+def _load_checkpoint(path: str | Path, device: str | torch.device) -> tuple[torch.nn.Module, dict, dict]:
     from cnnps.models.devices import resolve_device
 
     path = Path(path)
@@ -231,7 +237,7 @@ def _load_checkpoint(path: str | Path, device: str | torch.device) -> tuple[CNNP
         in_channels = int(config.get("in_channels", 1))  # absent: a grey model
         if not math.isfinite(dropout):
             raise ValueError("dropout is not finite")
-        model = CNNPS(w=w, dropout=dropout, in_channels=in_channels)
+        model = build_model(**options_of_config(config), w=w, in_channels=in_channels, dropout=dropout)
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(path, f"checkpoint config cannot rebuild the network: {exc}") from None
     state = {k: v.float() for k, v in payload["state_dict"].items()}
@@ -239,7 +245,9 @@ def _load_checkpoint(path: str | Path, device: str | torch.device) -> tuple[CNNP
         model.load_state_dict(state, strict=True)
     except RuntimeError as exc:
         detail = " ".join(str(exc).split())[:300]
-        raise InputError(path, f"weights do not match the config (w={w}, in_channels={in_channels}): {detail}") from None
+        opts = ", ".join(f"{k}={v}" for k, v in options_of_config(config).items())
+        raise InputError(path, f"weights do not match the config (w={w}, in_channels={in_channels}, {opts}): "
+                         f"{detail}") from None
     model.to(resolve_device(device)).eval()
     return model, dict(config), dict(payload["meta"])
 

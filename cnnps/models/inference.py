@@ -21,6 +21,17 @@ Colour models (``in_channels`` = 4, :data:`cnnps.models.network.RGB_CHANNELS`) g
 rotation the grey map and the R, G, B maps of the training rule
 (:func:`cnnps.ps.obsmap.observation_maps_rgb_multi`), under distant lights and an
 orthographic camera without the Lambertian fill (:func:`check_colour_inputs`).
+
+Heat-map models (``head`` ``heatmap``, :mod:`cnnps.models.heads`) give each map a
+(w, w) heat-map, decoded to a unit normal on the device (:mod:`cnnps.models.heatmap`)
+before the K rotations are averaged as any normal is; their spread in degrees is each
+pixel's uncertainty. A CNN-PS heat-map model runs as ``FastCNNPS`` as the regression one
+does; the U-Net (:mod:`cnnps.models.unet`) runs as built (bf16: under autocast).
+
+Patch models (``patch`` b > 1, :mod:`cnnps.models.patch`) take each pixel's b x b
+neighbourhood: (P, b^2, m) grey values, shared distant lights, an orthographic camera,
+and K in 1, 2, 4 (:func:`check_patch_inputs`): under each rotation the patch grid turns
+with the lights by whole quarter turns.
 """
 
 from __future__ import annotations
@@ -34,6 +45,8 @@ from torch import nn
 
 from cnnps.infra.errors import CnnpsError, ConfigError
 from cnnps.models.devices import resolve_device  # also part of this module's API
+from cnnps.models.heads import HEATMAP, model_head
+from cnnps.models.heatmap import decode_heatmaps, decode_with_spread
 from cnnps.models.network import CNNPS, RGB_CHANNELS, fast_cpu_model, fold_for_inference
 from cnnps.ps.rotation import average_rotated_predictions, rotate_z, rotation_angles
 
@@ -59,6 +72,36 @@ def model_channels(model) -> int:
     return int(getattr(model, "in_channels", 1))
 
 
+def model_patch(model) -> int:
+    """The patch size b of a network (or :class:`MapPredictor`): its ``patch``, 1 when it has none."""
+    return int(getattr(model, "patch", 1))
+
+
+def patch_rotations_ok(rotations: int) -> bool:
+    """Whether K test-time rotations are all whole quarter turns (K in 1, 2, 4), which a
+    patch grid can follow exactly."""
+    return int(rotations) in (1, 2, 4)
+
+
+def check_patch_inputs(patch: int, channels: int = 1, *, rotations: int = 1, per_pixel_lights: bool = False,
+                       views: bool = False) -> None:
+    """One ConfigError when a network of ``patch`` b > 1 cannot be fed: its b x b maps are
+    built for grey models under shared distant lights with an orthographic camera, and
+    the test-time rotations must be quarter turns (K in 1, 2, 4)."""
+    if patch == 1:
+        return
+    if channels != 1:
+        raise ConfigError(f"a patch model (patch={patch}) of {channels} input channels: patches are built for "
+                          "grey models only")
+    if per_pixel_lights or views:
+        what = "per-pixel lights (point lights)" if per_pixel_lights else "a pinhole camera (per-pixel views)"
+        raise ConfigError(f"a patch model (patch={patch}) needs distant lights and an orthographic camera; "
+                          f"this capture has {what}")
+    if not patch_rotations_ok(rotations):
+        raise ConfigError(f"a patch model (patch={patch}) takes 1, 2 or 4 rotations (its patch grid turns by "
+                          f"quarter turns only), got {rotations}")
+
+
 def check_colour_inputs(channels: int, *, per_pixel_lights: bool = False, views: bool = False,
                         fill: bool = False) -> None:
     """One ConfigError when a network of ``channels`` input channels cannot be fed: a
@@ -80,7 +123,10 @@ def check_colour_inputs(channels: int, *, per_pixel_lights: bool = False, views:
 
 class MapPredictor:
     """Callable numpy maps (float16 or float32) -> (B, 3) float32 numpy normals: (B, w, w)
-    for a 1-channel (grey) model, (B, C, w, w) for a C-channel one (``in_channels``).
+    for a 1-channel (grey) model, (B, C, w, w) for a C-channel one (``in_channels``),
+    (B, C b^2, w, w) for a patch model (``patch`` b > 1, the layout of
+    :mod:`cnnps.models.patch`). A heat-map model's heat-maps are decoded to normals
+    (``head``; ``spread=`` also gives each map's heat-map spread in degrees).
 
     Holds the prepared (folded, moved, channels_last, eval mode) copy of the model; the
     caller's model is not modified (nor its train/eval mode), and building the copy draws
@@ -98,6 +144,8 @@ class MapPredictor:
         self.batch_size = int(batch_size)
         self.w = int(getattr(model, "w", 32))
         self.in_channels = model_channels(model)
+        self.patch = model_patch(model)
+        self.head = model_head(model)
         # autocast: bf16 anywhere but in FastCNNPS, which holds its own bf16 weights
         self.autocast = self.precision == "bf16"
         if fold and isinstance(model, CNNPS):
@@ -119,9 +167,14 @@ class MapPredictor:
         return y.float()
 
     @torch.inference_mode()
-    def __call__(self, maps: np.ndarray, progress=None) -> np.ndarray:
+    def __call__(self, maps: np.ndarray, progress=None, spread: np.ndarray | None = None) -> np.ndarray:
+        """(B, 3) normals of ``maps``; ``spread`` (B,) float32, optional: filled with each
+        heat-map's spread in degrees (:func:`cnnps.models.heatmap.heatmap_spread_deg`;
+        ValueError for a regression model, which has none)."""
+        if spread is not None and self.head != HEATMAP:
+            raise ValueError("spread= needs a heat-map model; a regression model's spread is rotation_spread")
         maps = np.ascontiguousarray(maps, dtype=np.float32)
-        C = self.in_channels
+        C = self.in_channels * self.patch * self.patch
         want = (self.w, self.w) if C == 1 else (C, self.w, self.w)
         if maps.ndim != 1 + len(want) or maps.shape[1:] != want:
             raise ValueError(f"maps must be (B, {', '.join(map(str, want))}), got {maps.shape}")
@@ -132,7 +185,14 @@ class MapPredictor:
         for start in range(0, maps.shape[0], self.batch_size):
             x = x_all[start:start + self.batch_size].to(self.device, non_blocking=True)
             x = x.contiguous(memory_format=torch.channels_last)
-            out[start:start + x.shape[0]] = self._forward(x).cpu().numpy()
+            y = self._forward(x)
+            if self.head == HEATMAP:
+                if spread is not None:
+                    y, s = decode_with_spread(y)
+                    spread[start:start + x.shape[0]] = s.cpu().numpy()
+                else:
+                    y = decode_heatmaps(y)
+            out[start:start + x.shape[0]] = y.cpu().numpy()
             if progress is not None:
                 progress.update(x.shape[0])
         return out
@@ -156,7 +216,9 @@ def predict_normals(
 
     intensities: (P, m), already divided by each light's intensity; for an RGB model
     (``in_channels`` 4) also (P, m, 3), each channel divided by its own intensity (the
-    grey map is then their mean's; (P, m) grey values stand for R = G = B).
+    grey map is then their mean's; (P, m) grey values stand for R = G = B); for a patch
+    model (``patch`` b > 1) (P, b^2, m), each pixel's b x b neighbourhood row by row, the
+    pixel itself at the centre (:func:`check_patch_inputs`).
     lights: (m, 3) unit light directions (camera frame: x right, y up, z to the camera),
     or (P, m, 3) each pixel's own (point lights near the object; never sparse-filled).
     rotations: K test-time rotations (K = 1: none; the paper uses 10).
@@ -172,11 +234,18 @@ def predict_normals(
     intensities = np.asarray(intensities, dtype=np.float32)
     lights = np.asarray(lights, dtype=np.float64)
     channels = model_channels(model)
-    if intensities.ndim != 2 and not (channels > 1 and intensities.ndim == 3 and intensities.shape[2] == 3):
+    patch = model_patch(model)
+    if patch > 1:
+        if intensities.ndim != 3 or intensities.shape[1] != patch * patch:
+            raise ValueError(f"a patch model (patch={patch}) takes (P, {patch * patch}, m) intensities, "
+                             f"got {intensities.shape}")
+        check_patch_inputs(patch, channels, rotations=rotations, per_pixel_lights=np.ndim(lights) == 3)
+        intensities = intensities.reshape(-1, intensities.shape[2])  # (P b^2, m): every pixel of every patch
+    elif intensities.ndim != 2 and not (channels > 1 and intensities.ndim == 3 and intensities.shape[2] == 3):
         raise ValueError(f"intensities must be (P, m){' or (P, m, 3)' if channels > 1 else ''}, "
                          f"got {intensities.shape}")
     P, m = intensities.shape[:2]
-    if lights.shape not in ((m, 3), (P, m, 3)):
+    if lights.shape not in ((m, 3), (P // (patch * patch), m, 3)):
         raise ValueError(f"lights must be ({m}, 3) or ({P}, {m}, 3) to match intensities, got {lights.shape}")
     from cnnps.ps.sparse_fill import lambertian_fill, should_fill
 
@@ -187,6 +256,10 @@ def predict_normals(
     if fill:
         f = lambertian_fill(intensities, lights, w=predictor.w)
         intensities, lights, light_mask = f.intensities, f.lights, f.light_mask
+    if patch > 1:  # back to (P, b^2, m)
+        intensities = intensities.reshape(-1, patch * patch, intensities.shape[1])
+        light_mask = None if light_mask is None else light_mask.reshape(intensities.shape)
+        P = intensities.shape[0]
     bar = None
     if progress:
         from cnnps.infra.progress import progress_bar
@@ -243,8 +316,19 @@ def rotated_normals(
     the object, :mod:`cnnps.ps.near_lights`); they are turned by the pixel's view rotation
     the same way. Lights behind a pixel's view plane are left out of its map.
 
+    A patch predictor (``patch`` b > 1) takes ``intensities`` (P, b^2, m) and
+    ``light_mask`` (P, b^2, m): each pixel's b x b neighbourhood, row by row (image rows),
+    the pixel itself at the centre; under the rotation by theta_k (a quarter turn times q)
+    the patch grid turns with the lights, by q quarter turns counter-clockwise as seen
+    from the camera (:func:`turn_patch_grids`), so each rotated input is that of the scene
+    turned about z (:func:`check_patch_inputs`: grey, shared distant lights, no ``views``,
+    K in 1, 2, 4).
+
     ``spread`` (P,) float32, optional: filled with each pixel's :func:`rotation_spread` in
-    degrees (0 with K = 1); the normals are the same with or without it.
+    degrees (0 with K = 1), or, for a heat-map predictor (``head`` ``heatmap``), with the
+    mean over the K rotations of its heat-maps' spread in degrees
+    (:func:`cnnps.models.heatmap.heatmap_spread_deg`); the normals are the same with or
+    without it.
     """
     from cnnps.infra.prefetch import prefetched
     from cnnps.ps.camera import view_rotations
@@ -253,16 +337,27 @@ def rotated_normals(
     angles = rotation_angles(int(rotations))
     per_pixel = np.ndim(lights) == 3
     channels = model_channels(predictor)
+    patch = model_patch(predictor)
+    heat = model_head(predictor) == HEATMAP
     check_colour_inputs(channels, per_pixel_lights=per_pixel, views=views is not None)
-    intensities, colour = _grey_and_colour(intensities, colour, channels)
+    check_patch_inputs(patch, channels, rotations=len(angles), per_pixel_lights=per_pixel, views=views is not None)
+    if patch > 1:
+        intensities = np.asarray(intensities)
+        if intensities.ndim != 3 or intensities.shape[1] != patch * patch:
+            raise ValueError(f"a patch model (patch={patch}) takes (P, {patch * patch}, m) intensities, "
+                             f"got {intensities.shape}")
+    else:
+        intensities, colour = _grey_and_colour(intensities, colour, channels)
     rotated = None if per_pixel else np.stack([rotate_z(lights, a) for a in angles])
     P = intensities.shape[0]
-    chunk = max(1, int(pixel_chunk) // (len(angles) * channels))
+    chunk = max(1, int(pixel_chunk) // (len(angles) * channels * patch * patch))
     starts = range(0, P, chunk)
 
     def maps_of(start: int) -> np.ndarray:
         stop = min(start + chunk, P)
         mask = None if light_mask is None else light_mask[start:stop]
+        if patch > 1:
+            return patch_maps(intensities[start:stop], rotated, angles, predictor.w, mask)
         if channels > 1:
             return colour_maps(intensities[start:stop], colour[start:stop], rotated, predictor.w, mask)
         if views is None and not per_pixel:
@@ -283,14 +378,48 @@ def rotated_normals(
     out = np.empty((P, 3), dtype=np.float32)
     for start, maps in zip(starts, prefetched(maps_of, starts, depth=read_ahead)):
         K, n = maps.shape[:2]
-        preds = predictor(maps.reshape((K * n,) + maps.shape[2:]), progress=progress).reshape(K, n, 3)
+        heat_spread = np.empty(K * n, np.float32) if heat and spread is not None else None
+        preds = predictor(maps.reshape((K * n,) + maps.shape[2:]), progress=progress,
+                          **({} if heat_spread is None else {"spread": heat_spread})).reshape(K, n, 3)
         pred = preds[0] if K == 1 else average_rotated_predictions(preds, angles)
-        if spread is not None:
+        if heat_spread is not None:
+            spread[start:start + n] = heat_spread.reshape(K, n).mean(axis=0)
+        elif spread is not None:
             spread[start:start + n] = rotation_spread(preds, angles, pred)
         if views is not None:  # back from each pixel's view frame: n = R^T (R n)
             pred = np.einsum("nji,nj->ni", view_rotations(views[start:start + n]), np.asarray(pred, np.float64))
         out[start:start + n] = pred
     return out
+
+
+def turn_patch_grids(maps: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """(K, n, b, b, w, w) maps with the b x b patch grid of rotation k turned by
+    ``angles[k]`` (whole quarter turns) counter-clockwise as seen from the camera (x right,
+    y up, grid row 0 on top): ``np.rot90`` over the grid axes, the lights' turn by
+    :func:`cnnps.ps.rotation.rotate_z`. Other angles raise ValueError."""
+    out = np.empty_like(maps)
+    for k, a in enumerate(angles):
+        q = float(a) / (np.pi / 2)
+        if abs(q - round(q)) > 1e-9:
+            raise ValueError(f"a patch grid turns by quarter turns only, not {np.degrees(a):g} deg")
+        out[k] = np.rot90(maps[k], int(round(q)) % 4, axes=(1, 2))
+    return out
+
+
+def patch_maps(intensities: np.ndarray, lights: np.ndarray, angles: np.ndarray, w: int,
+               light_mask: np.ndarray | None = None) -> np.ndarray:
+    """(K, n, b^2, w, w) float32 maps of n pixels' b x b patches, ``intensities`` (n, b^2, m)
+    (and ``light_mask``), under K light sets ``lights`` (K, m, 3), the lights turned by
+    ``angles`` (K,): every pixel's map (:func:`cnnps.ps.obsmap.observation_maps_multi`),
+    each rotation's patch grid turned with its lights (:func:`turn_patch_grids`)."""
+    from cnnps.ps.obsmap import observation_maps_multi
+
+    n, b2, m = intensities.shape
+    b = int(round(np.sqrt(b2)))
+    mask = None if light_mask is None else np.asarray(light_mask).reshape(n * b2, m)
+    maps = observation_maps_multi(np.asarray(intensities).reshape(n * b2, m), lights, w=w, light_mask=mask)
+    grids = turn_patch_grids(maps.reshape(len(lights), n, b, b, w, w), angles)
+    return grids.reshape(len(lights), n, b2, w, w)
 
 
 def _grey_and_colour(intensities, colour, channels: int):

@@ -31,6 +31,11 @@ from cnnps.infra.hashing import file_sha256
 
 
 def _same_network(net_a, a, net_b, b) -> None:
+    from cnnps.models.model_options import model_options
+
+    if model_options(net_a) != model_options(net_b):
+        raise CnnpsError(f"{b}: a different network ({model_options(net_b)}) from {a} ({model_options(net_a)}); "
+                         "cannot interpolate")
     if (net_a.w, net_a.dropout_p, net_a.in_channels) != (net_b.w, net_b.dropout_p, net_b.in_channels):
         raise CnnpsError(f"{b}: a different network (w={net_b.w}, dropout={net_b.dropout_p}, "
                          f"in_channels={net_b.in_channels}) from {a} (w={net_a.w}, dropout={net_a.dropout_p}, "

@@ -20,6 +20,13 @@ With w = 32 that is 2,654,051 parameters (the first dense layer alone has
 activation: it is linear and followed directly by the dense layer (``fold_for_inference``
 uses that).
 
+Model options (:func:`cnnps.models.model_options.build_model`, recorded in a checkpoint's
+config): ``head`` = ``regression`` (the paper's dense 3 and L2 normalisation) or
+``heatmap`` (the last dense layer gives w^2 values, returned as a (B, w, w) heat-map,
+:mod:`cnnps.models.heads`); ``patch`` = b in 1, 3, 5: the first convolution is then the
+separable spatial-context layer of :mod:`cnnps.models.patch` on (B, C b^2, w, w) input.
+The defaults are the paper's network, layer for layer.
+
 ``FoldedCNNPS`` is an inference-only equivalent (same outputs up to float rounding) that
 does fewer operations (docs/performance.md#the-roofline-on-an-avx2-only-cpu): the transition's 1x1 convolution is moved after the average
 pooling (both linear, one acts on channels and the other on space, so they commute) and
@@ -32,6 +39,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from cnnps.models.heads import HEATMAP, REGRESSION, check_head, head_loss, head_normals
+from cnnps.models.patch import PatchConv, check_patch
 from cnnps.models.train_layers import (
     counter_keep,
     mkldnn_bf16_available,
@@ -50,10 +59,13 @@ RGB_CHANNELS = 4  # the colour variant's input: grey, R, G, B maps
 
 class CNNPS(nn.Module):
     """The CNN-PS network. ``w`` must be even (the transition pools by 2); input
-    (B, ``in_channels``, w, w) maps: 1 (grey, the paper's) or :data:`RGB_CHANNELS` (grey,
-    R, G, B); only ``conv0`` depends on it."""
+    (B, ``in_channels`` ``patch``^2, w, w) maps: ``in_channels`` 1 (grey, the paper's) or
+    :data:`RGB_CHANNELS` (grey, R, G, B); only ``conv0`` depends on it (with ``patch`` b > 1 a
+    :class:`~cnnps.models.patch.PatchConv`). Output: (B, 3) unit normals (``head``
+    ``regression``) or (B, w, w) heat-maps (``heatmap``)."""
 
-    def __init__(self, w: int = DEFAULT_W, dropout: float = DEFAULT_DROPOUT, in_channels: int = 1):
+    def __init__(self, w: int = DEFAULT_W, dropout: float = DEFAULT_DROPOUT, in_channels: int = 1,
+                 patch: int = 1, head: str = REGRESSION):
         super().__init__()
         if w < 2 or w % 2:
             raise ValueError(f"observation map width must be an even number >= 2, got {w}")
@@ -64,8 +76,11 @@ class CNNPS(nn.Module):
         self.w = int(w)
         self.dropout_p = float(dropout)
         self.in_channels = int(in_channels)
+        self.patch = check_patch(patch)
+        self.head = check_head(head)
         g = GROWTH
-        self.conv0 = nn.Conv2d(self.in_channels, g, 3, padding=1)
+        self.conv0 = (nn.Conv2d(self.in_channels, g, 3, padding=1) if self.patch == 1
+                      else PatchConv(self.in_channels, g, self.patch))
         self.block1_conv1 = nn.Conv2d(g, g, 3, padding=1)
         self.block1_conv2 = nn.Conv2d(2 * g, g, 3, padding=1)
         self.trans_conv = nn.Conv2d(3 * g, 3 * g, 1)
@@ -73,7 +88,7 @@ class CNNPS(nn.Module):
         self.block2_conv2 = nn.Conv2d(4 * g, g, 3, padding=1)
         self.final_conv = nn.Conv2d(5 * g, 5 * g, 1)
         self.fc1 = nn.Linear(5 * g * (w // 2) ** 2, 128)
-        self.fc2 = nn.Linear(128, 3)
+        self.fc2 = nn.Linear(128, 3 if self.head == REGRESSION else self.w * self.w)
         self.drop = nn.Dropout(dropout)
         self._mask_key: tuple[int, ...] | None = None
         self._mask_row0 = 0
@@ -121,7 +136,8 @@ class CNNPS(nn.Module):
         CPU, float32 channels_last input of one channel (the fused first convolution is for
         grey maps; colour maps take the layers above), counter masks, and no autocast or
         bf16 autocast (then the fused layers run in bf16)."""
-        return (self.training and self.fused_cpu_layers and self._mask_key is not None and x.device.type == "cpu"
+        return (self.training and self.fused_cpu_layers and self._mask_key is not None and self.patch == 1
+                and x.device.type == "cpu"
                 and x.dtype == torch.float32 and x.dim() == 4 and x.shape[1] == 1 == self.in_channels
                 and x.is_contiguous(memory_format=torch.channels_last)
                 and (not torch.is_autocast_enabled("cpu") or torch.get_autocast_dtype("cpu") == torch.bfloat16))
@@ -135,8 +151,24 @@ class CNNPS(nn.Module):
                 x = fused_features(self, x, self._mask_key, self._mask_row0)
         else:
             x = self.features(x).flatten(1)
-        x = self.fc2(F.relu(self.fc1(x)))
-        return F.normalize(x.float(), dim=1)
+        return head_output(self.head, self.fc2(F.relu(self.fc1(x))), self.w)
+
+    def loss(self, output: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+        """The training loss of this model's ``output`` against unit ``normals`` (B, 3)
+        (:func:`cnnps.models.heads.head_loss`)."""
+        return head_loss(self.head, output, normals)
+
+    def decode(self, output: torch.Tensor) -> torch.Tensor:
+        """(B, 3) unit normals of this model's ``output`` (:func:`cnnps.models.heads.head_normals`)."""
+        return head_normals(self.head, output)
+
+
+def head_output(head: str, y: torch.Tensor, w: int) -> torch.Tensor:
+    """What the last dense layer's ``y`` (B, 3 or w^2) becomes: L2-normalised float32
+    normals (regression) or float32 (B, w, w) heat-maps."""
+    if head == HEATMAP:
+        return y.float().reshape(y.shape[0], w, w)
+    return F.normalize(y.float(), dim=1)
 
 
 def counter_dropout(t: torch.Tensor, p: float, key: tuple[int, ...], row0: int = 0,
@@ -180,12 +212,13 @@ def widen_state(state: dict[str, torch.Tensor], in_channels: int = RGB_CHANNELS)
     ``conv0.weight[:, 0]`` is the old (16, 1, 3, 3) weight, channels 1.. are 0, every other
     tensor is copied unchanged. The network it loads into gives, on maps whose channel 0
     is the grey map, the grey network's outputs (the colour channels are multiplied by 0)."""
-    old = state["conv0.weight"]
+    key = "conv0.weight" if "conv0.weight" in state else "conv0.map_conv.weight"  # patch models: the per-map conv
+    old = state[key]
     if old.shape[1] != 1:
         raise ValueError(f"widen_state needs a 1-channel state dict, conv0.weight is {tuple(old.shape)}")
     wide = torch.zeros((old.shape[0], int(in_channels)) + tuple(old.shape[2:]), dtype=old.dtype, device=old.device)
     wide[:, :1] = old
-    return {k: (wide if k == "conv0.weight" else v.detach().clone()) for k, v in state.items()}
+    return {k: (wide if k == key else v.detach().clone()) for k, v in state.items()}
 
 
 def widen_input(model: CNNPS, in_channels: int = RGB_CHANNELS) -> CNNPS:
@@ -196,23 +229,25 @@ def widen_input(model: CNNPS, in_channels: int = RGB_CHANNELS) -> CNNPS:
     if not isinstance(model, CNNPS):
         raise TypeError(f"expected a CNNPS model, got {type(model).__name__}")
     with torch.random.fork_rng(devices=[]):
-        wide = CNNPS(w=model.w, dropout=model.dropout_p, in_channels=in_channels)
+        wide = CNNPS(w=model.w, dropout=model.dropout_p, in_channels=in_channels, patch=model.patch, head=model.head)
     state = {k: v.detach().to("cpu", torch.float32) for k, v in model.state_dict().items()}
     wide.load_state_dict(widen_state(state, in_channels))
     return wide.eval()
 
 
-def _colour_filters_zero(conv0: nn.Conv2d) -> bool:
+def _colour_filters_zero(conv0: nn.Module) -> bool:
     """Whether a first convolution of more than one input channel has only zeros on
-    channels 1.. (a grey model widened by :func:`widen_input`)."""
-    return conv0.in_channels > 1 and not bool(conv0.weight.detach()[:, 1:].any())
+    channels 1.. (a grey model widened by :func:`widen_input`; never for a patch layer)."""
+    return isinstance(conv0, nn.Conv2d) and conv0.in_channels > 1 and not bool(conv0.weight.detach()[:, 1:].any())
 
 
 class FoldedCNNPS(nn.Module):
     """Eval-only CNN-PS with the linear layers folded (see the module docstring).
 
     Built by ``fold_for_inference``; holds copies of the weights (float32), no dropout.
-    Input (B, ``in_channels``, w, w); when the colour filters of a multi-channel model are
+    Input (B, ``in_channels`` ``patch``^2, w, w), output as the model's head gives it (a
+    patch model's separable first layer is folded into one convolution,
+    :meth:`cnnps.models.patch.PatchConv.folded`); when the colour filters of a multi-channel model are
     all 0 (:func:`widen_input`) only channel 0 is convolved, so the outputs are the grey
     model's bit for bit.
     """
@@ -222,9 +257,12 @@ class FoldedCNNPS(nn.Module):
         g = GROWTH
         src = model
         self.w = src.w
-        self.in_channels = src.in_channels
+        self.in_channels, self.patch, self.head = src.in_channels, src.patch, src.head
         self.grey_only = _colour_filters_zero(src.conv0)
-        self.conv0 = _copy_conv(src.conv0, first=1 if self.grey_only else None)
+        if isinstance(src.conv0, PatchConv):  # the separable layer as its one 3x3 convolution
+            self.conv0 = src.conv0.folded()
+        else:
+            self.conv0 = _copy_conv(src.conv0, first=1 if self.grey_only else None)
         self.block1_conv1 = _copy_conv(src.block1_conv1)
         self.block1_conv2 = _copy_conv(src.block1_conv2)
         self.trans_conv = _copy_conv(src.trans_conv)  # applied after pooling: same result
@@ -243,7 +281,7 @@ class FoldedCNNPS(nn.Module):
         self.fc1 = _uninitialised(nn.Linear, c * h, 128)
         self.fc1.weight.data.copy_(w_fold.float())
         self.fc1.bias.data.copy_(b_fold.float())
-        self.fc2 = _uninitialised(nn.Linear, 128, 3)
+        self.fc2 = _uninitialised(nn.Linear, 128, src.fc2.out_features)
         self.fc2.load_state_dict(src.fc2.state_dict())
         self.eval()
 
@@ -261,7 +299,7 @@ class FoldedCNNPS(nn.Module):
         x = torch.cat([x, F.relu(self.block2_conv1(x))], dim=1)
         x = torch.cat([x, F.relu(self.block2_conv2(x))], dim=1)
         x = F.relu(self.fc1(x.flatten(1)))
-        return F.normalize(self.fc2(x).float(), dim=1)
+        return head_output(self.head, self.fc2(x), self.w)
 
 
 def _uninitialised(cls, *args, **kwargs) -> nn.Module:
@@ -313,7 +351,8 @@ class FastCNNPS(nn.Module):
     :func:`cnnps.models.train_layers.mkldnn_bf16_available`) the same algebra runs on
     torch's reference kernels: correct, but far slower than fp32.
 
-    Input (B, ``in_channels``, w, w), as :class:`FoldedCNNPS` (a widened grey model
+    Input and output as :class:`FoldedCNNPS` (a heat-map head's last dense layer, 128 -> w^2,
+    runs in fp32 as the regression's 128 -> 3 does; a widened grey model
     convolves channel 0 alone: the grey model's outputs bit for bit).
 
     Example::
@@ -330,6 +369,7 @@ class FastCNNPS(nn.Module):
         g = GROWTH
         self.w = folded.w
         self.in_channels, self.grey_only = folded.in_channels, folded.grey_only  # see FoldedCNNPS
+        self.patch, self.head = folded.patch, folded.head
         self.dtype = dtype
         sd = {k: v.detach().float().clone() for k, v in folded.state_dict().items()}
         h = (self.w // 2) ** 2
@@ -355,7 +395,7 @@ class FastCNNPS(nn.Module):
         for name, (lo, hi) in (("fc1_z0", (0, 3 * g)), ("fc1_z1", (3 * g, 4 * g)), ("fc1_z2", (4 * g, 5 * g))):
             buffers[name] = a[:, lo:hi, :].permute(2, 1, 0).reshape(h * (hi - lo), 128).contiguous()
         for name, tensor in buffers.items():
-            if name not in ("fc2_wt", "fc2_b"):  # the 128 -> 3 layer and the norm stay fp32
+            if name not in ("fc2_wt", "fc2_b"):  # the last dense layer (128 -> 3 or w^2) and the norm stay fp32
                 tensor = tensor.to(dtype)
                 if tensor.dim() == 4:
                     tensor = tensor.contiguous(memory_format=torch.channels_last)
@@ -393,7 +433,10 @@ class FastCNNPS(nn.Module):
         z2 = self._conv(z1, self.c22b_w, None, 1, True, add=self._conv(z0, self.c22a_w, self.c22_b, 1, False))
         h = torch.addmm(self.fc1_b, self._flat(z0), self.fc1_z0)
         h = h.addmm_(self._flat(z1), self.fc1_z1).addmm_(self._flat(z2), self.fc1_z2).relu_()
-        return F.normalize(torch.addmm(self.fc2_b, h.float(), self.fc2_wt), dim=1)
+        y = torch.addmm(self.fc2_b, h.float(), self.fc2_wt)
+        if self.head == HEATMAP:
+            return y.reshape(y.shape[0], self.w, self.w)
+        return F.normalize(y, dim=1)
 
 
 def fast_cpu_model(model: CNNPS, dtype: torch.dtype = torch.float32) -> FastCNNPS:

@@ -208,8 +208,8 @@ def probe_maps(n: int = PROBE_MAPS, w: int = 32, seed: int = PROBE_SEED,
     """(n, w, w) float32 observation maps and their (n, 3) true normals: seeded normals
     within 75° of the view, 96 lights within 60°, albedo times (Lambertian + a
     Blinn-Phong lobe), 10 % of the lights dropped per pixel (cast shadows). ``channels``
-    C > 1 (a colour model's input): (n, C, w, w), the grey map in every channel (the maps
-    of a grey surface, R = G = B)."""
+    C > 1 (a colour model's input, or a patch model's C b^2): (n, C, w, w), the grey map in
+    every channel (the maps of a grey surface, R = G = B; a patch of one normal)."""
     rng = np.random.default_rng(seed)
     tilt = np.arccos(rng.uniform(np.cos(np.radians(75)), 1.0, n))
     phi = rng.uniform(0, 2 * np.pi, n)
@@ -332,7 +332,8 @@ def probe(model: nn.Module, device: torch.device, batch_size: int | None = None)
     """Time and check every candidate (see the module docstring); no cache."""
     t_start, probed_at = time.perf_counter(), now()
     passes: list[TimedPass] = []
-    maps, truth = probe_maps(w=int(getattr(model, "w", 32)), channels=int(getattr(model, "in_channels", 1)))
+    patch = int(getattr(model, "patch", 1))  # a patch model: the same map at every pixel of the patch
+    maps, truth = probe_maps(w=int(getattr(model, "w", 32)), channels=int(getattr(model, "in_channels", 1)) * patch ** 2)
     threads = thread_candidates() if device.type == "cpu" else []
     if threads:
         torch.set_num_threads(threads[0])

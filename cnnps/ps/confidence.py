@@ -10,10 +10,14 @@ Each measure is computed from what a solver already has for a tile:
 - :func:`lit_condition`: how well the lit lights pin a normal down, the ratio of the
   smallest to the largest singular value of their directions (0: all in one plane);
 - the rotation spread of the network's K test-time answers
-  (:func:`cnnps.models.inference.rotation_spread`).
+  (:func:`cnnps.models.inference.rotation_spread`);
+- a heat-map model's spread: the windowed second moment of its heat-map in degrees
+  around the decoded normal (:func:`cnnps.models.heatmap.heatmap_spread_deg`), averaged
+  over the K rotations.
 
 The confidences combine them into [0, 1], 1 the most trusted:
-:func:`network_confidence` and :func:`least_squares_confidence`. Which measures predict
+:func:`network_confidence` (regression models), :func:`heatmap_confidence` (heat-map
+models) and :func:`least_squares_confidence`. Which measures predict
 the error, and how well, is measured on real objects in docs/results.md ("Confidence").
 
 >>> import numpy as np
@@ -88,8 +92,28 @@ def network_confidence(spread_deg: np.ndarray, share: np.ndarray) -> np.ndarray:
     >>> [round(float(c), 3) for c in network_confidence(np.array([0.0, 3.0, 3.0]), np.array([1.0, 1.0, 0.5]))]
     [1.0, 0.5, 0.333]
     """
+    return _spread_confidence(spread_deg, share, NETWORK_SCALE_DEG)
+
+
+def _spread_confidence(spread_deg, share, scale_deg: float) -> np.ndarray:
+    """1 / (1 + u / scale_deg), u = spread / max(lit share, MIN_SHARE), as float32."""
     u = np.asarray(spread_deg, np.float64) / np.maximum(np.asarray(share, np.float64), MIN_SHARE)
-    return (1.0 / (1.0 + u / NETWORK_SCALE_DEG)).astype(np.float32)
+    return (1.0 / (1.0 + u / scale_deg)).astype(np.float32)
+
+
+HEATMAP_SCALE_DEG = 6.5  # the spread of an exact target (sigma 2 cells, w = 32): its confidence is 1/2
+
+
+def heatmap_confidence(spread_deg: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """(n,) float32 in (0, 1]: 1 / (1 + u / HEATMAP_SCALE_DEG) with u = a heat-map model's
+    spread (degrees, the heat-map's windowed second moment, mean over the rotations)
+    divided by the lit share: a wide or split heat-map, and a sparse map, both lower it.
+    An exact training target on a fully lit map (spread about 6.5 deg at w = 32) gets 1/2.
+
+    >>> [round(float(c), 3) for c in heatmap_confidence(np.array([0.0, 6.5, 6.5]), np.array([1.0, 1.0, 0.5]))]
+    [1.0, 0.5, 0.333]
+    """
+    return _spread_confidence(spread_deg, share, HEATMAP_SCALE_DEG)
 
 
 def least_squares_confidence(residual: np.ndarray) -> np.ndarray:

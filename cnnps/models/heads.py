@@ -1,0 +1,82 @@
+"""What a network's last layer outputs, and the loss and decoding that go with it.
+
+- ``regression``: (B, 3) unit normals (the paper's head); loss: the mean squared error
+  against the true unit normals;
+- ``heatmap``: (B, w, w) heat-maps over the observation map's projection
+  (:mod:`cnnps.models.heatmap`); loss: 100 x the mean squared error against Gaussian
+  targets; decoded to unit normals by the windowed centre of mass.
+
+A model records its head in ``model.head`` (absent: ``regression``);
+:func:`training_loss` and :func:`decode_output` read it through the wrappers a training
+run puts around a model (torch.compile, DistributedDataParallel).
+
+Example::
+
+    loss = training_loss(model, model(maps), normals)   # a float32 scalar, any head
+    normals = decode_output(model, model(maps))         # (B, 3) unit normals, any head
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from cnnps.models.heatmap import decode_heatmaps, heatmap_loss
+
+REGRESSION = "regression"
+HEATMAP = "heatmap"
+HEADS = (REGRESSION, HEATMAP)
+
+
+def check_head(head: str) -> str:
+    """``head`` when it is one of :data:`HEADS` (ValueError otherwise)."""
+    if head not in HEADS:
+        raise ValueError(f"head must be one of {', '.join(HEADS)}, got {head!r}")
+    return head
+
+
+def unwrapped(model):
+    """The network inside torch.compile's and DistributedDataParallel's wrappers."""
+    while True:
+        inner = getattr(model, "_orig_mod", None)
+        if inner is None and type(model).__name__ == "DistributedDataParallel":
+            inner = model.module
+        if inner is None:
+            return model
+        model = inner
+
+
+def model_head(model) -> str:
+    """The head of ``model`` (or of a wrapper around it): ``model.head``, regression when absent."""
+    return getattr(unwrapped(model), "head", REGRESSION)
+
+
+def head_loss(head: str, output: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """The training loss of a ``head``'s ``output`` against unit ``normals`` (B, 3)
+    (regression: ``F.mse_loss(output.float(), normals)``; heatmap:
+    :func:`cnnps.models.heatmap.heatmap_loss`)."""
+    if head == REGRESSION:
+        return F.mse_loss(output.float(), normals)
+    if head == HEATMAP:
+        return heatmap_loss(output, normals)
+    raise ValueError(f"unknown head {head!r}")
+
+
+def training_loss(model, output: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """The loss a training step minimises for ``model``'s ``output`` and the true unit
+    ``normals`` (B, 3): :func:`head_loss` of the model's head."""
+    return head_loss(model_head(model), output, normals)
+
+
+def head_normals(head: str, output: torch.Tensor) -> torch.Tensor:
+    """(B, 3) unit normals of a ``head``'s ``output`` (a heat-map is decoded)."""
+    if head == REGRESSION:
+        return output
+    if head == HEATMAP:
+        return decode_heatmaps(output)
+    raise ValueError(f"unknown head {head!r}")
+
+
+def decode_output(model, output: torch.Tensor) -> torch.Tensor:
+    """(B, 3) unit normals of ``model``'s ``output``: :func:`head_normals` of its head."""
+    return head_normals(model_head(model), output)
