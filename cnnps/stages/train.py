@@ -1,15 +1,19 @@
-"""Stage ``train``: fit CNN-PS on the extracted shards.
+"""Stage ``train``: fit CNN-PS (or the network of ``model``) on the extract stage's output.
 
 Reads ``data_dir/extract/manifest.json`` (or ``data.shards``: a path or an fsspec URL, the
 extract stage's ``output``) and streams the ``train`` shards through
 :class:`cnnps.io.shards.ShardStream` (row groups shuffled per epoch, a shuffle buffer;
-the data never has to fit in memory). Loss: MSE between the predicted and the true unit
-normal; Adam. Validation (mean / median angular error in degrees over up to
+the data never has to fit in memory), or, from an extract of ``layout: observations``,
+b x b patches drawn from the per-pixel observation files (b = ``model.patch``,
+:mod:`cnnps.train.observation_data`; batches seeded by (seed, epoch, batch)). The network
+is ``model``'s (``arch``, ``head``, ``patch``: :class:`cnnps.train.params.ModelParams`,
+the paper's CNN-PS by default). Loss: the head's (MSE between the predicted and the true
+unit normal for ``regression``, :func:`cnnps.models.heads.training_loss`); Adam. Validation (mean / median angular error in degrees over up to
 ``val_max_rows`` maps of the ``val`` scenes, each map on its own, no rotation
 averaging, through the batched inference of ``cnnps predict``, always in fp32) runs every
 ``val_every`` steps and at the end.
 
-The stage's ``Params`` (nested: ``optimiser``, ``data``, ``pixelwise``, ``cpu``, and
+The stage's ``Params`` (nested: ``optimiser``, ``data``, ``pixelwise``, ``cpu``, ``model``, and
 ``synthesis``, filled from ``materials`` and ``extract``) is :class:`cnnps.train.params.Params`,
 the typed tree the training loop reads too; this module holds the run key and :func:`run`;
 the machinery is in
@@ -82,7 +86,7 @@ the colour filters at 0 (:func:`cnnps.models.network.widen_state`), a colour one
 as it is. The eager CPU layers run (the fused first convolution is for one channel).
 
 Outputs: ``data_dir/train/model.pt`` (``cnnps.models.checkpoint.save_checkpoint``; config w,
-dropout, in_channels; meta steps, val error, manifest hash), ``metrics.json`` (with the loop's time
+dropout, in_channels and the model options off their defaults; meta steps, val error, manifest hash), ``metrics.json`` (with the loop's time
 split, :mod:`cnnps.train.step_clock`: waiting for data, validation, checkpoints),
 ``plots/loss.csv`` (step, loss) and ``plots/val.csv`` (step, val_mean_deg,
 val_median_deg) for ``dvc plots``.
@@ -144,7 +148,8 @@ def run(params: Params, data_dir: Path, *, until=None, _stop_after_step: int | N
             data = loop.pixelwise_only_data(params.pixelwise.w)  # no shards at all
         else:
             data = loop.open_training_data(params.data.shards or data_dir / "extract")
-        init_state, init_sha = loop.load_init_weights(params.init, data.w, loop.input_channels(params))
+        init_state, init_sha = loop.load_init_weights(params.init, data.w, loop.input_channels(params),
+                                                      params.model.options())
         def key_for(precision: str) -> str:
             return run_key(params, data.manifest_sha256, init_sha, precision)
 

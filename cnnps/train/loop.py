@@ -3,20 +3,20 @@
 :func:`cnnps.stages.train.run` does::
 
     with training_processes(params) as (info, device):    # torchrun env, threads, device, process group
-        data = open_training_data(extract_dir)            # manifest, its hash, the shard lists
-        init_state, init_sha = load_init_weights(params.init, data.w)
+        data = open_training_data(extract_dir)            # manifest, its hash, the shard (or observation) lists
+        init_state, init_sha = load_init_weights(params.init, data.w, input_channels(params), params.model.options())
         return train(params, data, out_dir, key_for, info, device, init_state, init_sha)
 
 (``key_for(precision)``: the run key of these params stepping in ``precision``) and
-:func:`train` runs a :class:`Trainer`: build (model, optimiser, DDP, the rank's
-shard stream), :meth:`~Trainer.resume` (newest checkpoint of this run key),
+:func:`train` runs a :class:`Trainer`: build (the network of ``params.model``, optimiser,
+DDP, the rank's shard or patch stream), :meth:`~Trainer.resume` (newest checkpoint of this run key),
 :meth:`~Trainer.choose_precision` (the checkpoint's precision, else ``train.precision``
 resolved once: :mod:`cnnps.train.precision`),
 :meth:`~Trainer.load_validation`, :meth:`~Trainer.run_steps` (the step loop: logging,
 validation, checkpoints), :meth:`~Trainer.finish` (last validation, model file, metrics).
 
 ``params`` is the train section's typed tree, :class:`cnnps.train.params.Params` (top-level
-keys and the sections ``optimiser``, ``data``, ``pixelwise``, ``cpu``, ``synthesis``), the
+keys and the sections ``optimiser``, ``data``, ``pixelwise``, ``cpu``, ``synthesis``, ``model``), the
 stage's ``Params``; its fields hold the types, checks and defaults, read here as they are.
 The stage's module docstring describes the behaviour: batch order, resuming, several
 processes, outputs.
@@ -42,6 +42,7 @@ from cnnps.infra import storage
 from cnnps.infra.atomic import write_text
 from cnnps.infra.errors import ConfigError, InputError
 from cnnps.infra.progress import progress_bar
+from cnnps.io.observation_store import manifest_observations, verify_observations
 from cnnps.io.shards import (
     MANIFEST,
     ShardStream,
@@ -57,6 +58,7 @@ from cnnps.models.checkpoint import (
     save_checkpoint,
     write_sha256_file,
 )
+from cnnps.models.model_options import model_options
 from cnnps.models.network import RGB_CHANNELS, widen_state
 from cnnps.models.train_layers import COUNTER_MASK_BITS
 from cnnps.train.allocator import keep_freed_memory
@@ -76,8 +78,16 @@ from cnnps.train.distributed import (
     set_threads,
 )
 from cnnps.train.maps_ahead import made_ahead
+from cnnps.train.observation_data import (
+    PatchChannels,
+    load_patch_val,
+    sampling_of_manifest,
+    steps_per_epoch,
+    stream_rows,
+)
 from cnnps.train.optimiser import compile_model, lr_at, make_model, set_lr, train_step
 from cnnps.train.params import Params
+from cnnps.train.patch_dataset import PatchStream
 from cnnps.train.precision import PRECISIONS
 from cnnps.train.resume import (
     CKPT_FORMAT,
@@ -124,6 +134,12 @@ class TrainingData:
     w: int
     train_files: list
     val_files: list
+    # "maps": Parquet shards of observation maps; "observations": per-pixel observation files
+    # (extract.layout: observations), (path, record) pairs, read as patches (cnnps.train.observation_data)
+    layout: str = "maps"
+
+
+OBSERVATIONS = "observations"  # the extract manifest's layout of per-pixel observation files
 
 
 SPARSE_MIN_LIGHTS_DEFAULT = 6  # cnnps.stages.extract.Params.sparse_min_lights (tests/stages/test_train.py checks they agree)
@@ -149,13 +165,28 @@ def open_training_data(extract_dir: str | Path, verify: bool = True) -> Training
     that every shard it lists exists and, with ``verify``, has the size and SHA-256 the
     manifest records (one read of every shard before the first step, small beside an
     epoch of training; docs/reliability.md). Problems raise InputError naming the file and
-    the fix."""
+    the fix. A manifest of per-pixel observation files (``layout: observations``) gives
+    their (path, record) pairs as the files, ``layout`` ``observations`` and ``w`` the
+    width of the maps its patches are drawn at (:func:`cnnps.train.observation_data.sampling_of_manifest`)."""
     if isinstance(extract_dir, str):
         extract_dir = extract_dir.rstrip("/")
     manifest = load_manifest(extract_dir)
     manifest_url = shard_path(extract_dir, MANIFEST)
     manifest_sha256 = manifest_digest(extract_dir, manifest)
+    layout = manifest.get("layout", "maps") if isinstance(manifest, dict) else "maps"
     try:
+        if layout == OBSERVATIONS:
+            w = sampling_of_manifest(manifest, 1).w
+            train_files, val_files = (manifest_observations(extract_dir, manifest, split) for split in ("train", "val"))
+            if not train_files:
+                raise InputError(str(manifest_url), "lists no training observation files")
+            for f, _ in train_files + val_files:
+                if not storage.exists(f):
+                    raise InputError(str(f), "observation file listed in the manifest is missing; rerun "
+                                     "`cnnps run-stage extract`")
+            if verify:
+                verify_observations(extract_dir, manifest)
+            return TrainingData(manifest, manifest_url, manifest_sha256, w, train_files, val_files, layout)
         w = int(manifest["w"])
         train_files = manifest_files(extract_dir, manifest, "train")
         val_files = manifest_files(extract_dir, manifest, "val")
@@ -254,17 +285,24 @@ def pixelwise_fewest_lights(params: Params) -> int:
     return int(lo)
 
 
-def load_init_weights(init: str | None, w: int, in_channels: int = 1) -> tuple[dict | None, str | None]:
-    """(state_dict for a network of ``in_channels`` input channels, weights SHA-256) of the
-    cnnps checkpoint ``init`` (``train.init``), or (None, None). The SHA-256, not the path,
-    enters the run key. A grey (1-channel) checkpoint for a colour run is widened
-    (:func:`cnnps.models.network.widen_state`: the colour filters at 0, so it starts as
-    the grey model), which one line on stderr says; other mismatches are an InputError."""
+def load_init_weights(init: str | None, w: int, in_channels: int = 1,
+                      options: dict | None = None) -> tuple[dict | None, str | None]:
+    """(state_dict for a network of ``in_channels`` input channels and the model
+    ``options`` (``{"arch", "head", "patch"}``, ``train.model``; None: the paper's
+    network), weights SHA-256) of the cnnps checkpoint ``init`` (``train.init``), or
+    (None, None). The SHA-256, not the path, enters the run key. A grey (1-channel)
+    checkpoint for a colour run is widened (:func:`cnnps.models.network.widen_state`: the
+    colour filters at 0, so it starts as the grey model), which one line on stderr says;
+    other mismatches (w, the model options the checkpoint records) are an InputError."""
     if init is None:
         return None, None
     model, config, _ = load_checkpoint(init)
     if int(config["w"]) != w:
         raise InputError(init, f"train.init is a w={config['w']} model, the shards hold w={w} maps")
+    want, have = options or {"arch": "cnnps", "head": "regression", "patch": 1}, model_options(model)
+    if have != want:
+        have_s, want_s = (", ".join(f"{k} {o[k]}" for k in ("arch", "head", "patch")) for o in (have, want))
+        raise InputError(init, f"train.init is a model of {have_s}; train.model asks for {want_s}")
     state = model.state_dict()
     if model.in_channels != in_channels:
         if model.in_channels != 1:
@@ -274,6 +312,16 @@ def load_init_weights(init: str | None, w: int, in_channels: int = 1) -> tuple[d
         print(f"train: train.init {init} is a grey model: widened to {in_channels} input channels "
               "(grey, R, G, B; the colour filters start at 0)", file=sys.stderr)
     return state, read_checkpoint(init)["weights_sha256"]
+
+
+def recorded_params(params: Params) -> dict:
+    """``params`` as ``model.pt``'s meta records them (:meth:`Params.from_record` reads them
+    back): every field, the ``model`` section only off the paper's network, so a file of
+    the paper's network holds the bytes it holds without the section."""
+    record = dataclasses.asdict(params)
+    if params.model == type(params.model)():
+        record.pop("model")
+    return record
 
 
 def write_plots(out_dir: Path, history: dict) -> None:
@@ -332,12 +380,12 @@ class Trainer:
         self.init_sha = init_sha
         self.main = info.is_main
         self.make_pixelwise = None  # (n, generator, device, w) -> per-pixel (maps, normals); see train()
-        self.in_channels = input_channels(params)  # maps (B, in_channels, w, w)
+        self.in_channels = input_channels(params)  # maps (B, in_channels patch^2, w, w)
         self._build_model(init_state)
         self._build_stream()
         self.step = 0
         self.history: dict = {"loss": [], "val": []}
-        self.val_maps, self.val_normals = no_val(data.w, self.in_channels)
+        self.val_maps, self.val_normals = no_val(data.w, self.in_channels * params.model.patch ** 2)
         self.step0, self.seconds = 0, 0.0  # where this call started, and the step loop's time
         self.clock: StepClock | None = None  # where the step loop's time went (run_steps)
         self.procs = None  # the processes sharing each step (step_processes > 1), while run_steps runs
@@ -376,6 +424,12 @@ class Trainer:
             self.stream = None
             self.steps_per_epoch = self.total_steps = int(params.max_steps)
             return
+        if data.layout == OBSERVATIONS:
+            self._build_patch_stream(rank_batch - self.generated)
+            return
+        if params.model.patch > 1:
+            raise ConfigError(f"train.model.patch: {params.model.patch} needs patches of per-pixel observations "
+                              f"(extract.layout: observations); {data.manifest_url} holds observation maps")
         self.stream = ShardStream(data.train_files, data.w, rank_batch - self.generated, seed=params.seed,
                                   buffer_rows=params.data.shuffle_buffer, rank=info.rank, world_size=info.world_size,
                                   prefetch=params.data.prefetch)
@@ -388,6 +442,22 @@ class Trainer:
                 )
             raise ConfigError(f"train.data.batch_size {params.data.batch_size} is larger than the {self.stream.rows()} "
                               "training rows" + (" of a rank's share" if info.enabled else ""))
+        self.total_steps = params.epochs * self.steps_per_epoch
+        if params.max_steps:
+            self.total_steps = min(self.total_steps, params.max_steps)
+
+    def _build_patch_stream(self, rows: int) -> None:
+        """This rank's patches of the training observation files (``rows`` a step) and
+        the steps of an epoch (:mod:`cnnps.train.observation_data`)."""
+        params, info = self.params, self.info
+        self.sampling = sampling_of_manifest(self.data.manifest, params.model.patch)
+        self.stream = PatchStream(self.data.train_files, self.sampling, rows, seed=params.seed, rank=info.rank,
+                                  world_size=info.world_size)
+        self.steps_per_epoch = steps_per_epoch(self.stream, params.epochs)
+        if self.steps_per_epoch == 0:
+            raise ConfigError(f"train.data.batch_size {params.data.batch_size} is more than an epoch's samples: "
+                              f"{stream_rows(self.stream)} training pixels"
+                              + (f" in {info.world_size} processes" if info.enabled else ""))
         self.total_steps = params.epochs * self.steps_per_epoch
         if params.max_steps:
             self.total_steps = min(self.total_steps, params.max_steps)
@@ -458,7 +528,10 @@ class Trainer:
         """The validation sample (rank 0 only: it alone validates)."""
         if not self.main:
             return
-        if self.data.val_files or not self.generated:
+        if self.data.layout == OBSERVATIONS:
+            self.val_maps, self.val_normals = load_patch_val(self.data.val_files, self.sampling,
+                                                             self.params.val_max_rows, self.params.seed)
+        elif self.data.val_files or not self.generated:
             self.val_maps, self.val_normals = load_val(self.data.val_files, self.data.w, self.params.val_max_rows,
                                                        self.params.seed)
         else:  # per-pixel maps only: a fixed per-pixel set of this seed
@@ -585,7 +658,8 @@ class Trainer:
         if self.stream is None:  # per-pixel maps only, made on the training device
             ds = loader = GeneratedBatches(self._step_maps, self.total_steps, self.device, ahead)
         else:
-            ds = ShardDataset(self.stream, float32=self.device.type != "cuda")  # a GPU converts float16 itself
+            ds = (PatchChannels(self.stream) if isinstance(self.stream, PatchStream)
+                  else ShardDataset(self.stream, float32=self.device.type != "cuda"))  # a GPU converts float16 itself
             loader = self._loader(ds)
             if self.generated:
                 made = made_ahead(self._step_maps, itertools.count(self.step), self.device, ahead)
@@ -720,6 +794,14 @@ class Trainer:
                   "val": val_errors(final, self.val_maps, self.val_normals, self.device, "fp32")}
         return final, record
 
+    def _train_rows(self) -> int:
+        """The training rows (shards) or centre pixels (observations) of all ranks."""
+        if self.stream is None:
+            return 0
+        if isinstance(self.stream, PatchStream):
+            return stream_rows(self.stream)
+        return int(sum(u[2] for u in self.stream.units))
+
     def finish(self) -> dict:
         """Last validation, a checkpoint if none was written, plots, ``model.pt`` and
         ``metrics.json`` (rank 0); the metrics (rank 0's, on every rank)."""
@@ -742,7 +824,7 @@ class Trainer:
             "train_loss": self.history["loss"][-1][1] if self.history["loss"] else None,
             **v,
             "val_rows": len(self.val_maps),
-            "train_rows": int(sum(u[2] for u in self.stream.units)) if self.stream is not None else 0,  # all ranks
+            "train_rows": self._train_rows(),  # all ranks
             "pixelwise_share": round(self.generated / max(1, p.data.batch_size // info.world_size), 4),
             "samples_per_s": round(ran * p.data.batch_size / self.seconds, 1) if ran > 0 and self.seconds > 0 else None,
             "seconds": self.clock.summary(self.seconds) if self.clock is not None else None,
@@ -759,10 +841,11 @@ class Trainer:
             save_checkpoint(
                 self.out_dir / "model.pt",
                 final.cpu().to(memory_format=torch.contiguous_format),  # the file holds plain NCHW weights
-                config={"w": self.data.w, "dropout": p.dropout},
+                # a U-Net has no dropout: 0
+                config={"w": self.data.w, "dropout": p.dropout if model_options(final)["arch"] == "cnnps" else 0.0},
                 meta={"steps": step, "val_mean_deg": v.get("val_mean_deg"), "val_median_deg": v.get("val_median_deg"),
                       "precision": self.precision,
-                      "data_manifest_sha256": self.data.manifest_sha256, "params": dataclasses.asdict(p),
+                      "data_manifest_sha256": self.data.manifest_sha256, "params": recorded_params(p),
                       "min_lights": self._fewest_lights(),
                       **({"average": v["average"]} if "average" in v else {}),
                       **({"init_weights_sha256": self.init_sha} if self.init_sha else {})},

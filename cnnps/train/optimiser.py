@@ -16,9 +16,11 @@ from __future__ import annotations
 from contextlib import nullcontext
 
 import torch
-import torch.nn.functional as F
+from torch import nn
 
-from cnnps.models.network import CNNPS
+from cnnps.infra.errors import ConfigError
+from cnnps.models.heads import training_loss
+from cnnps.models.model_options import build_model
 from cnnps.models.train_layers import COUNTER_MASK_BITS
 from cnnps.train.params import OptimiserParams, Params
 
@@ -50,12 +52,19 @@ def autocast(device: torch.device, precision: str):
     return nullcontext()
 
 
-def make_model(w: int, params: Params, device: torch.device, in_channels: int = 1) -> tuple[CNNPS, torch.optim.Adam]:
-    """A fresh CNN-PS of ``in_channels`` input channels (weights drawn after
-    ``torch.manual_seed(params.seed)``) on ``device``, channels_last if asked, and its Adam
-    optimiser."""
+def make_model(w: int, params: Params, device: torch.device,
+               in_channels: int = 1) -> tuple[nn.Module, torch.optim.Adam]:
+    """A fresh network of the options ``params.model`` (``arch``, ``head``, ``patch``:
+    :func:`cnnps.models.model_options.build_model`; the defaults are the paper's CNN-PS)
+    taking (B, ``in_channels`` patch^2, w, w) maps, weights drawn after
+    ``torch.manual_seed(params.seed)``, on ``device``, channels_last if asked, and its
+    Adam optimiser."""
     torch.manual_seed(params.seed)
-    model = CNNPS(w=w, dropout=params.dropout, in_channels=in_channels).to(device)
+    try:
+        model = build_model(**params.model.options(), w=w, in_channels=in_channels, dropout=params.dropout)
+    except ValueError as exc:  # e.g. a U-Net's w must be a multiple of 4
+        raise ConfigError(f"train.model: {exc}") from None
+    model = model.to(device)
     model.fused_cpu_layers = params.cpu.layers == "fused"
     model.mask_bits = COUNTER_MASK_BITS.get(params.cpu.dropout_masks, 32)
     if params.channels_last:
@@ -79,16 +88,18 @@ def compile_model(model, params: Params):
 
 def train_step(model, opt, maps: torch.Tensor, normals: torch.Tensor, device: torch.device, precision: str,
                channels_last: bool) -> torch.Tensor:
-    """One Adam step on a batch (maps (B,C,w,w), C the model's input channels, unit normals
-    (B,3)); the MSE loss, detached
-    (a tensor on ``device``: reading it out is left to the caller, it waits for the step)."""
+    """One Adam step on a batch (maps (B,C,w,w), C the model's input channels times its
+    patch's b^2, unit normals (B,3)); the loss of the model's head
+    (:func:`cnnps.models.heads.training_loss`: the MSE of the normals for ``regression``,
+    the heat-map loss for ``heatmap``), detached (a tensor on ``device``: reading it out is
+    left to the caller, it waits for the step)."""
     maps = maps.to(device, non_blocking=True).float()  # float16 maps are converted on the device
     normals = normals.to(device, non_blocking=True)
     if channels_last:
         maps = maps.contiguous(memory_format=torch.channels_last)
     with autocast(device, precision):
         pred = model(maps)
-    loss = F.mse_loss(pred.float(), normals)
+    loss = training_loss(model, pred, normals)
     opt.zero_grad(set_to_none=True)
     loss.backward()
     opt.step()

@@ -2,11 +2,12 @@
 dataclasses, checked when built.
 
 :class:`Params` holds the top-level keys (the run's length, validation, checkpoints, where
-and how a step runs) and five sections: :class:`OptimiserParams` (``optimiser``: Adam and
+and how a step runs) and six sections: :class:`OptimiserParams` (``optimiser``: Adam and
 its step schedule), :class:`DataParams` (``data``: shards, batches), :class:`PixelwiseParams`
 (``pixelwise``: per-pixel maps in a batch), :class:`CpuParams` (``cpu``: how a CPU step
-runs) and :class:`SynthesisParams` (``synthesis``: what per-pixel maps are drawn from,
-filled by the config layer from ``materials`` and ``extract``, :data:`FROM_SECTIONS`).
+runs), :class:`SynthesisParams` (``synthesis``: what per-pixel maps are drawn from,
+filled by the config layer from ``materials`` and ``extract``, :data:`FROM_SECTIONS`) and
+:class:`ModelParams` (``model``: the network trained, its head and its input patch).
 The stage (:mod:`cnnps.stages.train`: its run key and ``run``) and the training loop
 (:mod:`cnnps.train.loop` and the modules it calls) both read this one tree, so a
 setting's type, check and default are written once, here::
@@ -207,8 +208,45 @@ class CpuParams:
         check_fields(self, "train.cpu.")
 
 
+# cnnps.models.model_options.ARCHS, cnnps.models.heads.HEADS, cnnps.models.patch.PATCHES
+# (named here: this module loads without torch; tests/train/test_params.py checks they agree)
+ARCHS = ("cnnps", "unet")
+HEADS = ("regression", "heatmap")
+PATCHES = (1, 3, 5)
+
+
+@dataclass(frozen=True)
+class ModelParams:
+    """``train.model``: the network trained (:func:`cnnps.models.model_options.build_model`).
+    ``arch``: ``cnnps`` (the paper's CNN-PS) or ``unet`` (the bias-free heat-map U-Net,
+    heat-map head only); ``head``: ``regression`` (a unit normal, MSE loss) or ``heatmap``
+    (a w x w heat-map, its loss and decoding in :mod:`cnnps.models.heads`); ``patch``: b,
+    the network takes the b x b maps around a pixel (b > 1 needs the extract stage's
+    ``layout: observations``: patches are drawn from per-pixel observations,
+    :mod:`cnnps.train.patch_dataset`). The defaults are the paper's network::
+
+        train:
+          model: {arch: unet, head: heatmap, patch: 3}
+    """
+
+    arch: Literal["cnnps", "unet"] = "cnnps"
+    head: Literal["regression", "heatmap"] = "regression"
+    patch: Literal[1, 3, 5] = 1
+
+    def __post_init__(self):
+        if isinstance(self.patch, bool):
+            raise ConfigError(f"train.model.patch must be one of 1, 3, 5, got {self.patch!r}")
+        check_fields(self, "train.model.")
+        if self.arch == "unet" and self.head != "heatmap":
+            raise ConfigError(f"train.model.head: arch unet has the heatmap head only, got {self.head!r}")
+
+    def options(self) -> dict:
+        """The keyword arguments of :func:`cnnps.models.model_options.build_model` it sets."""
+        return {"arch": self.arch, "head": self.head, "patch": int(self.patch)}
+
+
 SECTIONS = {"optimiser": OptimiserParams, "data": DataParams, "pixelwise": PixelwiseParams, "cpu": CpuParams,
-            "synthesis": SynthesisParams}
+            "synthesis": SynthesisParams, "model": ModelParams}
 
 # The flat name of each section key -> its place, "section.key": run keys hash the flat
 # names (Params.flat), and a record holding the train section flat is read through it.
@@ -224,7 +262,8 @@ MOVED_KEYS = {
 
 # Section keys with no flat name, with their defaults: in the flat params (and so in the
 # run key) as ``<section>_<key>`` only off that default. (``synthesis``'s keys: SynthesisParams.changed.)
-OMITTED_AT_DEFAULT = {"pixelwise.rgb": False, "optimiser.average_from": 0, "pixelwise.lights": 1300}
+OMITTED_AT_DEFAULT = {"pixelwise.rgb": False, "optimiser.average_from": 0, "pixelwise.lights": 1300,
+                      "model.arch": "cnnps", "model.head": "regression", "model.patch": 1}
 
 # Sections of the train params filled from other stages' sections by the config layer
 # (cnnps.pipeline.config.build_params): section -> {stage: keys}. dvc.yaml's train stage lists
@@ -253,7 +292,7 @@ def _section(cls: type, value, name: str):
 @dataclass(frozen=True)
 class Params:
     """``train:`` in params.yaml. The run's length, validation, checkpoints and where it
-    runs are top-level keys; the rest sits in four sections::
+    runs are top-level keys; the rest sits in five sections::
 
         train:
           max_steps: 3000
@@ -261,8 +300,9 @@ class Params:
           data: {batch_size: 128}
           pixelwise: {share: 0.5, effects: {ambient: 0.05}}
           cpu: {threads: 2}
+          model: {arch: cnnps, head: heatmap, patch: 3}
 
-    and a fifth, ``synthesis`` (:class:`SynthesisParams`), that the config layer fills from
+    and a sixth, ``synthesis`` (:class:`SynthesisParams`), that the config layer fills from
     ``materials`` and ``extract`` (:data:`FROM_SECTIONS`), so per-pixel maps draw the
     materials and light subsets the renders and shards do.
 
@@ -299,6 +339,7 @@ class Params:
     pixelwise: PixelwiseParams = field(default_factory=PixelwiseParams)
     cpu: CpuParams = field(default_factory=CpuParams)
     synthesis: SynthesisParams = field(default_factory=SynthesisParams)  # from materials and extract
+    model: ModelParams = field(default_factory=ModelParams)
 
     def __post_init__(self):
         for name, cls in SECTIONS.items():
@@ -323,6 +364,9 @@ class Params:
             raise ConfigError(f"train.pixelwise.sparse_fraction needs extract.sparse_min_lights < extract.min_lights "
                               f"(a sparse map has fewer lights than a dense one), got {syn.sparse_min_lights} "
                               f"and {syn.min_lights}")
+        if self.model.patch > 1 and self.pixelwise.share:
+            raise ConfigError(f"train.model.patch: {self.model.patch} needs train.pixelwise.share: 0 (a per-pixel "
+                              f"map has no neighbours to make a patch of), got share {self.pixelwise.share}")
         if self.pixelwise.rgb and self.pixelwise.share < 1.0:
             raise ConfigError(f"train.pixelwise.rgb: true needs train.pixelwise.share: 1.0 (the rendered shards "
                               f"hold grey maps only), got share {self.pixelwise.share}")

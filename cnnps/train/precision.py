@@ -11,7 +11,7 @@ function of its params and its machine, never of the moment's load:
    precision the run's checkpoints were made in (:class:`cnnps.train.loop.Trainer`).
 2. **Once per machine.** The first step of a run takes the answer cached for this machine
    and step (:func:`resolve`; :func:`cache_key`: CPU model and flags, or the GPU's name;
-   torch version; the network, its map size and input channels; the batch rows; the step's
+   torch version; the network, its map size, input channels, head and patch; the batch rows; the step's
    CPU settings) in ``$CNNPS_CACHE_DIR`` (default ``~/.cache/cnnps``), file
    :data:`CACHE_FILE`, for :data:`CACHE_MAX_AGE_S` (30 days). Without an answer it probes
    and caches the probe's answer, also one taken under load (the reason then says so):
@@ -131,6 +131,11 @@ def time_steps(model, params: Params, device: torch.device, precision: str, maps
     return 1.0 / statistics.median(walls), first, share
 
 
+def model_input_channels(model) -> int:
+    """The channels of ``model``'s input maps: its ``in_channels`` times its patch's b^2."""
+    return int(getattr(model, "in_channels", 1)) * int(getattr(model, "patch", 1)) ** 2
+
+
 def choose_train_precision(model, params: Params, device: torch.device, batch_rows: int) -> TrainChoice:
     """The probe (the module docstring, step 3): the precision that steps ``model`` (the
     run's network as built; its weights and the global RNG are left as they were) fastest
@@ -141,7 +146,7 @@ def choose_train_precision(model, params: Params, device: torch.device, batch_ro
     if not bf16_available(device):  # nothing to choose between: no step is timed
         where = "CPU" if device.type == "cpu" else "device"
         return TrainChoice("fp32", f"bf16 skipped (no bf16 kernels on this {where}): fp32", rates={"bf16": None})
-    channels = int(getattr(model, "in_channels", 1))
+    channels = model_input_channels(model)
     maps, normals = probe_maps(max(int(batch_rows), 1), w=int(getattr(model, "w", 32)), channels=channels)
     maps_t = torch.from_numpy(maps).unsqueeze(1) if channels == 1 else torch.from_numpy(maps)
     normals_t = torch.from_numpy(normals)
@@ -198,6 +203,9 @@ def cache_key(model, params: Params, device: torch.device, batch_rows: int) -> s
 
     where = cpu_signature() if device.type == "cpu" else torch.cuda.get_device_name(device)
     net = f"{type(model).__name__} w{getattr(model, 'w', '?')} c{getattr(model, 'in_channels', 1)}"
+    head, patch = getattr(model, "head", "regression"), int(getattr(model, "patch", 1))
+    if head != "regression" or patch != 1:  # the paper's network keeps its cache key
+        net += f" {head} b{patch}"
     cpu = params.cpu
     step = (f"channels_last {bool(params.channels_last)}, layers {cpu.layers}, masks {cpu.dropout_masks}, "
             f"fused_adam {bool(params.optimiser.fused_adam)}, compile {bool(params.compile)}")

@@ -41,9 +41,9 @@ import time
 from collections.abc import Callable
 
 import torch
-import torch.nn.functional as F
 
 from cnnps.infra.errors import CnnpsError, ConfigError
+from cnnps.models.heads import training_loss
 from cnnps.models.train_layers import MASK_BLOCK_ROWS
 from cnnps.train.optimiser import autocast
 
@@ -118,14 +118,15 @@ def _rows_backward(model, maps, normals, key, row0: int, batch: int, channels_la
     """Forward and backward of a batch's rows ``row0..`` (``maps``, ``normals``) with their
     masks of ``key``, the forward in ``precision`` (fp32, or bf16 autocast as
     :func:`cnnps.train.optimiser.train_step` runs it), the loss scaled by their share of
-    the ``batch`` rows, so the shares' gradients add up to the batch's; the scaled loss
+    the ``batch`` rows, so the shares' gradients add up to the batch's (the head's loss,
+    :func:`cnnps.models.heads.training_loss`, a mean over the rows); the scaled loss
     (detached)."""
     if channels_last:
         maps = maps.contiguous(memory_format=torch.channels_last)
     model.set_mask_key(key, row0)
     with autocast(CPU, precision):
         pred = model(maps)
-    loss = F.mse_loss(pred.float(), normals) * (len(maps) / batch)
+    loss = training_loss(model, pred, normals) * (len(maps) / batch)
     loss.backward()
     return loss.detach()
 
@@ -192,7 +193,8 @@ class StepProcesses:
                               f"memory ({str(exc).splitlines()[0][:160]}); use step_processes: 1") from None
         ctx = multiprocessing.get_context("spawn")  # fork would copy torch's thread pools
         helper_rows = max(rows for _, rows in row_shares(max_rows, processes)[1:])
-        channels = int(getattr(model, "in_channels", 1))  # maps (B, channels, w, w)
+        # maps (B, channels, w, w): the input channels times a patch model's b^2 cells
+        channels = int(getattr(model, "in_channels", 1)) * int(getattr(model, "patch", 1)) ** 2
         try:
             for i in range(1, processes):
                 bufs = dict(maps=torch.zeros(helper_rows, channels, w, w).share_memory_(),
@@ -216,8 +218,10 @@ class StepProcesses:
 
     def step(self, opt: torch.optim.Optimizer, maps: torch.Tensor, normals: torch.Tensor,
              key: tuple[int, ...], meanwhile: Callable[[], object] | None = None) -> torch.Tensor:
-        """One Adam step on the batch (maps (B, C, w, w), C the model's ``in_channels``, unit
-        normals (B, 3), float32 on the CPU) with the counter masks of ``key``; the batch's MSE loss (detached).
+        """One Adam step on the batch (maps (B, C, w, w), C the model's ``in_channels`` times
+        its patch's b^2, unit normals (B, 3), float32 on the CPU) with the counter masks of
+        ``key``; the batch's loss (detached; the model's head's,
+        :func:`cnnps.models.heads.training_loss`).
 
         ``meanwhile``: called once this process's rows are done, while the helpers finish
         theirs (the training loop reads its next batch there, so neither side waits for

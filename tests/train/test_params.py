@@ -3,6 +3,7 @@ builds, the stage keys its runs by and the training loop reads."""
 
 from __future__ import annotations
 
+import dataclasses
 import typing
 
 import pytest
@@ -53,3 +54,29 @@ def test_run_keys_are_those_the_checkpoints_carry():
                data={"batch_size": 32}, pixelwise={"share": 1.0, "w": 8, "lights": 64, "effects": {"ambient": 0.05}},
                cpu={"threads": 1, "step_processes": 1}, val_max_rows=64)
     assert stage.run_key(p, "m", precision="fp32") == "5c67fa5092685333f75f535374c52a98611e3b4e1032076263f32336955ec501"
+
+
+def test_the_model_section_keys_runs_only_off_its_defaults_and_names_a_bad_key():
+    from cnnps.models.heads import HEADS
+    from cnnps.models.model_options import ARCHS
+    from cnnps.models.patch import PATCHES
+    from cnnps.train import params as tparams
+
+    assert (tparams.ARCHS, tparams.HEADS, tparams.PATCHES) == (ARCHS, HEADS, PATCHES)  # named twice: agree
+    assert stage.run_key(Params(model={"arch": "cnnps", "head": "regression", "patch": 1}), "m", precision="bf16") \
+        == stage.run_key(Params(), "m", precision="bf16")
+    heat = Params(model={"head": "heatmap", "patch": 3})
+    assert heat.result_key()["model_head"] == "heatmap" and heat.result_key()["model_patch"] == 3
+    assert stage.run_key(heat, "m", precision="bf16") != stage.run_key(Params(), "m", precision="bf16")
+    p = build_params(config_from_dict({"train": {"model": {"arch": "unet", "head": "heatmap", "patch": 5}}}), "train")
+    assert p.model.options() == {"arch": "unet", "head": "heatmap", "patch": 5}
+    assert Params.from_record(dataclasses.asdict(p)).model == p.model
+    for bad, said in (({"head": "heatmaps"}, "train.model.head must be one of regression, heatmap, got 'heatmaps'"),
+                      ({"patch": 2}, "train.model.patch must be one of 1, 3, 5, got 2"),
+                      ({"arch": "unet"}, "train.model.head: arch unet has the heatmap head only"),
+                      ({"size": 3}, "train.model: unknown key 'size'")):
+        with pytest.raises(ConfigError) as exc:
+            build_params(config_from_dict({"train": {"model": bad}}), "train")
+        assert said in str(exc.value) and "\n" not in str(exc.value)
+    with pytest.raises(ConfigError, match=r"train.model.patch: 3 needs train.pixelwise.share: 0"):
+        Params(max_steps=1, model={"patch": 3}, pixelwise={"share": 0.5})

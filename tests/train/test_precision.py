@@ -117,3 +117,24 @@ def test_a_probe_under_load_says_so_and_its_answer_is_kept(simulated):
     assert choice.under_load and choice.cpu_share == pytest.approx(1 / 3, abs=1e-3)
     assert "under load (its threads got 33% of their CPUs' time)" in choice.reason
     assert tp.resolve(CNNPS(w=8), Params(), torch.device("cpu"), 16).source == "cache"
+
+
+def test_the_probe_steps_a_patch_heatmap_model_on_its_input_and_keys_its_cache_apart(monkeypatch):
+    """A U-Net (no dropout) of patch 3: the probe's first loss is the heat-map loss of the
+    model on the probe's maps in its 9 input channels; its cache key names head and patch,
+    the paper's network's key is unchanged."""
+    from cnnps.models.heads import head_loss
+    from cnnps.models.model_options import build_model
+    from cnnps.models.precision_probe import probe_maps
+
+    monkeypatch.setattr("cnnps.models.precision_probe.bf16_available", lambda device: True)
+    torch.manual_seed(2)
+    net = build_model(arch="unet", head="heatmap", patch=3, w=8)
+    choice = tp.choose_train_precision(net, Params(), torch.device("cpu"), 4)
+    maps, normals = probe_maps(4, w=8, channels=9)
+    with torch.no_grad():
+        want = float(head_loss("heatmap", net(torch.from_numpy(maps)), torch.from_numpy(normals)))
+    assert choice.losses["fp32"] == pytest.approx(want, rel=1e-5)
+    key = tp.cache_key(net, Params(), torch.device("cpu"), 4)
+    assert "HeatmapUNet w8 c1 heatmap b3 |" in key
+    assert "CNNPS w8 c1 |" in tp.cache_key(CNNPS(w=8), Params(), torch.device("cpu"), 4)

@@ -155,3 +155,29 @@ def test_auto_is_one_process_per_thread_at_most_one_per_mask_block_for_long_runs
     assert auto_processes(16, 40, 1000) == 3  # 40 rows: 3 blocks
     assert auto_processes(4, 8, 1000) == 1
     assert auto_processes(2, 128, 50) == 1  # a short run: not worth a helper's start
+
+
+def test_two_processes_step_a_heatmap_patch_model_as_one():
+    """train.model: a heat-map head on 3 x 3 patches (maps (B, 9, w, w)): the helpers take
+    9-channel rows and the head's loss, so the two-process gradients and loss are the
+    one-process step's up to float rounding (as test_two_processes_train_as_one checks)."""
+    p = Params(data={"batch_size": 48}, cpu={"threads": 1}, model={"head": "heatmap", "patch": 3})
+    w = 8
+    g = torch.Generator().manual_seed(5)
+    maps = torch.rand(48, 9, w, w, generator=g) * (torch.rand(48, 9, w, w, generator=g) < 0.3)
+    normals = F.normalize(torch.randn(48, 3, generator=g) + torch.tensor([0.0, 0.0, 2.0]), dim=1)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        one, opt_one = make_model(w, p, CPU)
+        one.set_mask_key((0, 0, 0))
+        loss_one = float(train_step(one, opt_one, maps, normals, CPU, "fp32", True))
+        two, opt_two = make_model(w, p, CPU)
+        with StepProcesses(two, 2, max_rows=48, w=w, threads=1) as procs:
+            loss_two = float(procs.step(opt_two, maps, normals, (0, 0, 0)))
+    finally:
+        torch.set_num_threads(threads)
+    assert loss_two == pytest.approx(loss_one, rel=1e-5) and loss_one > 0
+    for (name, q1), q2 in zip(one.named_parameters(), two.parameters()):
+        scale = float(q1.grad.abs().max())
+        torch.testing.assert_close(q2.grad, q1.grad, rtol=1e-4, atol=1e-5 * scale, msg=name)
