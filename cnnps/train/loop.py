@@ -58,7 +58,7 @@ from cnnps.models.checkpoint import (
     save_checkpoint,
     write_sha256_file,
 )
-from cnnps.models.model_options import model_options
+from cnnps.models.model_options import model_options, recorded_options
 from cnnps.models.network import RGB_CHANNELS, widen_state
 from cnnps.models.train_layers import COUNTER_MASK_BITS
 from cnnps.train.allocator import keep_freed_memory
@@ -569,6 +569,8 @@ class Trainer:
                 "precision": self.precision,
                 "precision_choice": self.precision_choice,
                 "average": self.average.state_dict(),
+                # the model options off the paper's network (cnnps.models.model_options.recorded_options)
+                **({"model_options": opts} if (opts := recorded_options(self.raw)) else {}),
             },
             self.params.keep_checkpoints,
         )

@@ -55,6 +55,7 @@ def test_heatmap_patch_run_resumes_exactly_and_its_model_file_records_the_option
     for k in sa["model"]:
         assert torch.equal(sa["model"][k], sb["model"][k]), k
     assert sa["history"]["loss"] == sb["history"]["loss"] and ma["val_mean_deg"] == mb["val_mean_deg"]
+    assert sa["model_options"] == {"head": "heatmap", "patch": 3}  # a checkpoint records the options too
     s3 = torch.load(a / "train/checkpoints/step-00000003.pt", weights_only=True)
     assert not torch.equal(s3["model"]["fc2.weight"], sa["model"]["fc2.weight"])  # the comparison can fail
     # model.pt: the options recorded and read back; its validation number is the decoded heat-maps' error
@@ -98,6 +99,8 @@ def test_regression_on_observations_learns(observations, tmp_path):
     assert m0["val_mean_deg"] > 30 and m["val_mean_deg"] < 0.7 * m0["val_mean_deg"]
     _, config, meta = load_checkpoint(d / "train/model.pt")
     assert "head" not in config and "model" not in meta["params"]  # the paper's network records no options
+    last = sorted((d / "train/checkpoints").glob("step-*.pt"))[-1]
+    assert "model_options" not in torch.load(last, weights_only=True)
     assert train.Params.from_record(meta["params"]).model == train.Params().model
 
 
@@ -117,3 +120,13 @@ def test_an_init_of_other_options_and_a_patch_on_map_shards_are_one_line(observa
         train.run(params(max_steps=1, model={"patch": 3}), maps)
     assert "\n" not in str(exc.value) and "train.model.patch: 3" in str(exc.value)
     assert "layout: observations" in str(exc.value)
+
+
+def test_dataloader_workers_feed_the_steps_one_process_feeds(observations, tmp_path):
+    p = dict(max_steps=3, checkpoint_every=3, model={"head": "heatmap", "patch": 3})
+    a, b = fresh(observations, tmp_path / "a"), fresh(observations, tmp_path / "b")
+    train.run(params(**p), a)
+    train.run(params(**p, data={"batch_size": 16, "num_workers": 2}), b)
+    sa, sb = (torch.load(d / "train/checkpoints/step-00000003.pt", weights_only=True) for d in (a, b))
+    assert all(torch.equal(sa["model"][k], sb["model"][k]) for k in sa["model"])
+    assert sa["history"]["loss"] == sb["history"]["loss"]
