@@ -1,6 +1,6 @@
 """The layering contract of docs/ARCHITECTURE.md, read from the source.
 
-infra -> ps -> io -> models -> synth -> train -> stages -> api -> pipeline: a module imports its own layer or a lower
+infra -> ps -> io -> models -> synth -> train -> api -> stages -> pipeline: a module imports its own layer or a lower
 one, never a higher one, lazily inside a function included; no two modules import each
 other, directly or round a loop; only the Blender renderer imports bpy.
 """
@@ -92,12 +92,12 @@ def tree(tmp_path):
         "cnnps/synth/raster.py": "from ..models import network\n",
         "cnnps/train/__init__.py": "",
         "cnnps/train/loop.py": "from cnnps.models import network\nfrom cnnps.synth import raster\n",
-        "cnnps/stages/__init__.py": "",
-        "cnnps/stages/train.py": "import cnnps.synth.raster\nfrom cnnps.train import loop\n",
         "cnnps/api/__init__.py": "",
-        "cnnps/api/prediction.py": "from cnnps.stages import train\n",
+        "cnnps/api/prediction.py": "from cnnps.models import network\n",
+        "cnnps/stages/__init__.py": "",
+        "cnnps/stages/train.py": "import cnnps.synth.raster\nfrom cnnps.train import loop\nfrom cnnps.api import prediction\n",
         "cnnps/pipeline/__init__.py": "",
-        "cnnps/pipeline/config.py": "def f():\n    from cnnps.api import prediction\n",
+        "cnnps/pipeline/config.py": "def f():\n    from cnnps.stages import train\n",
     }
     for name, text in files.items():
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)

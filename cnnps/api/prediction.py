@@ -5,13 +5,20 @@ Two entry points share every step, so they agree bit for bit on the same data:
 :func:`predict_folder` (a capture folder of any size in bounded memory, the outputs of
 :mod:`cnnps.api.prediction_outputs` written into OUT_DIR all at once, one writer at a time).
 
-The steps: check the options (:func:`check_options`, from :func:`predict`'s declared
-types and the solver registry); prepare the solver once (:mod:`cnnps.api.solvers`: the
+The options are declared once (:mod:`cnnps.api.prediction_options`): prediction's own in
+``PredictOptions``, each solver's in its ``Options`` (:mod:`cnnps.api.solvers`);
+:func:`predict`'s keywords (and its signature), their checks and ``cnnps predict``'s flags
+are made from them.
+
+The steps: check the options (:func:`check_options`, from their declared types and the
+solver registry); prepare the solver once (:mod:`cnnps.api.solvers`: the
 network with its precision and threads, or least squares); put each image's mask pixels
 into a :class:`cnnps.io.pixel_store.PixelStack` (from the arrays, or every file read once,
 in memory up to 256 MiB, else a temporary file); compute normals tile by tile
 (:mod:`cnnps.api.normals`) under the capture's camera and light model, each looked up by
-name (:mod:`cnnps.api.cameras`, :mod:`cnnps.api.light_models`); record, score, write.
+name (:mod:`cnnps.api.cameras`, :mod:`cnnps.api.light_models`;
+:mod:`cnnps.api.prediction_steps`, which the eval stage scores through too); record,
+score, write.
 
 Images: integer images (uint8, uint16) are made linear by ``linearize`` ("srgb" decodes
 the sRGB curve, "none" or None takes them as linear; None with 8-bit images adds a
@@ -27,64 +34,38 @@ from __future__ import annotations
 import functools
 import time
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
 from cnnps.api import prediction_outputs as outputs
-from cnnps.api.cameras import camera_factory, make_camera
-from cnnps.api.light_models import light_model_factory, make_light_model
-from cnnps.api.normals import DEFAULT_TILE_PIXELS, capture_normals
+from cnnps.api.cameras import make_camera
+from cnnps.api.light_models import make_light_model
+from cnnps.api.normals import capture_normals
 from cnnps.api.prediction_inputs import (
     check_arrays,
     check_intrinsics,
     check_positions,
     stack_from_arrays,
 )
-from cnnps.api.solvers import check_solver_options, prepare_solver, solver_class
-from cnnps.infra.errors import ConfigError, InputError
-from cnnps.infra.machine import Device
-from cnnps.infra.options import Count, Positive, UnitFraction, check_arguments, label
+from cnnps.api.prediction_options import (  # noqa: F401 (Method, Saturated, Precision: part of this API)
+    Method,
+    Precision,
+    Saturated,
+    check_options,
+    declared_options,
+    option_default,
+    predict_signature,
+    with_defaults,
+)
+from cnnps.api.prediction_steps import capture_lighting, capture_stack, saturation_level
+from cnnps.api.solvers import check_solver, prepare_solver
+from cnnps.infra.errors import InputError
 from cnnps.infra.output_folder import OutputFolder
-from cnnps.io.capture import SATURATION_LEVEL, Grey
-from cnnps.io.srgb import Linearize
-from cnnps.ps.near_lights import DEFAULT_ROUNDS, DEFAULT_TOLERANCE, directions_from_positions
-from cnnps.ps.sparse_fill import SparseFill
+from cnnps.ps.near_lights import directions_from_positions
 
-Method = str  # a solver's registry name (cnnps.api.solvers.SOLVERS): "cnn", "lambertian", ...
-Precision = Literal["auto", "fp32", "bf16"]  # auto: measured per machine (cnnps.models.precision_probe)
-Saturated = Literal["exclude", "keep"]  # saturated observations left out (missing), or used as stored
 OUTPUT_FILES = outputs.OUTPUT_FILES
 Prediction = outputs.Prediction
 _ARRAYS = ("images", "lights", "mask", "intensities", "normal_gt", "intrinsics", "light_positions")
-
-
-def check_options(values: dict) -> dict:
-    """Check the options every entry point shares against :func:`predict`'s declared
-    types and the solver registry (one message: ``rotations must be an integer >= 1, got
-    0``, spelled ``--rotations`` on the command line); returns them checked."""
-    values = check_arguments(predict, values)
-    check_solver_options(values)
-    for name, factory in (("camera_model", camera_factory), ("light_model", light_model_factory)):
-        if values.get(name) is not None:
-            factory(values[name])  # a ConfigError listing the registry's names when unknown
-    return values
-
-
-def with_defaults(options: dict) -> dict:
-    """``options`` completed with :func:`predict`'s defaults (the one place they live);
-    an unknown name is a ConfigError."""
-    import inspect
-
-    params = {n: p for n, p in inspect.signature(predict).parameters.items() if n not in _ARRAYS}
-    unknown = sorted(set(options) - set(params))
-    if unknown:
-        raise ConfigError(f"unknown option {label(unknown[0])!r}; options are: {', '.join(params)}")
-    return {n: options.get(n, p.default) for n, p in params.items()}
-
-
-def _saturation(saturated: str):
-    return SATURATION_LEVEL if saturated == "exclude" else None
 
 
 # ----------------------------------------------------------------------------- entry points
@@ -99,24 +80,8 @@ def predict(
     normal_gt=None,
     intrinsics=None,
     light_positions=None,
-    method: Method = "cnn",
-    model=None,
-    rotations: Count = 10,
-    device: Device = "auto",
-    precision: Precision = "auto",
-    batch_size: Count | None = None,
-    shadow_threshold: UnitFraction | None = None,
-    grey: Grey = "mean",
-    linearize: Linearize | None = None,
-    saturated: Saturated = "exclude",
-    sparse_fill: SparseFill = "auto",
-    tile_pixels: Count = DEFAULT_TILE_PIXELS,
-    camera_model: str | None = None,
-    light_model: str | None = None,
-    distance: Positive | None = None,
-    rounds: Count = DEFAULT_ROUNDS,
-    depth_tolerance: Positive = DEFAULT_TOLERANCE,
     progress: bool = False,
+    **options,
 ) -> Prediction:
     """Surface normals of one object from its images under known lights, in memory.
 
@@ -193,7 +158,12 @@ def predict(
         ``cnnps.predict(images, lights, mask, rotations=10)``.
     """
     t0 = time.perf_counter()
-    opts = check_options({k: v for k, v in locals().items() if k not in _ARRAYS + ("t0",)})
+    unknown = sorted(set(options) - set(declared_options()))
+    if unknown:
+        raise TypeError(f"predict() got an unexpected keyword argument {unknown[0]!r}")
+    opts = check_options(with_defaults(options))
+    grey, linearize, saturated, camera_model, light_model = (opts[n] for n in (
+        "grey", "linearize", "saturated", "camera_model", "light_model"))
     intrinsics = None if intrinsics is None else check_intrinsics(intrinsics)
     camera = make_camera(camera_model, intrinsics)
     positions = None if light_positions is None else check_positions(light_positions, intrinsics, np.shape(images)[0])
@@ -203,7 +173,7 @@ def predict(
     lighting = make_light_model(light_model, lights, positions, camera, opts)
     solver = prepare_solver(opts)
     warnings = solver.warnings(images.shape[0])
-    with stack_from_arrays(images, mask, intensities, grey, linearize, _saturation(saturated)) as stack:
+    with stack_from_arrays(images, mask, intensities, grey, linearize, saturation_level(saturated)) as stack:
         t_load = time.perf_counter() - t0
         found = capture_normals(stack, mask, solver, camera, lighting, tile_pixels=opts["tile_pixels"],
                                 progress=progress)
@@ -254,26 +224,22 @@ def predict_folder(
     Every argument and the whole capture are checked before any heavy work.
     """
     from cnnps.io.capture import scan_capture
-    from cnnps.io.pixel_store import DEFAULT_MEMORY_LIMIT, build_pixel_stack
 
     t0 = time.perf_counter()
     capture_dir, out_dir = Path(capture_dir), Path(out_dir)
     opts = check_options(with_defaults(options))
-    solver_class(opts["method"]).check(opts)  # a model file, a device: before the capture is read
+    check_solver(opts)  # a model file, a device: before the capture is read
     if not capture_dir.is_dir():
         raise InputError(capture_dir, "capture folder not found" if not capture_dir.exists() else "not a folder")
     outputs.check_out_dir(out_dir, capture_dir)
     write_surface = outputs.surface_writer() if depth else None
     with OutputFolder(out_dir, command) as out:  # FolderBusy at once while another writes OUT_DIR
         capture = scan_capture(capture_dir, drop=drop, grey=opts["grey"], linearize=opts["linearize"])
-        camera = make_camera(opts["camera_model"], capture.intrinsics)
-        lighting = make_light_model(opts["light_model"], capture.lights, capture.light_positions, camera, opts)
+        camera, lighting = capture_lighting(capture, opts)
         solver = prepare_solver(opts)
         warnings = solver.warnings(capture.n_images)
         scratch = out_dir.resolve().parent if scratch_dir is None else Path(scratch_dir)
-        limit = DEFAULT_MEMORY_LIMIT if memory_limit is None else int(memory_limit)
-        with build_pixel_stack(capture, scratch_dir=scratch, memory_limit=limit, saturation=_saturation(opts["saturated"]),
-                               progress=progress) as stack:
+        with capture_stack(capture, opts, scratch_dir=scratch, memory_limit=memory_limit, progress=progress) as stack:
             t_load = time.perf_counter() - t0
             found = capture_normals(stack, capture.mask, solver, camera, lighting, tile_pixels=opts["tile_pixels"],
                                     progress=progress)
@@ -296,3 +262,6 @@ def predict_folder(
         result.update(scored.stats)
     result["out_dir"] = str(out_dir)
     return result
+
+
+predict.__signature__ = predict_signature(predict)

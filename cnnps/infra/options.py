@@ -13,6 +13,11 @@ line then share one check, :func:`check`, and one message::
 The name is spelled as its front end spells it: the command line wraps its calls in
 :func:`spelled_as_flags`, ``params.yaml`` passes its ``file: section.key``.
 
+A group of options (a solver's, prediction's) is declared once as a frozen dataclass
+whose fields are :func:`option` s: name, type hint, default and help text together;
+:func:`declared` reads them back as :class:`Declared` rows, from which the Python API
+checks its keywords (:func:`check_declared`) and the command line makes its flags.
+
 Example:
     >>> from typing import Literal
     >>> from cnnps.infra.options import Count, check
@@ -34,7 +39,7 @@ import math
 import numbers
 import types
 import typing
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Annotated, Any, Callable, Iterator, Literal
 
 from cnnps.infra.errors import ConfigError
@@ -197,3 +202,56 @@ def check_fields(obj: Any, prefix: str = "") -> None:
         tp = hints.get(f.name)
         if tp is not None and is_declared(tp):
             check(prefix + f.name, getattr(obj, f.name), tp)
+
+
+@dataclass(frozen=True)
+class Declared:
+    """One declared option: ``name``, ``type`` (its hint), ``default``, ``help`` (one
+    sentence or two, for ``--help``), ``metavar`` (the command line's placeholder, None:
+    the choices of a ``Literal``, or the type's) and ``only`` (True: no other solver takes
+    it, so setting it for another method is an error)."""
+
+    name: str
+    type: Any
+    default: Any
+    help: str = ""
+    metavar: str | None = None
+    only: bool = False
+
+    @property
+    def flag(self) -> str:
+        """The command-line flag: ``tile_pixels`` -> ``--tile-pixels``."""
+        return "--" + self.name.replace("_", "-")
+
+
+def option(default: Any, help: str, *, metavar: str | None = None, only: bool = False) -> Any:
+    """A dataclass field declaring one option (its name and type are the field's).
+
+    Example:
+        >>> from dataclasses import dataclass
+        >>> @dataclass(frozen=True)
+        ... class Opts:
+        ...     rotations: Count = option(10, "Test-time rotations averaged.", metavar="K")
+        >>> [(d.name, d.default, d.flag) for d in declared(Opts)]
+        [('rotations', 10, '--rotations')]
+    """
+    return field(default=default, metadata={"help": help, "metavar": metavar, "only": only})
+
+
+def declared(cls: type) -> tuple[Declared, ...]:
+    """The options a dataclass of :func:`option` fields declares, in field order."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    return tuple(Declared(f.name, hints[f.name], f.default, f.metadata.get("help", ""), f.metadata.get("metavar"),
+                          bool(f.metadata.get("only", False)))
+                 for f in fields(cls))
+
+
+def check_declared(options: dict[str, Declared], values: dict[str, Any]) -> dict[str, Any]:
+    """``values`` with each one whose option is declared in ``options`` ({name: Declared})
+    checked against its type (:func:`check`, named by :func:`label`); others pass as given."""
+    out = dict(values)
+    for name, value in values.items():
+        d = options.get(name)
+        if d is not None and is_declared(d.type):
+            out[name] = check(label(name), value, d.type)
+    return out

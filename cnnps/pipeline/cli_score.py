@@ -3,7 +3,10 @@ ground truth, least squares beside it, and the mean over the captures.
 
 Scoring is the eval stage's (:func:`cnnps.stages.evaluate.score_real`): the same numbers
 the stage records for ``eval.real_captures`` / ``eval.real_subsets`` in
-``data/eval/metrics.json``, with ``cnnps predict``'s default options unless told
+``data/eval/metrics.json``, each column's normals computed as ``cnnps predict`` computes
+them (:func:`cnnps.api.prediction_steps.capture_normals_by`: the solver registry, the camera and
+light model registries, the pixel stack and the tile loop; a solver registered in
+:mod:`cnnps.api.solvers` is one more column), with ``cnnps predict``'s default options unless told
 otherwise (K=10, saturated observations left out, the Lambertian fill below 50 images,
 precision auto), and under the DiLiGenT benchmark's rule
 (:data:`cnnps.io.capture.DILIGENT_RULES`: a folder named bearPNG is scored without its
@@ -25,12 +28,11 @@ OUT_FORMAT = 1  # the --out file's layout version
 
 
 def _default(name: str):
-    """The default of :func:`cnnps.predict`'s option ``name`` (the one place it lives)."""
-    import inspect
+    """The default of :func:`cnnps.predict`'s option ``name``, as declared
+    (:func:`cnnps.api.prediction_options.option_default`, the one place it lives)."""
+    from cnnps.api.prediction_options import option_default
 
-    from cnnps.api.prediction import predict
-
-    return inspect.signature(predict).parameters[name].default
+    return option_default(name)
 
 
 def parse_counts(flag: str, text: Optional[str], minimum: int) -> tuple[int, ...]:

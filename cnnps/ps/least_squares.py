@@ -33,8 +33,11 @@ Example:
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from cnnps.infra.options import UnitFraction, option
 from cnnps.ps.solver import Solved, Solver, Tile
 
 _CHUNK = 65536  # pixels per batch of normal equations (bounds memory at ~m * 64k floats)
@@ -222,6 +225,15 @@ def least_squares_per_pixel(
     return normals, albedo
 
 
+@dataclass(frozen=True)
+class LeastSquaresOptions:
+    """The options of :class:`LeastSquaresSolver` (``method="lambertian"``)."""
+
+    shadow_threshold: UnitFraction | None = option(
+        None, "lambertian: per pixel, use only lights brighter than this fraction of its brightest, in [0, 1).",
+        metavar="T", only=True)
+
+
 class LeastSquaresSolver(Solver):
     """The classic baseline as a solver (``method="lambertian"``): per pixel, the
     Lambertian least squares of its present observations (:func:`least_squares_masked`
@@ -229,14 +241,14 @@ class LeastSquaresSolver(Solver):
     not depend on the view. Option: ``shadow_threshold`` (its own)."""
 
     name = "lambertian"
-    only_options = ("shadow_threshold",)
+    Options = LeastSquaresOptions
 
     def __init__(self, shadow_threshold: float | None = None):
         self.shadow_threshold = shadow_threshold
 
     @classmethod
-    def prepare(cls, options: dict) -> "LeastSquaresSolver":
-        return cls(options.get("shadow_threshold"))
+    def prepare(cls, options: LeastSquaresOptions) -> "LeastSquaresSolver":
+        return cls(options.shadow_threshold)
 
     def solve(self, tile: Tile, bar=None) -> Solved:
         from cnnps.ps.confidence import (

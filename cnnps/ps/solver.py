@@ -15,9 +15,13 @@ A solver is a class with a registry name (:mod:`cnnps.api.solvers` lists them):
 - optional: ``quick()`` a cheaper copy for the intermediate rounds under point lights,
   ``progress_bar``, ``notes``, ``warnings``, ``record`` and ``finish``.
 
-``options`` is the dict of :func:`cnnps.predict`'s checked options (``model``,
-``rotations``, ``device``, ``precision``, ``batch_size``, ``shadow_threshold``,
-``sparse_fill``, ...); a solver reads the ones it needs.
+A solver declares the options it reads once, as a frozen dataclass of
+:func:`cnnps.infra.options.option` fields (name, type, default, help) set as its
+``Options``; ``check`` and ``prepare`` then get an instance of it, filled from
+:func:`cnnps.predict`'s checked options, and ``cnnps.predict``'s keywords and ``cnnps
+predict``'s flags are made from it (:mod:`cnnps.api.solvers`). An option declared with
+``only=True`` is one no other method takes (setting it for another method is an error). A
+solver without ``Options`` gets the dict of every checked option.
 
 Frame: lights, views and normals in the capture frame (x right, y up, z toward the camera).
 
@@ -27,14 +31,14 @@ Frame: lights, views and normals in the capture frame (x right, y up, z toward t
 ...     def solve(self, tile, bar=None):
 ...         return np.tile([0.0, 0.0, 1.0], (tile.n, 1)), {}
 >>> tile = Tile(np.ones((2, 3), np.float32), None, np.eye(3), np.zeros(2), np.arange(2.0))
->>> Facing.prepare({}).solve(tile)[0].shape
+>>> Facing.prepare(Facing.options_from({})).solve(tile)[0].shape
 (2, 3)
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Callable, ClassVar, NamedTuple
+from dataclasses import dataclass, field, fields
+from typing import Any, Callable, ClassVar, NamedTuple
 
 import numpy as np
 
@@ -89,15 +93,31 @@ class Solver:
     :meth:`solve`; the rest has defaults that suit a per-pixel method."""
 
     name: ClassVar[str] = ""
-    only_options: ClassVar[tuple[str, ...]] = ()  # options no other solver accepts
+    Options: ClassVar[type | None] = None  # the dataclass of the options it reads (None: every option, a dict)
+    only_options: ClassVar[tuple[str, ...]] = ()  # options no other solver accepts: Options' fields marked only
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if cls.Options is not None:
+            cls.only_options = tuple(f.name for f in fields(cls.Options) if f.metadata.get("only"))
 
     @classmethod
-    def check(cls, options: dict) -> None:
-        """Refuse bad options before any work (a ConfigError or InputError naming them)."""
+    def options_from(cls, values: dict) -> Any:
+        """This solver's options from ``values`` (checked options by name): an instance of
+        :attr:`Options` holding the fields it declares (the rest at their defaults), or
+        ``values`` itself when it declares none."""
+        if cls.Options is None:
+            return values
+        return cls.Options(**{f.name: values[f.name] for f in fields(cls.Options) if f.name in values})
 
     @classmethod
-    def prepare(cls, options: dict) -> "Solver":
-        """The solver, ready for every tile of one capture."""
+    def check(cls, options) -> None:
+        """Refuse bad options (:meth:`options_from`'s) before any work (a ConfigError or
+        InputError naming them)."""
+
+    @classmethod
+    def prepare(cls, options) -> "Solver":
+        """The solver, ready for every tile of one capture (``options``: :meth:`options_from`'s)."""
         return cls()
 
     def solve(self, tile: Tile, bar=None) -> Solved:

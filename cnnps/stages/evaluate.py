@@ -16,13 +16,18 @@ Every capture (synthetic ones and the optional ``real_captures``, DiLiGenT layou
 scored on the same pixels (mask pixels with a ground-truth normal,
 :func:`cnnps.ps.metrics.score_normals`) by:
 
-- CNN-PS with each ``rotations`` K (default K=1 and K=10),
-- the least-squares Lambertian baseline (:func:`cnnps.ps.least_squares.least_squares`).
+- CNN-PS with each ``rotations`` K (default K=1 and K=10), column ``cnn_k<K>``,
+- every other solver of the registry (:data:`cnnps.api.solvers.SOLVERS`), by its name,
+- the least-squares Lambertian baseline (:class:`cnnps.ps.least_squares.LeastSquaresSolver`).
 
-Observations are made as ``cnnps predict`` makes them: with ``saturated: exclude`` (the
-default, as ``cnnps predict``) an observation with a channel at 0.99 of an integer
-format's maximum is missing for both methods (float renders have none), and the network's
-maps get the Lambertian fill of ``sparse_fill``. :func:`score_real` scores the real
+Each column's normals are ``cnnps predict --method <solver>``'s, computed by its own steps
+(:func:`cnnps.api.prediction_steps.capture_normals_by`: the solver prepared from the registry,
+the camera and light model from theirs, the pixel stack, the tile loop): with
+``saturated: exclude`` (the default, as ``cnnps predict``) an observation with a channel
+at 0.99 of an integer format's maximum is missing for every method (float renders have
+none), and the network's maps get the Lambertian fill of ``sparse_fill``. A colour model
+(4 input channels) is refused as ``cnnps predict`` refuses it: both read the grey values.
+:func:`score_real` scores the real
 captures alone (what ``cnnps score`` runs): the same numbers as this stage. Real
 captures are scored as the DiLiGenT benchmark scores its objects: its rule
 (:data:`cnnps.io.capture.DILIGENT_RULES`: bearPNG without its first 20 images) is
@@ -260,44 +265,43 @@ def pixel_sample(mask: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     return out.reshape(mask.shape)
 
 
-def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None, pixels: int = 0) -> dict:
-    """Normals by every method for one capture; errors where there is ground truth.
+def evaluate_capture(capture_dir: Path, columns: dict, params: Params, drop=None, pixels: int = 0) -> dict:
+    """Normals by every column for one capture; errors where there is ground truth.
 
-    ``predict(I (P, m), L, k, views=None) -> (P, 3)``: the CNN with k rotations; ``L`` is
-    (m, 3), or (P, m, 3) per pixel under point lights; ``views`` (P, 3) the pixels' view
-    directions under a pinhole camera. When some observations are saturated (and
-    ``params.saturated`` is "exclude") it is called with ``present=`` (P, m) bool too,
-    False for a missing observation. When ``predict.in_channels`` is above 1 (a colour
-    model, :func:`network_predict`) it is called with ``colour=`` (P, m, 3) too, the
-    pixels' R, G, B (:meth:`cnnps.io.capture.Capture.read_pixels` with ``colour``); ``I``
-    stays the grey values, which least squares uses as for a grey model. ``drop``: image
-    indices to leave out (:func:`cnnps.io.capture.scan_capture`). ``pixels``: score only a seeded sample of that
+    ``columns``: {method name: prepared :class:`cnnps.ps.solver.Solver`}
+    (:func:`method_columns`: ``cnn_k<K>`` per ``rotations`` K, every other registered
+    solver by its name, ``lambertian``). Each column's normals are computed exactly as
+    ``cnnps predict --method <its solver>`` computes them
+    (:func:`cnnps.api.prediction_steps.capture_normals_by`: the camera and light model from their
+    registries, the pixel stack with ``params.saturated``, the tile loop), the capture's
+    pixels read once for all columns. ``drop``: image indices to leave out
+    (:func:`cnnps.io.capture.scan_capture`). ``pixels``: score only a seeded sample of that
     many mask pixels (:func:`pixel_sample` with ``params.seed``; 0 = all).
 
     Rig captures are scored as ``cnnps predict`` treats them: with ``intrinsics.txt`` the
-    network sees each pixel's lights in its own view frame; with ``light_positions.txt``
-    every method runs the rounds of normals and depth of :func:`cnnps.ps.near_field.run_rounds`
-    (from the median depth a render's ``scene.json`` records, as with a measured
-    ``--distance``, unless ``rig_distance`` is "estimated" or there is none: then the scale
-    is estimated, as without ``--distance``), and with ``depth_gt.npy`` the last
-    depth is scored too (``depth_median_rel_error`` beside each method's angular errors).
+    pinhole camera gives each pixel its view; with ``light_positions.txt`` every column runs
+    the rounds of normals and depth of the ``point`` light model (from the median depth a
+    render's ``scene.json`` records, as a measured ``--distance``, unless ``rig_distance``
+    is "estimated" or there is none: then the scale is estimated, as without
+    ``--distance``), and with ``depth_gt.npy`` the last depth is scored too
+    (``depth_median_rel_error`` beside each method's angular errors).
 
     Returns ``{"capture", "n_images", "pixels", "scored_pixels", "normals": {method: (H,W,3)},
     "errors": {method: (H,W)}, "scores": {method: GroundTruthScore}, "methods": {method: stats},
     "mask", "gt", "scored", "input"}`` (scores, errors, stats and scored only with ground truth).
     """
+    from cnnps.api.prediction_steps import capture_normals_by
     from cnnps.io.capture import read_scene, scan_capture
     from cnnps.ps.metrics import score_normals
 
     cap = scan_capture(capture_dir, drop=drop)
     if pixels:
         cap.mask = pixel_sample(cap.mask, pixels, params.seed)
-    colour = getattr(predict, "in_channels", 1) > 1
-    I, missing, rgb = read_values(cap, params.saturated, colour=colour)
-    distance = None
+    opts = prediction_options(params)
     if cap.light_positions is not None and params.rig_distance == "known":
-        distance = (read_scene(capture_dir) or {}).get("median_depth")
-    normals, depths = _capture_normals(cap, I, missing, cap.intrinsics, predict, params, distance, colour=rgb)
+        opts["distance"] = (read_scene(capture_dir) or {}).get("median_depth")
+    found = capture_normals_by(cap, columns, opts)
+    normals = {m: f.normal for m, f in found.items()}
 
     out = {
         "capture": str(capture_dir),
@@ -319,118 +323,70 @@ def evaluate_capture(capture_dir: Path, predict, params: Params, drop=None, pixe
             out["methods"][m] = score.stats
         out["scored"] = score.scored
         out["scored_pixels"] = int(score.scored.sum())
-    if depths and cap.depth_gt is not None and out["methods"]:
+    if cap.depth_gt is not None and out["methods"]:
         gt = cap.depth_gt
-        for m, d in depths.items():
-            rel = np.abs(d[cap.mask] - gt[cap.mask]) / gt[cap.mask]
-            out["methods"][m]["depth_median_rel_error"] = float(np.median(rel))
+        for m, f in found.items():
+            if f.depth is not None:
+                rel = np.abs(f.depth[cap.mask] - gt[cap.mask]) / gt[cap.mask]
+                out["methods"][m]["depth_median_rel_error"] = float(np.median(rel))
     return out
 
 
-def pixel_values(cap, saturated: str = "exclude") -> tuple[np.ndarray, np.ndarray | None]:
-    """(I (P, m) float32, missing (P, m) bool or None): the mask pixels' values of a
-    scanned capture (row-major pixel order, exactly :meth:`cnnps.io.capture.Capture.read_pixels`'
-    values, as ``cnnps predict`` reads them) and, with ``saturated="exclude"``, its
-    saturated observations (None when there is none, or with "keep")."""
-    I, missing, _ = read_values(cap, saturated)
-    return I, missing
+def prediction_options(params: Params) -> dict:
+    """:func:`cnnps.predict`'s options, checked and completed with its defaults, as the
+    eval stage's ``params`` set them (``device``, ``precision``, ``batch_size``,
+    ``saturated``, ``sparse_fill``): what every column's solver and the capture's camera,
+    light model and pixel stack are made with."""
+    from cnnps.api.prediction_options import check_options, with_defaults
+
+    return check_options(with_defaults({"device": params.device, "precision": params.precision,
+                                        "batch_size": params.batch_size or None, "saturated": params.saturated,
+                                        "sparse_fill": params.sparse_fill}))
 
 
-def read_values(cap, saturated: str = "exclude", colour: bool = False):
-    """(I, missing, colour): :func:`pixel_values`' two, and with ``colour`` the (P, m, 3)
-    float32 R, G, B of the same pixels and images, each divided by its light's intensity in
-    that channel (read in the same pass, ``Capture.read_pixels(colour=True)``), else None."""
-    from cnnps.io.capture import SATURATION_LEVEL, for_each_image
+def method_columns(params: Params, model_path: Path, *, fix: str = "replace it with an intact copy") -> dict:
+    """{column name: prepared solver}: the network (``cnn`` with ``model_path``) once per
+    ``params.rotations`` K (``cnn_k<K>``), every other solver of the registry
+    (:data:`cnnps.api.solvers.SOLVERS`) by its name with :func:`cnnps.predict`'s defaults,
+    and least squares (``lambertian``, with ``lambertian_shadow_threshold``) last, each
+    prepared as ``cnnps predict --method NAME`` prepares it. A damaged model is one line
+    naming the file and ``fix``."""
+    from cnnps.api.solvers import SOLVERS, prepare_solver
 
-    values = np.empty((cap.n_images, cap.n_pixels), dtype=np.float32)
-    rgb = np.empty((cap.n_images, cap.n_pixels, 3), dtype=np.float32) if colour else None
-    flags = np.zeros(values.shape, dtype=bool)
-    level = SATURATION_LEVEL if saturated == "exclude" else None
-
-    def read(k: int) -> None:
-        pix = cap.read_pixels(k, saturation=level, colour=colour)
-        values[k] = pix.values
-        if rgb is not None:
-            rgb[k] = pix.colour
-        if pix.saturated is not None:
-            flags[k] = pix.saturated
-
-    for_each_image(cap, read)
-    return (np.ascontiguousarray(values.T), (np.ascontiguousarray(flags.T) if flags.any() else None),
-            None if rgb is None else np.ascontiguousarray(rgb.transpose(1, 0, 2)))
+    base = prediction_options(params)
+    wanted = [(method_name(k), {"method": "cnn", "model": str(model_path), "rotations": int(k)})
+              for k in params.rotations]
+    wanted += [(name, {"method": name}) for name in SOLVERS if name not in ("cnn", LAMBERTIAN)]
+    wanted.append((LAMBERTIAN, {"method": LAMBERTIAN, "shadow_threshold": params.lambertian_shadow_threshold}))
+    try:
+        return {name: prepare_solver({**base, **own}) for name, own in wanted}
+    except InputError as exc:  # the checkpoint, named
+        raise InputError(exc.path, f"{exc.problem}; {fix}") from None
 
 
-def _capture_normals(cap, I, missing, K, predict, params: Params, distance: float | None = None,
-                     colour: np.ndarray | None = None) -> tuple[dict, dict]:
-    """({method: (H, W, 3) float32 normals}, {method: (H, W) depth} under point lights,
-    whose rounds start at ``distance``, or at the estimated scale when it is None), from
-    the values ``I`` (P, m) with ``missing`` (P, m) observations (or None); ``colour``
-    (P, m, 3) goes to the CNN only (a colour model's)."""
-    from cnnps.ps.camera import view_directions
-    from cnnps.ps.least_squares import least_squares_masked, least_squares_per_pixel
-    from cnnps.ps.near_field import run_rounds
-    from cnnps.ps.near_lights import DEFAULT_ROUNDS, DEFAULT_TOLERANCE, pixel_lights_at
-    from cnnps.ps.rotation import normalize
-
-    L = cap.lights
-    cnn_kw = {} if missing is None else {"present": ~missing}  # the CNN's keyword arguments
-    if colour is not None:
-        cnn_kw["colour"] = colour
-    rows, cols = np.nonzero(cap.mask)
-    views = None if K is None else view_directions(K, rows, cols)
-    shadow = params.lambertian_shadow_threshold
-
-    def image(N) -> np.ndarray:
-        return cap.to_image(normalize(np.asarray(N, dtype=np.float64)).astype(np.float32))
-
-    normals: dict[str, np.ndarray] = {}
-    depths: dict[str, np.ndarray] = {}
-    if cap.light_positions is None:
-        for k in params.rotations:
-            normals[method_name(k)] = image(predict(I, L, int(k), views, **cnn_kw))
-        normals[LAMBERTIAN] = image(least_squares_masked(I, L, missing, shadow_threshold=shadow)[0])
-        return normals, depths
-
-    positions = cap.light_positions
-
-    def near(depth):  # each pixel's lights from its surface point; values divided by 1 / r^2
-        dirs, scale = pixel_lights_at(K, rows, cols, depth[cap.mask], positions)
-        return I / scale, dirs
-
-    def rounds(normals_at, final_pass):
-        field = run_rounds(normals_at, cap.mask, K, positions, distance=distance, rounds=DEFAULT_ROUNDS,
-                           tolerance=DEFAULT_TOLERANCE, final_pass=final_pass, values=lambda index: I[index])
-        return field.normal, field.depth
-
-    for k in params.rotations:
-        def cnn(depth, final, k=int(k)):
-            Ip, dirs = near(depth)
-            return image(predict(Ip, dirs, k if final else 1, views, **cnn_kw)), None  # rounds at K=1, as predict
-
-        normals[method_name(k)], depths[method_name(k)] = rounds(cnn, final_pass=int(k) > 1)
-
-    def lambertian(depth, _final):
-        Ip, dirs = near(depth)
-        return image(least_squares_per_pixel(Ip, dirs, missing, shadow_threshold=shadow)[0]), None
-
-    normals[LAMBERTIAN], depths[LAMBERTIAN] = rounds(lambertian, final_pass=False)
-    return normals, depths
+def columns_precision(columns: dict) -> str | None:
+    """The network's precision among prepared ``columns`` (what its record says), or None."""
+    for solver in columns.values():
+        precision = solver.record({}, 0, True).get("precision")
+        if precision is not None:
+            return precision
+    return None
 
 
-def evaluate_all(captures, predict, params: Params, out_dir: Path, model_label: str, t0: float | None = None) -> dict:
+def evaluate_all(captures, columns: dict, params: Params, out_dir: Path, model_label: str, t0: float | None = None) -> dict:
     """Score ``captures`` ([(name, folder, "synthetic" | "real"[, drop])]); write the report;
-    return the metrics (:func:`capture_metrics`). ``drop``: image indices left out of that
+    return the metrics (:func:`capture_metrics`). ``columns``: as :func:`evaluate_capture`. ``drop``: image indices left out of that
     capture; a real capture given a ``drop`` is an image subset of its folder
     (``summary_real_subsets``). A real capture without one is scored under the DiLiGenT
     benchmark's rule (:data:`cnnps.io.capture.DILIGENT_RULES`: bearPNG without its first 20 images)."""
     t0 = time.perf_counter() if t0 is None else t0
-    results = score_all(captures, predict, params)
-    metrics = capture_metrics(results, params, model_label, t0)
+    results = score_all(captures, columns, params)
+    metrics = capture_metrics(results, list(columns), params, model_label, t0)
     write_report(out_dir, results, metrics)
     return metrics
 
 
-def score_all(captures, predict, params: Params) -> dict[str, dict]:
+def score_all(captures, columns: dict, params: Params) -> dict[str, dict]:
     """{name: :func:`evaluate_capture`'s result, plus ``kind`` and ``subset`` (a real
     capture's image subset: True when a ``drop`` was given)} for ``captures`` as in
     :func:`evaluate_all`, with a progress bar."""
@@ -443,7 +399,7 @@ def score_all(captures, predict, params: Params) -> dict[str, dict]:
         given = drop[0] if drop else None
         if kind == "real" and given is None:
             given = benchmark_drop(path, DILIGENT_RULES)  # the real objects are scored as the benchmark scores them
-        r = evaluate_capture(path, predict, params, drop=given,
+        r = evaluate_capture(path, columns, params, drop=given,
                              pixels=params.real_pixels if kind == "real" else 0)
         r["kind"] = kind
         r["subset"] = subset
@@ -463,11 +419,11 @@ def real_summaries(results: dict[str, dict], exclude=()) -> tuple[dict, dict]:
              for c in counts})
 
 
-def capture_metrics(results: dict[str, dict], params: Params, model_label: str, t0: float, **extra) -> dict:
-    """What ``metrics.json`` holds for ``results`` (:func:`score_all`); ``extra`` keys
-    are added (e.g. the network's ``precision``)."""
+def capture_metrics(results: dict[str, dict], methods: list[str], params: Params, model_label: str, t0: float,
+                    **extra) -> dict:
+    """What ``metrics.json`` holds for ``results`` (:func:`score_all`) of the columns
+    ``methods``; ``extra`` keys are added (e.g. the network's ``precision``)."""
     summary_real, summary_real_subsets = real_summaries(results, params.real_exclude_from_mean)
-    methods = [method_name(k) for k in params.rotations] + [LAMBERTIAN]
     return {
         "model": model_label,
         **extra,
@@ -504,26 +460,19 @@ def score_shipped(metrics: dict, params: Params, rotations: int = 10) -> dict | 
     ``{"captures": {name: stats}, "summary": stats, "label": str}`` (what
     :func:`cnnps.stages.eval_report.format_table` shows as its ``shipped`` column); None
     when the run scored no synthetic capture."""
-    from dataclasses import replace
+    from cnnps.api.solvers import prepare_solver
 
     captures = {name: Path(c["capture"]) for name, c in metrics.get("captures", {}).items()
                 if c.get("kind") == "synthetic" and c.get("methods")}
     if not captures:
         return None
 
-    from cnnps.models.checkpoint import load_checkpoint
-    from cnnps.models.devices import resolve_device
     from cnnps.models.shipped import read_provenance, shipped_model_path
 
     path = shipped_model_path()
-    device = str(resolve_device(params.device))
-    net, _config, _meta = load_checkpoint(path, device)
-    net.eval()
-    one = replace(params, rotations=(int(rotations),))
-    predict, _precision = network_predict(net, device, one, path)
-
-    scores = {name: evaluate_capture(path, predict, one)["methods"][method_name(int(rotations))]
-              for name, path in captures.items()}
+    name = method_name(int(rotations))
+    column = {name: prepare_solver({**prediction_options(params), "model": str(path), "rotations": int(rotations)})}
+    scores = {capture: evaluate_capture(folder, column, params)["methods"][name] for capture, folder in captures.items()}
     summary = {"mean_deg": float(np.mean([s["mean_deg"] for s in scores.values()])),
                "median_deg": float(np.mean([s["median_deg"] for s in scores.values()])),
                "captures": len(scores)}
@@ -537,67 +486,14 @@ def score_shipped(metrics: dict, params: Params, rotations: int = 10) -> dict | 
 # --------------------------------------------------------------------------- stage
 
 
-def load_network(params: Params, data_dir: Path):
-    """(network in eval mode, torch device name, model path): ``params.model`` (default
-    the train stage's ``model.pt``) loaded and verified; a damaged file is one line
+def stage_columns(params: Params, data_dir: Path) -> tuple[dict, Path]:
+    """(:func:`method_columns`, model path): ``params.model`` (default the train stage's
+    ``model.pt``) loaded and verified with every other column; a damaged file is one line
     naming it and the fix."""
     model_path = _model_path(params, data_dir)
-    from cnnps.models.checkpoint import load_checkpoint
-    from cnnps.models.devices import resolve_device
-
-    device = str(resolve_device(params.device))  # CnnpsError: cuda asked for, none here
-    try:
-        net, _config, _meta = load_checkpoint(model_path, device)  # InputError naming the file
-    except InputError as exc:
-        fix = ("rerun `cnnps run-stage train` (it rewrites model.pt from its last checkpoint)"
-               if params.model is None else "replace it with an intact copy")
-        raise InputError(exc.path, f"{exc.problem}; {fix}") from None
-    net.eval()
-    return net, device, model_path
-
-
-def network_predict(net, device: str, params: Params, model_path: Path):
-    """(``predict``, precision): the network as :func:`evaluate_capture` calls it, with
-    ``params.precision`` ("auto": the pick of :func:`cnnps.models.precision_probe.choose_precision`,
-    as ``cnnps predict --precision auto``, at the probe's batch size unless ``batch_size`` is
-    set), ``batch_size`` and ``sparse_fill``; missing
-    observations (``present`` False) are left out of the maps, as ``cnnps predict`` does.
-    ``predict.in_channels`` is the network's; a colour model takes ``colour=`` (P, m, 3)
-    (:func:`evaluate_capture`) and needs distant lights, an orthographic camera and no
-    sparse fill (:func:`cnnps.models.inference.check_colour_inputs`: one ConfigError)."""
-    from cnnps.models.inference import (
-        MapPredictor,
-        check_colour_inputs,
-        rotated_normals,
-    )
-    from cnnps.ps.sparse_fill import lambertian_fill, should_fill
-
-    precision = params.precision
-    if precision == "auto":
-        import torch
-
-        from cnnps.infra.hashing import file_sha256
-        from cnnps.models.precision_probe import choose_precision
-
-        choice = choose_precision(net, torch.device(device), file_sha256(model_path), params.batch_size or None)
-        precision, batch_size = choice.precision, params.batch_size or choice.batch_size
-    else:
-        batch_size = params.batch_size or None
-    predictor = MapPredictor(net, device=device, precision=precision, batch_size=batch_size)
-    channels = predictor.in_channels
-
-    def predict(I, L, k, views=None, present=None, colour=None):
-        I = np.asarray(I, dtype=np.float32)
-        fill = np.ndim(L) == 2 and should_fill(params.sparse_fill, I.shape[1])  # never under point lights
-        check_colour_inputs(channels, per_pixel_lights=np.ndim(L) == 3, views=views is not None, fill=fill)
-        if fill:
-            f = lambertian_fill(I, L, light_mask=present, w=predictor.w)
-            I, L, present = f.intensities, f.lights, f.light_mask
-        return rotated_normals(predictor, I, np.asarray(L, dtype=np.float64), int(k), light_mask=present,
-                               views=views, colour=colour)
-
-    predict.in_channels = channels
-    return predict, predictor.precision
+    fix = ("rerun `cnnps run-stage train` (it rewrites model.pt from its last checkpoint)"
+           if params.model is None else "replace it with an intact copy")
+    return method_columns(params, model_path, fix=fix), model_path
 
 
 def real_capture_list(params: Params) -> list[tuple]:
@@ -642,10 +538,9 @@ def score_real(params: Params, data_dir: Path = Path("data")) -> dict:
     t0 = time.perf_counter()
     captures = real_capture_list(params)  # missing folders first, before the model loads
     _check_names(captures)
-    net, device, model_path = load_network(params, Path(data_dir))
-    predict, precision = network_predict(net, device, params, model_path)
-    results = score_all(captures, predict, params)
-    return capture_metrics(results, params, str(model_path), t0, precision=precision)
+    columns, model_path = stage_columns(params, Path(data_dir))
+    results = score_all(captures, columns, params)
+    return capture_metrics(results, list(columns), params, str(model_path), t0, precision=columns_precision(columns))
 
 
 def run(params: Params, data_dir: Path) -> None:
@@ -654,7 +549,7 @@ def run(params: Params, data_dir: Path) -> None:
     out_dir = data_dir / "eval"
     _model_path(params, data_dir)
     real = real_capture_list(params)  # fail before rendering anything
-    net, device, model_path = load_network(params, data_dir)  # before anything is rendered or written
+    columns, model_path = stage_columns(params, data_dir)  # the model loaded before anything is rendered or written
 
     captures: list[tuple] = []
     if params.synthetic:
@@ -664,9 +559,8 @@ def run(params: Params, data_dir: Path) -> None:
     captures += real
     _check_names(captures)
 
-    predict, precision = network_predict(net, device, params, model_path)
-    results = score_all(captures, predict, params)
-    metrics = capture_metrics(results, params, str(model_path), t0, precision=precision)
+    results = score_all(captures, columns, params)
+    metrics = capture_metrics(results, list(columns), params, str(model_path), t0, precision=columns_precision(columns))
     write_report(out_dir, results, metrics)
     print(format_table(metrics))
     print(f"eval: report {out_dir / 'report.md'}")

@@ -17,7 +17,7 @@ from tests.support.cli import run_cli
 
 API = ("predict", "predict_folder", "load_capture", "calibrate", "integrate", "render")
 # every module whose docstrings hold examples; each example runs here
-EXAMPLE_MODULES = ("cnnps.api", "cnnps.api.prediction", "cnnps.api.surfaces", "cnnps.api.calibration",
+EXAMPLE_MODULES = ("cnnps.api", "cnnps.api.prediction", "cnnps.api.prediction_options", "cnnps.api.surfaces", "cnnps.api.calibration",
                    "cnnps.api.rendering", "cnnps.infra.options", "cnnps.ps.least_squares", "cnnps.ps.camera",
                    "cnnps.ps.near_lights", "cnnps.ps.point_light_calibration", "cnnps.io.raw",
                    "cnnps.api.solvers", "cnnps.api.cameras", "cnnps.api.light_models", "cnnps.infra.registry", "cnnps.ps.lights", "cnnps.ps.solver", "cnnps.models.inference",

@@ -4,6 +4,8 @@ with one call, runs through cnnps.predict and cnnps predict like the built-in on
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 import pytest
@@ -11,6 +13,7 @@ import pytest
 import cnnps
 from cnnps.api import solvers
 from cnnps.infra.errors import ConfigError
+from cnnps.infra.options import Range, option
 from cnnps.ps.camera import view_directions
 from cnnps.ps.solver import Solver
 from tests.support.cli import run_cli
@@ -115,3 +118,65 @@ def test_the_built_in_methods_are_registry_entries():
     assert solvers.solver_class("cnn").name == "cnn"
     assert solvers.solver_class("lambertian").name == "lambertian"
     assert solvers.solver_class("lambertian").only_options == ("shadow_threshold",)
+
+
+@dataclass(frozen=True)
+class ScaledOptions:
+    gain: Annotated[float, Range(gt=0.0)] = option(2.0, "scaled: the length of the answer before the loop makes it unit.",
+                                                   metavar="G", only=True)
+
+
+class Scaled(Solver):
+    """Answers +z times its declared option ``gain`` (the tile loop makes it unit)."""
+
+    name = "scaled"
+    Options = ScaledOptions
+
+    def __init__(self, gain: float):
+        self.gain = gain
+
+    @classmethod
+    def prepare(cls, options: ScaledOptions) -> "Scaled":
+        return cls(options.gain)
+
+    def solve(self, tile, bar=None):
+        return np.tile([0.0, 0.0, self.gain], (tile.n, 1)), {}
+
+    def record(self, counts, n_images, shared_lights):
+        return {"gain": self.gain}
+
+
+def test_a_solvers_declared_options_are_keywords_of_predict(monkeypatch):
+    """Declared once in the solver's Options: the keyword, its default, its check and
+    that no other method takes it."""
+    monkeypatch.setitem(solvers.SOLVERS, "scaled", Scaled)
+    images, lights, mask = _sphere(size=8)
+    assert cnnps.predict(images, lights, mask, method="scaled", gain=3.0).record["gain"] == 3.0
+    res = cnnps.predict(images, lights, mask, method="scaled")
+    assert res.record["gain"] == 2.0 and np.array_equal(res.normals[mask], np.tile(np.float32([0, 0, 1]), (mask.sum(), 1)))
+    with pytest.raises(ConfigError, match="^gain must be a number > 0, got -1$"):
+        cnnps.predict(images, lights, mask, method="scaled", gain=-1)
+    with pytest.raises(ConfigError, match="^gain applies to method scaled only$"):
+        cnnps.predict(images, lights, mask, method="lambertian", gain=1.0)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'gian'"):
+        cnnps.predict(images, lights, mask, method="scaled", gian=1.0)
+    assert Scaled.only_options == ("gain",)
+
+
+def test_a_solver_registered_before_the_command_runs_has_its_flags(monkeypatch, tmp_path, capsys):
+    """cnnps predict's flags and --method's choices are read from the registry and the
+    declarations when the command runs; the summary line names the method as it is."""
+    from tests.support.synthetic import write_capture
+
+    monkeypatch.setitem(solvers.SOLVERS, "scaled", Scaled)
+    monkeypatch.setenv("COLUMNS", "250")  # one line per flag in the help
+    code, out, _err = run_cli(["predict", "--help"], capsys)
+    assert code == 0 and "--gain" in out and "cnn|lambertian|scaled" in out
+    write_capture(tmp_path / "cap", fmt="png16", size=12, m=12)
+    argv = ["predict", str(tmp_path / "cap"), "--out", str(tmp_path / "o"), "--method", "scaled", "--no-progress"]
+    code, out, err = run_cli(argv + ["--gain", "4"], capsys)
+    assert code == 0, err
+    assert json.loads((tmp_path / "o" / "prediction.json").read_text())["gain"] == 4.0
+    assert "cap (scaled, 12 images" in out
+    code, _out, err = run_cli(argv + ["--gain", "x"], capsys)
+    assert code == 2 and "--gain must be a number > 0, got 'x'" in err

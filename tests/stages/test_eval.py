@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from cnnps.infra.errors import ConfigError
+from cnnps.ps.solver import Solved, Solver
 from cnnps.io.images import read_image, write_exr, write_png
 from cnnps.stages import evaluate as ev
 
@@ -61,6 +62,30 @@ def fake_predict(I, L, k, views=None):
     return np.cos(a) * n + np.sin(a) * t
 
 
+class FakeNetwork(Solver):
+    """The network's column, faked: ``predict(values, lights, k, views)`` per tile, with
+    k=1 in the intermediate rounds under point lights (as the network's quick())."""
+
+    name = "fake"
+
+    def __init__(self, predict, k: int):
+        self.predict, self.k = predict, k
+
+    def solve(self, tile, bar=None):
+        return Solved(np.asarray(self.predict(tile.values, tile.lights, self.k, tile.views), dtype=np.float64), {})
+
+    def quick(self):
+        return self if self.k == 1 else FakeNetwork(self.predict, 1)
+
+
+def fake_columns(params, predict=fake_predict) -> dict:
+    """The eval stage's columns with ``predict`` in the network's place."""
+    from cnnps.ps.least_squares import LeastSquaresSolver
+
+    return {**{ev.method_name(k): FakeNetwork(predict, k) for k in params.rotations},
+            "lambertian": LeastSquaresSolver(params.lambertian_shadow_threshold)}
+
+
 def test_evaluate_all_numbers_report_and_pictures(tmp_path):
     caps = [
         ("ball", make_capture(tmp_path / "caps" / "ball"), "synthetic"),
@@ -68,7 +93,7 @@ def test_evaluate_all_numbers_report_and_pictures(tmp_path):
     ]
     params = ev.Params(real_captures=(str(tmp_path / "caps" / "nogt"),))
     out = tmp_path / "eval"
-    metrics = ev.evaluate_all(caps, fake_predict, params, out, "fake-model")
+    metrics = ev.evaluate_all(caps, fake_columns(params, fake_predict), params, out, "fake-model")
 
     assert metrics["methods"] == ["cnn_k1", "cnn_k10", "lambertian"]
     ball = metrics["captures"]["ball"]
@@ -127,7 +152,7 @@ def test_image_subsets_are_scored_from_the_kept_images_only(tmp_path):
         seen.append(L.shape[0])
         return fake_predict(I, L, k)
 
-    metrics = ev.evaluate_all([("ball-6", cap, "real", drop)], predict, params, tmp_path / "e", "m")
+    metrics = ev.evaluate_all([("ball-6", cap, "real", drop)], fake_columns(params, predict), params, tmp_path / "e", "m")
     assert seen == [6, 6]  # K=1 and K=10, each from the 6 kept images
     assert metrics["captures"]["ball-6"]["n_images"] == 6
     # a subset is averaged with the other captures' subsets of its size, not with whole captures
@@ -165,7 +190,7 @@ def test_real_bear_is_scored_under_the_diligent_rule_and_only_real_ones(tmp_path
         seen.append(L.shape[0])
         return fake_predict(I, L, k)
 
-    metrics = ev.evaluate_all(captures + [("synthetic-bear", bear, "synthetic")], predict, params, tmp_path / "e", "m")
+    metrics = ev.evaluate_all(captures + [("synthetic-bear", bear, "synthetic")], fake_columns(params, predict), params, tmp_path / "e", "m")
     assert [metrics["captures"][n]["n_images"] for n in ("bearPNG", "bearPNG-4", "synthetic-bear")] == [6, 4, 26]
     assert seen == [6, 6, 4, 4, 26, 26]
     assert metrics["summary_real"] and not metrics["captures"]["bearPNG"].get("subset_of")
@@ -210,9 +235,9 @@ def test_summary_by_light_count_and_ratio_to_least_squares():
 def test_rerun_replaces_pictures(tmp_path):
     cap = make_capture(tmp_path / "c" / "a")
     params = ev.Params()
-    ev.evaluate_all([("a", cap, "synthetic")], fake_predict, params, tmp_path / "e", "m")
+    ev.evaluate_all([("a", cap, "synthetic")], fake_columns(params, fake_predict), params, tmp_path / "e", "m")
     (tmp_path / "e" / "pictures" / "stale.png").write_bytes(b"x")
-    ev.evaluate_all([("a", cap, "synthetic")], fake_predict, params, tmp_path / "e", "m")
+    ev.evaluate_all([("a", cap, "synthetic")], fake_columns(params, fake_predict), params, tmp_path / "e", "m")
     assert not (tmp_path / "e" / "pictures" / "stale.png").exists()
 
 
@@ -296,6 +321,37 @@ def test_real_means_leave_out_what_they_are_told_and_match_score_real(tmp_path, 
     assert again["captures"] == metrics["captures"] and again["summary_real"] == metrics["summary_real"]
 
 
+class Facing(Solver):
+    """Every normal +z: a solver whose errors are known exactly."""
+
+    name = "facing"
+
+    def solve(self, tile, bar=None):
+        return Solved(np.tile([0.0, 0.0, 1.0], (tile.n, 1)), {})
+
+
+def test_a_registered_solver_is_a_column_of_the_eval_table(tmp_path, tiny_model, monkeypatch):
+    """A solver added to the registry is scored by the stage beside the network and least
+    squares, with the same numbers as `cnnps predict --method facing` would give: on the
+    sphere cap, its error at each pixel is the angle between the true normal and +z."""
+    from cnnps.api.solvers import SOLVERS, register
+
+    monkeypatch.setitem(SOLVERS, "facing", SOLVERS["cnn"])  # restored after the test
+    register("facing", Facing)
+    cap = make_capture(tmp_path / "caps" / "ball")
+    ev.run(ev.Params(synthetic=False, real_captures=(str(cap),), rotations=(1,), model=str(tiny_model),
+                     device="cpu"), tmp_path / "data")
+    metrics = json.loads((tmp_path / "data" / "eval" / "metrics.json").read_text())
+    assert metrics["methods"] == ["cnn_k1", "facing", "lambertian"]
+    n, mask = _sphere(S, 45)
+    tilt = np.degrees(np.arccos(np.clip(n[mask][:, 2].astype(np.float64), -1, 1)))
+    stats = metrics["captures"]["ball"]["methods"]["facing"]
+    assert stats["mean_deg"] == pytest.approx(tilt.mean(), abs=1e-3)  # float32 normals: 1e-3 deg
+    assert stats["median_deg"] == pytest.approx(np.median(tilt), abs=1e-3)
+    head = ev.format_table(metrics).splitlines()[1]
+    assert head.index("CNN-PS K=1") < head.index("facing") < head.index("Lambertian LS")
+
+
 def test_synthetic_test_set_to_render_without_blender_is_one_line(tmp_path, tiny_model, monkeypatch):
     import sys
 
@@ -376,7 +432,7 @@ def test_a_rig_capture_is_scored_with_its_lens_point_lights_and_depth(tmp_path):
         return least_squares_per_pixel(I, L, shadow_threshold=0.0)[0]
 
     params = ev.Params(rotations=(1, 3), lambertian_shadow_threshold=0.0)
-    metrics = ev.evaluate_all([("rig", cap, "real")], predict, params, tmp_path / "e", "m")
+    metrics = ev.evaluate_all([("rig", cap, "real")], fake_columns(params, predict), params, tmp_path / "e", "m")
     P = int(mask.sum())
     assert all(c[0] == (P, 24, 3) and c[1] == (P, 3) for c in calls)  # per-pixel lights, per-pixel views
     assert {c[2] for c in calls} == {1, 3} and calls[-1][2] == 3  # rounds at K=1, the final pass at K=3
@@ -388,10 +444,10 @@ def test_a_rig_capture_is_scored_with_its_lens_point_lights_and_depth(tmp_path):
     # a render's scene.json records the median depth: the rounds start there ("known"), and a
     # wrong one is a wrong scale; "estimated" ignores it
     (cap / "scene.json").write_text(json.dumps({"median_depth": 2 * float(np.nanmedian(depth))}))
-    wrong = ev.evaluate_all([("rig", cap, "real")], predict, params, tmp_path / "e1", "m")
+    wrong = ev.evaluate_all([("rig", cap, "real")], fake_columns(params, predict), params, tmp_path / "e1", "m")
     assert wrong["captures"]["rig"]["methods"]["lambertian"]["depth_median_rel_error"] > 0.5
     est = ev.Params(rotations=(1,), lambertian_shadow_threshold=0.0, rig_distance="estimated")
-    again = ev.evaluate_all([("rig", cap, "real")], predict, est, tmp_path / "e1", "m")
+    again = ev.evaluate_all([("rig", cap, "real")], fake_columns(est, predict), est, tmp_path / "e1", "m")
     assert again["captures"]["rig"]["methods"]["lambertian"]["depth_median_rel_error"] < 0.01
     (cap / "scene.json").unlink()
 
@@ -401,7 +457,7 @@ def test_a_rig_capture_is_scored_with_its_lens_point_lights_and_depth(tmp_path):
 
     np.savetxt(cap / "light_directions.txt", directions_from_positions(pos))
     calls.clear()
-    far = ev.evaluate_all([("rig", cap, "real")], predict, params, tmp_path / "e2", "m")
+    far = ev.evaluate_all([("rig", cap, "real")], fake_columns(params, predict), params, tmp_path / "e2", "m")
     assert [c[:2] for c in calls] == [((24, 3), (P, 3))] * 2  # distant lights, still each pixel's view
     assert far["captures"]["rig"]["methods"]["lambertian"]["mean_deg"] > 5
     assert "depth_median_rel_error" not in far["captures"]["rig"]["methods"]["lambertian"]

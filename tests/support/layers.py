@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 # Lowest first: a module may import its own layer or a lower one, never a higher one.
-LAYERS = ("cnnps.infra", "cnnps.ps", "cnnps.io", "cnnps.models", "cnnps.synth", "cnnps.train", "cnnps.stages",
-          "cnnps.api", "cnnps.pipeline")
+LAYERS = ("cnnps.infra", "cnnps.ps", "cnnps.io", "cnnps.models", "cnnps.synth", "cnnps.train", "cnnps.api",
+          "cnnps.stages", "cnnps.pipeline")
 # The package's own __init__/__main__ sit on top (``python -m cnnps`` runs the CLI).
 TOP = len(LAYERS)
 
