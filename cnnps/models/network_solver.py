@@ -8,7 +8,9 @@ found fastest unless ``batch_size`` is given). Per tile: each pixel's observatio
 under K test-time rotations, averaged (:func:`cnnps.models.inference.rotated_normals`),
 with missing observations left out of the map, each pixel's view turned to +z under a
 pinhole camera, and, with the sparse fill on and shared lights, the virtual Lambertian
-observations of :func:`cnnps.ps.sparse_fill.lambertian_fill`.
+observations of :func:`cnnps.ps.sparse_fill.lambertian_fill`. The confidence: the rotation
+spread of the K answers (regression models, K > 1) or the heat-map spread (heat-map
+models, any K), over the lit share (:mod:`cnnps.ps.confidence`).
 
 Its options, declared once in :class:`NetworkOptions`: ``model``, ``rotations``,
 ``device``, ``precision``, ``batch_size``, ``sparse_fill``.
@@ -101,6 +103,11 @@ def load_predictor(model_path: Path, device: str, precision: str, batch_size: in
     dev = torch_device(device)
     net, _config, meta = load_checkpoint(model_path, dev)  # InputError naming the file
     channels = getattr(net, "in_channels", 1)
+    patch = getattr(net, "patch", 1)
+    if patch != 1:  # the tile loop reads one pixel's values at a time
+        raise ConfigError(f"{model_path}: a patch model (patch={patch}) needs each pixel's {patch}x{patch} "
+                          "neighbourhood; prediction and scoring (`cnnps predict`, `cnnps score`, the eval stage) "
+                          "feed one pixel's map at a time: use a model with patch 1")
     if channels != 1:  # the pixel stack holds grey values
         raise ConfigError(f"{model_path}: an RGB model ({channels} input channels); prediction and scoring "
                           "(`cnnps predict`, `cnnps score`, the eval stage) read grey values only: use a grey model")
@@ -166,12 +173,12 @@ class NetworkSolver(Solver):
 
     def solve(self, tile: Tile, bar=None) -> Solved:
         from cnnps.models.inference import PIXEL_CHUNK, rotated_normals
-        from cnnps.ps.confidence import lit_share, network_confidence
+        from cnnps.ps.confidence import heatmap_confidence, lit_share, network_confidence
 
         I, lights = tile.values, tile.lights
         present = None if tile.missing is None else ~tile.missing
         share = lit_share(I, tile.missing)
-        spread = np.zeros(tile.n, np.float32) if self.rotations > 1 else None
+        spread = np.zeros(tile.n, np.float32) if self.rotations > 1 or self.heatmap else None
         filled = 0
         if self.fills(I.shape[1], lights.ndim == 2):
             from cnnps.ps.sparse_fill import lambertian_fill
@@ -182,9 +189,18 @@ class NetworkSolver(Solver):
                                        pixel_chunk=PIXEL_CHUNK, views=tile.views, spread=spread), dtype=np.float64)
         if N.shape != (tile.n, 3) or not np.all(np.isfinite(N)):
             raise CnnpsError(f"the model returned invalid normals (shape {N.shape} or NaN values)")
-        return Solved(N, {"filled": filled}, None if spread is None else network_confidence(spread, share))
+        confidence = heatmap_confidence if self.heatmap else network_confidence
+        return Solved(N, {"filled": filled}, None if spread is None else confidence(spread, share))
+
+    @property
+    def heatmap(self) -> bool:
+        """Whether the model has a heat-map head (its confidence is the heat-map spread)."""
+        return getattr(self.predictor, "head", "regression") == "heatmap"
 
     def confidence_record(self) -> dict | None:
+        if self.heatmap:
+            return {"measure": "1 / (1 + u / 6.5 deg), u = the heat-map spread (its windowed second moment, deg, "
+                               "mean over the K rotations) / the lit share", "rotations": self.rotations}
         if self.rotations == 1:
             return None  # one answer a pixel: no spread to measure
         return {"measure": "1 / (1 + u / 3 deg), u = the spread of the K rotated answers (deg) / the lit share",
