@@ -22,7 +22,8 @@ EXAMPLE_MODULES = ("cnnps.api", "cnnps.api.prediction", "cnnps.api.prediction_op
                    "cnnps.ps.near_lights", "cnnps.ps.point_light_calibration", "cnnps.io.raw",
                    "cnnps.api.solvers", "cnnps.api.cameras", "cnnps.api.light_models", "cnnps.infra.registry", "cnnps.ps.lights", "cnnps.ps.solver", "cnnps.models.inference",
                    "cnnps.ps.confidence",
-                   "cnnps.train.step_processes", "cnnps.train.optimiser", "cnnps.stages.train")
+                   "cnnps.train.step_processes", "cnnps.train.optimiser", "cnnps.train.params",
+                   "cnnps.train.observation_data")
 
 
 def test_import_cnnps_is_light_and_offers_the_api():
