@@ -19,6 +19,12 @@ Output, in ``data_dir/extract/`` or at ``Params.output`` (a path or an fsspec UR
 - ``manifest.json`` (written last): params, row counts, the train / val split by scene
   (by ``view_id``), every shard with its size and SHA-256, and its own checksum.
 
+With ``layout: observations`` a scene is one ``obs-<scene_id>.cnnobs`` file instead of
+its shards: every mask pixel's values under all lights, the lights, normals and pixels
+(:mod:`cnnps.io.observation_store`), for a loader that draws subsets, rotations, realism
+and b x b patches itself (:mod:`cnnps.train.patch_dataset`); the steps below are then the
+loader's. Same marker, manifest (``"layout": "observations"``) and integrity rules.
+
 Per foreground pixel with a valid ground-truth normal (``docs/extract.md`` has each step
 in full):
 
@@ -68,6 +74,8 @@ from cnnps.infra.hashing import (
 )
 from cnnps.infra.progress import progress_bar
 from cnnps.io.capture import SCENE_FILE, SCENE_INDENT
+from cnnps.io.observation_store import OBSERVATION_FORMAT, write_capture_observations
+from cnnps.io.observation_store import SUFFIX as OBSERVATION_SUFFIX
 from cnnps.io.shards import (
     MANIFEST,
     MANIFEST_INDENT,
@@ -128,8 +136,13 @@ class Params:
     # where shards + manifest go: a path or an fsspec URL (s3://, gs://, file://, memory://);
     # None = data_dir/extract. The train stage reads the same place (train.data.shards).
     output: str | None = None
+    # what a scene becomes: "maps" (the shards) or "observations" (one file of per-pixel
+    # observations, cnnps.io.observation_store; pixels_per_scene and the map params unused)
+    layout: str = "maps"
 
     def __post_init__(self):
+        if self.layout not in LAYOUTS:
+            raise ConfigError(f"extract.layout must be one of {', '.join(LAYOUTS)}, got {self.layout!r}")
         if not 4 <= self.w <= 256:
             raise ConfigError(f"extract.w must be in [4, 256], got {self.w}")
         if self.min_lights < 1 or self.max_lights < self.min_lights:
@@ -174,6 +187,8 @@ class Params:
 
     def row_key(self) -> dict:
         """The params that change the rows of a scene (not the split, not parallelism)."""
+        if self.layout == "observations":  # the rows' params are the loader's
+            return {"layout": self.layout, "format": FORMAT_VERSION, "observation_format": OBSERVATION_FORMAT}
         d = self.manifest_params()
         for k in ("val_fraction", "val_scenes"):
             d.pop(k)
@@ -206,7 +221,9 @@ OMITTED_AT_DEFAULT = {
     "quantize_bits": (),
     "sparse_fraction": 0.0,
     "sparse_min_lights": 6,
+    "layout": "maps",
 }
+LAYOUTS = ("maps", "observations")
 
 
 def scene_cache_key(scene_key: str, params: Params) -> str:
@@ -299,6 +316,9 @@ def extract_scene(job: SceneJob) -> dict:
     cap = _load_render(job.folder, job.checksummed)
     if cap.normal_gt is None:
         raise InputError(job.folder, f"rendered scene has no ground-truth normals (normal_gt.npy); {FIX_RENDER}")
+    if p.layout == "observations":
+        info = write_capture_observations(job.out_dir, job.scene_id, cap, scene_key=job.scene_key)
+        return _write_marker(job, t0, info["lights"], info["rows"], 0, info["rows"], [info])
     rr, cc = np.nonzero(cap.mask)
     normals = cap.normal_gt[rr, cc].astype(np.float64)
     norm = np.linalg.norm(normals, axis=1)
@@ -358,9 +378,13 @@ def extract_scene(job: SceneJob) -> dict:
             )
             rows_written += R * P
             bar.update(len(sel) + int((~lit).sum()))
+    return _write_marker(job, t0, m, len(pix) - dropped_dark, dropped_dark, rows_written, [asdict(s) for s in wr.infos])
+
+
+def _write_marker(job: SceneJob, t0: float, m: int, pixels: int, dropped_dark: int, rows: int, shards: list) -> dict:
     record = {"scene": job.scene_id, "key": job.key, "scene_key": job.scene_key, "lights": int(m),
-              "pixels": int(len(pix) - dropped_dark), "dropped_dark_pixels": dropped_dark, "rows": rows_written,
-              "seconds": round(time.perf_counter() - t0, 3), "shards": [asdict(s) for s in wr.infos]}
+              "pixels": int(pixels), "dropped_dark_pixels": dropped_dark, "rows": rows,
+              "seconds": round(time.perf_counter() - t0, 3), "shards": shards}
     record = add_json_checksum(record, indent=MARKER_INDENT, skip=MARKER_TIMINGS)
     storage.write_text(shard_path(job.out_dir, f"scene-{job.scene_id}.json"), json.dumps(record, indent=MARKER_INDENT))
     return record
@@ -488,6 +512,8 @@ def run(params: Params, data_dir: Path, executor=None) -> None:
         },
         "shards": shards,
     }
+    if params.layout != "maps":
+        manifest["layout"] = params.layout
     manifest = add_json_checksum(manifest, indent=MANIFEST_INDENT)
     storage.write_text(shard_path(out_dir, MANIFEST), json.dumps(manifest, indent=MANIFEST_INDENT))
     _remove_stale(out_dir, {s["file"] for s in shards}, {sid for sid, _, _ in scenes})
@@ -497,11 +523,11 @@ def _remove_stale(out_dir: str | Path, keep_files: set[str], keep_scenes: set[st
     """Delete shards and markers no longer in the manifest (after it is written)."""
     for name in storage.listdir(out_dir):
         stale = (
-            (fnmatch(name, "shard-*.parquet") and name not in keep_files)
+            ((fnmatch(name, "shard-*.parquet") or fnmatch(name, f"obs-*{OBSERVATION_SUFFIX}")) and name not in keep_files)
             or (fnmatch(name, "scene-*.json") and name[len("scene-") : -len(".json")] not in keep_scenes)
         )
         if stale:
             storage.remove(shard_path(out_dir, name))
     if storage.is_local(out_dir):
-        for f in Path(out_dir).glob(".shard-*.parquet.tmp"):
+        for f in [*Path(out_dir).glob(".shard-*.parquet.tmp"), *Path(out_dir).glob(f".obs-*.tmp{OBSERVATION_SUFFIX}")]:
             f.unlink(missing_ok=True)  # left by a killed run (storage.listdir hides them)
