@@ -1,7 +1,6 @@
 """The patch loader: b = 1 is the extract stage's row, training and prediction patches
 agree, realism per cell, determinism and resuming by skipping batches."""
 
-
 import numpy as np
 import pytest
 import torch
