@@ -41,12 +41,11 @@ seconds are noisy there.
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import result_path, write_result
+from benchmarks.harness import Phases, result_path, write_result
 
 ARMS: dict[str, dict] = {
     "ref": dict(samples=64, max_bounces=8, seed=1),
@@ -109,11 +108,11 @@ def render_arm(V, F, size: int, lights: np.ndarray, material: dict, arm: dict) -
             c.denoiser = "OPENIMAGEDENOISE"
             c.denoising_input_passes = "RGB_ALBEDO_NORMAL"
         r.render(lights[0])  # the first render builds the scene: not counted
-        cpu0, wall0 = time.process_time(), time.perf_counter()
-        images = np.stack([r.render(l).mean(axis=2) for l in lights])
-        cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+        phases = Phases()
+        with phases("render"):
+            images = np.stack([r.render(l).mean(axis=2) for l in lights])
     n = len(lights)
-    return images, {"cpu_s_per_image": cpu / n, "wall_s_per_image": wall / n}
+    return images, {"cpu_s_per_image": phases.cpu["render"] / n, "wall_s_per_image": phases.wall["render"] / n}
 
 
 def network_error(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, normals: np.ndarray,
