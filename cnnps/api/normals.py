@@ -6,7 +6,8 @@ lights, rounds of normals and depth under point lights, :mod:`cnnps.ps.lights`);
 is :func:`tile_normals`: ``tile_pixels`` consecutive mask pixels at a time (a band of
 image rows), each tile's values read from the stack, given its lights by the light model
 and its views by the camera, and solved by the solver (:mod:`cnnps.ps.solver`). Tiles
-change nothing but rounding: every solver here is per pixel.
+change nothing but rounding: every solver here is per pixel, or reads a tile's neighbours
+from the stack (a patch network, :meth:`cnnps.ps.solver.Solver.for_capture`).
 """
 
 from __future__ import annotations
@@ -74,6 +75,7 @@ def tile_normals(stack, mask: np.ndarray, solver: Solver, camera, lights, *, til
     flat_normal = normal.reshape(-1, 3)
     row_start = np.concatenate([[0], np.cumsum(mask.sum(axis=1))])
     counts = TileCounts()
+    solver = solver.for_capture(stack, mask)  # a patch network reads each tile's neighbours from the stack
     bar = solver.progress_bar(stack.P) if progress else None
     bound = lights.max_tile_pixels(stack.m)
     tile_pixels = tile_pixels if bound is None else min(tile_pixels, bound)

@@ -338,7 +338,6 @@ def rotated_normals(
     per_pixel = np.ndim(lights) == 3
     channels = model_channels(predictor)
     patch = model_patch(predictor)
-    heat = model_head(predictor) == HEATMAP
     check_colour_inputs(channels, per_pixel_lights=per_pixel, views=views is not None)
     check_patch_inputs(patch, channels, rotations=len(angles), per_pixel_lights=per_pixel, views=views is not None)
     if patch > 1:
@@ -377,19 +376,35 @@ def rotated_normals(
 
     out = np.empty((P, 3), dtype=np.float32)
     for start, maps in zip(starts, prefetched(maps_of, starts, depth=read_ahead)):
-        K, n = maps.shape[:2]
-        heat_spread = np.empty(K * n, np.float32) if heat and spread is not None else None
-        preds = predictor(maps.reshape((K * n,) + maps.shape[2:]), progress=progress,
-                          **({} if heat_spread is None else {"spread": heat_spread})).reshape(K, n, 3)
-        pred = preds[0] if K == 1 else average_rotated_predictions(preds, angles)
-        if heat_spread is not None:
-            spread[start:start + n] = heat_spread.reshape(K, n).mean(axis=0)
-        elif spread is not None:
-            spread[start:start + n] = rotation_spread(preds, angles, pred)
+        n = maps.shape[1]
+        pred = rotated_answers(predictor, maps, angles, progress=progress,
+                               spread=None if spread is None else spread[start:start + n])
         if views is not None:  # back from each pixel's view frame: n = R^T (R n)
             pred = np.einsum("nji,nj->ni", view_rotations(views[start:start + n]), np.asarray(pred, np.float64))
         out[start:start + n] = pred
     return out
+
+
+def rotated_answers(predictor: MapPredictor, maps: np.ndarray, angles: np.ndarray, progress=None,
+                    spread: np.ndarray | None = None) -> np.ndarray:
+    """(n, 3) the K-rotation average of n pixels' answers: ``maps`` (K, n, ...) the inputs
+    of each pixel under the K rotations ``angles`` (K,) (maps built with the lights, and a
+    patch's grid, turned by ``angles[k]``), run by ``predictor`` in one call, each answer
+    turned back by -``angles[k]`` about z and averaged
+    (:func:`cnnps.ps.rotation.average_rotated_predictions`; K = 1: the answer as it is,
+    float32). ``spread`` (n,) float32, optional: filled as :func:`rotated_normals` fills it
+    (the heat-map spread, mean over the K rotations, of a heat-map predictor, else
+    :func:`rotation_spread`)."""
+    K, n = maps.shape[:2]
+    heat_spread = np.empty(K * n, np.float32) if spread is not None and model_head(predictor) == HEATMAP else None
+    preds = predictor(maps.reshape((K * n,) + maps.shape[2:]), progress=progress,
+                      **({} if heat_spread is None else {"spread": heat_spread})).reshape(K, n, 3)
+    pred = preds[0] if K == 1 else average_rotated_predictions(preds, angles)
+    if heat_spread is not None:
+        spread[:] = heat_spread.reshape(K, n).mean(axis=0)
+    elif spread is not None:
+        spread[:] = rotation_spread(preds, angles, pred)
+    return pred
 
 
 def turn_patch_grids(maps: np.ndarray, angles: np.ndarray) -> np.ndarray:

@@ -12,6 +12,14 @@ observations of :func:`cnnps.ps.sparse_fill.lambertian_fill`. The confidence: th
 spread of the K answers (regression models, K > 1) or the heat-map spread (heat-map
 models, any K), over the lit share (:mod:`cnnps.ps.confidence`).
 
+A patch model (``patch`` b > 1, spatial context) reads each tile from the capture's pixel
+stack with its halo (:meth:`NetworkSolver.for_capture`,
+:func:`cnnps.ps.patches.patch_read_range`) and gives each pixel its b x b patch of maps
+under the K rotations (:func:`cnnps.ps.patches.capture_patches`: the training rule, cells
+outside the mask all-zero maps), averaged as one map's answers are
+(:func:`cnnps.models.inference.rotated_answers`); distant lights and an orthographic camera
+only (docs/models.md, "A patch model in cnnps predict").
+
 Its options, declared once in :class:`NetworkOptions`: ``model``, ``rotations``,
 ``device``, ``precision``, ``batch_size``, ``sparse_fill``.
 """
@@ -21,7 +29,7 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 
@@ -103,11 +111,6 @@ def load_predictor(model_path: Path, device: str, precision: str, batch_size: in
     dev = torch_device(device)
     net, _config, meta = load_checkpoint(model_path, dev)  # InputError naming the file
     channels = getattr(net, "in_channels", 1)
-    patch = getattr(net, "patch", 1)
-    if patch != 1:  # the tile loop reads one pixel's values at a time
-        raise ConfigError(f"{model_path}: a patch model (patch={patch}) needs each pixel's {patch}x{patch} "
-                          "neighbourhood; prediction and scoring (`cnnps predict`, `cnnps score`, the eval stage) "
-                          "feed one pixel's map at a time: use a model with patch 1")
     if channels != 1:  # the pixel stack holds grey values
         raise ConfigError(f"{model_path}: an RGB model ({channels} input channels); prediction and scoring "
                           "(`cnnps predict`, `cnnps score`, the eval stage) read grey values only: use a grey model")
@@ -134,6 +137,16 @@ def load_predictor(model_path: Path, device: str, precision: str, batch_size: in
     return MapPredictor(net, device=dev, precision=precision, batch_size=batch_size), meta, how
 
 
+class CapturePixels(NamedTuple):
+    """What a patch model reads a tile's neighbours from: ``stack`` (the
+    :class:`cnnps.io.pixel_store.PixelStack` of the mask pixels), ``mask`` (H, W) bool and
+    its :func:`cnnps.ps.patches.mask_row_starts`."""
+
+    stack: object
+    mask: np.ndarray
+    row_starts: np.ndarray
+
+
 class NetworkSolver(Solver):
     """CNN-PS per tile (see the module docstring)."""
 
@@ -144,6 +157,25 @@ class NetworkSolver(Solver):
                  precision_how: dict | None = None, precision: str | None = None, sparse_fill: str = "auto"):
         self.predictor, self.rotations, self.model_path = predictor, int(rotations), Path(model_path)
         self.meta, self.precision_how, self.precision, self.sparse_fill = meta, precision_how, precision, sparse_fill
+        self.pixels: CapturePixels | None = None  # a patch model's neighbours: set by for_capture
+
+    @property
+    def patch(self) -> int:
+        """The model's patch size b (1: one pixel's map)."""
+        return int(getattr(self.predictor, "patch", 1))
+
+    def for_capture(self, stack, mask: np.ndarray) -> "NetworkSolver":
+        """The solver for one pass over ``stack`` (the
+        :class:`cnnps.io.pixel_store.PixelStack` of ``mask``'s pixels): a patch model's
+        copy that reads each tile's neighbours from it; a per-pixel model itself."""
+        if self.patch == 1:
+            return self
+        from cnnps.ps.patches import mask_row_starts
+
+        bound = copy.copy(self)
+        mask = np.asarray(mask, bool)
+        bound.pixels = CapturePixels(stack, mask, mask_row_starts(mask))
+        return bound
 
     @classmethod
     def check(cls, options: NetworkOptions) -> None:
@@ -175,22 +207,86 @@ class NetworkSolver(Solver):
         from cnnps.models.inference import PIXEL_CHUNK, rotated_normals
         from cnnps.ps.confidence import heatmap_confidence, lit_share, network_confidence
 
-        I, lights = tile.values, tile.lights
-        present = None if tile.missing is None else ~tile.missing
-        share = lit_share(I, tile.missing)
+        share = lit_share(tile.values, tile.missing)
         spread = np.zeros(tile.n, np.float32) if self.rotations > 1 or self.heatmap else None
-        filled = 0
-        if self.fills(I.shape[1], lights.ndim == 2):
-            from cnnps.ps.sparse_fill import lambertian_fill
+        if self.patch > 1:
+            N, filled = self._patch_normals(tile, bar, spread)
+        else:
+            I, lights = tile.values, tile.lights
+            present = None if tile.missing is None else ~tile.missing
+            filled = 0
+            if self.fills(I.shape[1], lights.ndim == 2):
+                from cnnps.ps.sparse_fill import lambertian_fill
 
-            f = lambertian_fill(I, lights, light_mask=present, w=self.predictor.w)
-            I, lights, present, filled = f.intensities, f.lights, f.light_mask, int(f.filled.sum())
-        N = np.asarray(rotated_normals(self.predictor, I, lights, self.rotations, light_mask=present, progress=bar,
-                                       pixel_chunk=PIXEL_CHUNK, views=tile.views, spread=spread), dtype=np.float64)
+                f = lambertian_fill(I, lights, light_mask=present, w=self.predictor.w)
+                I, lights, present, filled = f.intensities, f.lights, f.light_mask, int(f.filled.sum())
+            N = rotated_normals(self.predictor, I, lights, self.rotations, light_mask=present, progress=bar,
+                                pixel_chunk=PIXEL_CHUNK, views=tile.views, spread=spread)
+        N = np.asarray(N, dtype=np.float64)
         if N.shape != (tile.n, 3) or not np.all(np.isfinite(N)):
             raise CnnpsError(f"the model returned invalid normals (shape {N.shape} or NaN values)")
         confidence = heatmap_confidence if self.heatmap else network_confidence
         return Solved(N, {"filled": filled}, None if spread is None else confidence(spread, share))
+
+    def _patch_normals(self, tile: Tile, bar, spread: np.ndarray | None) -> tuple[np.ndarray, int]:
+        """((n, 3) float32 normals, pixels filled) of a patch model: each pixel's b x b
+        patch under the K rotations (:func:`cnnps.ps.patches.capture_patches`, the tile read
+        with its halo of neighbours), about ``PIXEL_CHUNK`` maps a chunk, answers averaged
+        by :func:`cnnps.models.inference.rotated_answers`; ``spread`` filled as
+        :func:`cnnps.models.inference.rotated_normals` fills it (docs/models.md)."""
+        from cnnps.infra.prefetch import prefetched
+        from cnnps.models.inference import PIXEL_CHUNK, rotated_answers
+        from cnnps.ps.patches import capture_patches, patch_read_range
+        from cnnps.ps.rotation import rotation_angles
+
+        self._check_patch_tile(tile)
+        stack, mask, row_starts = self.pixels
+        b, w = self.patch, self.predictor.w
+        start = int(row_starts[tile.rows[0]]) + int(np.count_nonzero(mask[tile.rows[0], :tile.cols[0]]))
+        stop = start + tile.n
+        if int(row_starts[tile.rows[-1]]) + int(np.count_nonzero(mask[tile.rows[-1], :tile.cols[-1]])) != stop - 1:
+            raise ValueError("a patch model solves tiles of consecutive mask pixels (row-major)")
+        first, last = patch_read_range(mask, start, stop, b, row_starts=row_starts)
+        values, missing = stack.read(first, last)  # the tile and its halo, (last - first, m)
+        lights, filled = tile.lights, 0
+        if self.fills(values.shape[1]):  # each pixel's own fit: the halo's filled as the tile's would be
+            from cnnps.ps.sparse_fill import lambertian_fill
+
+            f = lambertian_fill(values, lights, light_mask=None if missing is None else ~missing, w=w)
+            values, lights, missing = f.intensities, f.lights, ~f.light_mask
+            filled = int(f.filled[start - first:stop - first].sum())
+        angles = rotation_angles(self.rotations)
+        chunk = max(1, PIXEL_CHUNK // (len(angles) * b * b))  # about PIXEL_CHUNK maps built at once
+        starts = range(start, stop, chunk)
+
+        def patches_of(s: int) -> np.ndarray:  # (K, n, b^2, w, w): the network's (b^2, w, w) inputs
+            x = capture_patches(values, mask, lights, s, min(s + chunk, stop), b=b, w=w, angles=angles, first=first,
+                                missing=missing, row_starts=row_starts)
+            return x.reshape(x.shape[:2] + (b * b, w, w))
+
+        N = np.empty((tile.n, 3), np.float32)
+        for s, maps in zip(starts, prefetched(patches_of, starts, depth=1)):
+            part = slice(s - start, s - start + maps.shape[1])
+            N[part] = rotated_answers(self.predictor, maps, angles, progress=bar,
+                                      spread=None if spread is None else spread[part])
+        return N, filled
+
+    def _check_patch_tile(self, tile: Tile) -> None:
+        """ConfigError (one line naming the option and the model file) for what a patch
+        model does not run under: near point lights, a pinhole camera; CnnpsError when no
+        pixel stack was given (:meth:`for_capture`)."""
+        b = self.patch
+        if np.ndim(tile.lights) == 3:
+            raise ConfigError(f"{self.model_path}: a patch model (patch={b}) needs distant lights; this capture has "
+                              "near point lights (--light-model point): use --light-model directional or a model "
+                              "with patch 1")
+        if tile.views is not None:
+            raise ConfigError(f"{self.model_path}: a patch model (patch={b}) needs an orthographic camera; this "
+                              "capture has a pinhole one (--camera-model pinhole, or the capture's intrinsics): use "
+                              "--camera-model orthographic or a model with patch 1")
+        if self.pixels is None:
+            raise CnnpsError(f"{self.model_path}: a patch model (patch={b}) reads each tile's neighbours from the "
+                             "capture's pixel stack: prepare the solver with for_capture(stack, mask)")
 
     @property
     def heatmap(self) -> bool:

@@ -13,7 +13,9 @@ A solver is a class with a registry name (:mod:`cnnps.api.solvers` lists them):
 - ``solve(tile, bar)``: a :class:`Solved`: (n, 3) normals for the tile's n pixels, counts
   to add up, and optionally each pixel's confidence in [0, 1];
 - optional: ``quick()`` a cheaper copy for the intermediate rounds under point lights,
-  ``progress_bar``, ``notes``, ``warnings``, ``record`` and ``finish``.
+  ``for_capture(stack, mask)`` the solver for one pass over a capture's pixel stack (one
+  that reads pixels beyond a tile's own keeps the stack), ``progress_bar``, ``notes``,
+  ``warnings``, ``record`` and ``finish``.
 
 A solver declares the options it reads once, as a frozen dataclass of
 :func:`cnnps.infra.options.option` fields (name, type, default, help) set as its
@@ -132,6 +134,13 @@ class Solver:
 
     def quick(self) -> "Solver":
         """A cheaper solver for the intermediate rounds under point lights (itself by default)."""
+        return self
+
+    def for_capture(self, stack, mask: np.ndarray) -> "Solver":
+        """The solver for one pass of the tile loop over ``stack`` (the pixel stack of
+        ``mask``'s pixels, :class:`cnnps.io.pixel_store.PixelStack`), asked before the first
+        tile: a solver that reads neighbouring pixels keeps them (a patch network); itself
+        by default."""
         return self
 
     def progress_bar(self, n_pixels: int):

@@ -48,13 +48,3 @@ def test_cnnps_predict_runs_a_tiny_heatmap_checkpoint(tmp_path, capsys):
     np.testing.assert_allclose(confidence[mask], want_conf, atol=1e-4)
     assert np.all(confidence[~mask] == 0) and np.all((want_conf > 0) & (want_conf <= 1))
 
-
-def test_cnnps_predict_refuses_a_patch_model_in_one_line(tmp_path, capsys):
-    write_capture(tmp_path / "cap", fmt="exr", size=8, m=12)
-    torch.manual_seed(0)
-    model = save_checkpoint(tmp_path / "patch.pt", build_model(patch=3, w=8))
-    code, _, err = run_cli(["predict", str(tmp_path / "cap"), "--out", str(tmp_path / "out"), "--model", str(model),
-                            "--device", "cpu", "--precision", "fp32"], capsys)
-    assert code == 2 and len(err.strip().splitlines()) == 1
-    assert str(model) in err and "a patch model (patch=3)" in err
-    assert not (tmp_path / "out").exists()
