@@ -57,7 +57,7 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import asdict, dataclass, replace
-from fnmatch import fnmatch
+from fnmatch import fnmatch, fnmatchcase
 from pathlib import Path
 
 import numpy as np
@@ -139,6 +139,9 @@ class Params:
     # what a scene becomes: "maps" (the shards) or "observations" (one file of per-pixel
     # observations, cnnps.io.observation_store; pixels_per_scene and the map params unused)
     layout: str = "maps"
+    # which rendered scenes the stage reads: fnmatch patterns of scene ids
+    # (``<source>-<view>-<hash>``, e.g. ["*-0-*", "*-1-*"] = views 0 and 1); empty = every scene
+    scenes: tuple[str, ...] = ()
 
     def __post_init__(self):
         if self.layout not in LAYOUTS:
@@ -184,14 +187,19 @@ class Params:
         if self.output is not None and (not isinstance(self.output, str) or not self.output.strip()):
             raise ConfigError(f"extract.output must be a folder path or URL, got {self.output!r}")
         object.__setattr__(self, "val_scenes", tuple(self.val_scenes))
+        patterns = [self.scenes] if isinstance(self.scenes, str) else list(self.scenes)
+        bad = [p for p in patterns if not isinstance(p, str) or not p.strip()]
+        if bad:
+            raise ConfigError(f"extract.scenes must be a list of scene-id patterns, got {bad[0]!r}")
+        object.__setattr__(self, "scenes", tuple(sorted(set(patterns))))
 
     def row_key(self) -> dict:
         """The params that change the rows of a scene (not the split, not parallelism)."""
         if self.layout == "observations":  # the rows' params are the loader's
             return {"layout": self.layout, "format": FORMAT_VERSION, "observation_format": OBSERVATION_FORMAT}
         d = self.manifest_params()
-        for k in ("val_fraction", "val_scenes"):
-            d.pop(k)
+        for k in ("val_fraction", "val_scenes", "scenes"):  # which scenes, not their rows
+            d.pop(k, None)
         d["format"] = FORMAT_VERSION
         return d
 
@@ -222,6 +230,7 @@ OMITTED_AT_DEFAULT = {
     "sparse_fraction": 0.0,
     "sparse_min_lights": 6,
     "layout": "maps",
+    "scenes": (),
 }
 LAYOUTS = ("maps", "observations")
 
@@ -424,6 +433,18 @@ def _cached(out_dir: str | Path, scene_id: str, key: str) -> dict | None:
     return rec
 
 
+def select_scenes(scenes: list[tuple[str, Path, dict]], params: Params) -> list[tuple[str, Path, dict]]:
+    """The scenes whose id matches one of ``params.scenes`` (fnmatch, case-sensitive), in
+    their order; all of them when it is empty. A pattern matching no scene -> ConfigError
+    naming it. Example: ids ``a-0-x, a-1-y, a-2-z`` and ``("*-0-*", "*-1-*")`` -> the first two."""
+    if not params.scenes:
+        return scenes
+    for pattern in params.scenes:
+        if not any(fnmatchcase(sid, pattern) for sid, _, _ in scenes):
+            raise ConfigError(f"extract.scenes pattern {pattern!r} matches none of the {len(scenes)} rendered scenes")
+    return [s for s in scenes if any(fnmatchcase(s[0], p) for p in params.scenes)]
+
+
 def split_scenes(scenes: list[tuple[str, Path, dict]], params: Params) -> dict[str, str]:
     """scene_id -> 'train' | 'val' (see the module docstring)."""
     group_of = {sid: str(meta.get("view_id", sid)) for sid, _, meta in scenes}
@@ -432,7 +453,8 @@ def split_scenes(scenes: list[tuple[str, Path, dict]], params: Params) -> dict[s
         known = set(group_of) | set(groups)
         unknown = [s for s in params.val_scenes if s not in known]
         if unknown:
-            raise ConfigError(f"extract.val_scenes names unknown scenes: {', '.join(unknown)}")
+            among = " (among those extract.scenes selects)" if params.scenes else ""
+            raise ConfigError(f"extract.val_scenes names unknown scenes{among}: {', '.join(unknown)}")
         val = {g for g in groups if g in params.val_scenes} | {
             group_of[s] for s in params.val_scenes if s in group_of
         }
@@ -456,14 +478,18 @@ def output_location(params: Params, data_dir: Path) -> str | Path:
 
 
 def run(params: Params, data_dir: Path, executor=None) -> None:
-    """Extract every rendered scene (skipping cached ones) and write the manifest.
+    """Extract every rendered scene that ``params.scenes`` selects (skipping cached ones)
+    and write the manifest; files of scenes outside it are removed.
 
     ``executor``: runs the per-scene jobs (``cnnps.infra.executor``); None = one made from
     ``params.executor`` / ``params.workers`` (default: in this process), closed at the end.
     """
     data_dir = Path(data_dir)
     out_dir = output_location(params, data_dir)
-    scenes = list_scenes(data_dir / "render")
+    rendered = list_scenes(data_dir / "render")
+    scenes = select_scenes(rendered, params)
+    if params.scenes:
+        print(f"extract: {len(scenes)} of {len(rendered)} rendered scenes selected by extract.scenes")
     split = split_scenes(scenes, params)
     jobs, records = [], {}
     for sid, folder, meta in scenes:
