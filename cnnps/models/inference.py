@@ -46,7 +46,7 @@ from torch import nn
 from cnnps.infra.errors import CnnpsError, ConfigError
 from cnnps.models.devices import resolve_device  # also part of this module's API
 from cnnps.models.heads import HEATMAP, model_head
-from cnnps.models.heatmap import decode_heatmaps, decode_with_spread
+from cnnps.models.heatmap import check_decoding, decode_heatmaps, decode_with_spread
 from cnnps.models.network import CNNPS, RGB_CHANNELS, fast_cpu_model, fold_for_inference
 from cnnps.ps.rotation import average_rotated_predictions, rotate_z, rotation_angles
 
@@ -126,7 +126,9 @@ class MapPredictor:
     for a 1-channel (grey) model, (B, C, w, w) for a C-channel one (``in_channels``),
     (B, C b^2, w, w) for a patch model (``patch`` b > 1, the layout of
     :mod:`cnnps.models.patch`). A heat-map model's heat-maps are decoded to normals
-    (``head``; ``spread=`` also gives each map's heat-map spread in degrees).
+    (``head``, by ``heatmap_decoding``: ``window`` or ``parabola``,
+    :func:`cnnps.models.heatmap.decode_heatmaps`; a regression model ignores it;
+    ``spread=`` also gives each map's heat-map spread in degrees).
 
     Holds the prepared (folded, moved, channels_last, eval mode) copy of the model; the
     caller's model is not modified (nor its train/eval mode), and building the copy draws
@@ -134,8 +136,9 @@ class MapPredictor:
     """
 
     def __init__(self, model: nn.Module, device: str | torch.device = "auto", precision: str = "fp32",
-                 batch_size: int | None = None, fold: bool = True):
+                 batch_size: int | None = None, fold: bool = True, heatmap_decoding: str = "window"):
         self.device = resolve_device(device)
+        self.heatmap_decoding = check_decoding(heatmap_decoding)
         self.precision = check_precision(precision)
         if batch_size is None:
             batch_size = DEFAULT_BATCH_CUDA if self.device.type == "cuda" else DEFAULT_BATCH_CPU
@@ -188,10 +191,10 @@ class MapPredictor:
             y = self._forward(x)
             if self.head == HEATMAP:
                 if spread is not None:
-                    y, s = decode_with_spread(y)
+                    y, s = decode_with_spread(y, self.heatmap_decoding)
                     spread[start:start + x.shape[0]] = s.cpu().numpy()
                 else:
-                    y = decode_heatmaps(y)
+                    y = decode_heatmaps(y, self.heatmap_decoding)
             out[start:start + x.shape[0]] = y.cpu().numpy()
             if progress is not None:
                 progress.update(x.shape[0])

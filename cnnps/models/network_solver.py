@@ -21,7 +21,9 @@ outside the mask all-zero maps), averaged as one map's answers are
 only (docs/models.md, "A patch model in cnnps predict").
 
 Its options, declared once in :class:`NetworkOptions`: ``model``, ``rotations``,
-``device``, ``precision``, ``batch_size``, ``sparse_fill``.
+``device``, ``precision``, ``batch_size``, ``sparse_fill``, ``heatmap_decoding`` (how a
+heat-map model's heat-maps become normals, :func:`cnnps.models.heatmap.decode_heatmaps`;
+a regression model ignores it).
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from cnnps.ps.sparse_fill import SparseFill
 
 RATE_MIN_SECONDS = 5.0  # shorter runs say too little about the machine's speed
 Precision = Literal["auto", "fp32", "bf16"]  # auto: measured per machine (cnnps.models.precision_probe)
+HeatmapDecoding = Literal["window", "parabola"]  # cnnps.models.heatmap.DECODINGS
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,10 @@ class NetworkOptions:
     sparse_fill: SparseFill = option("auto", "cnn: add virtual Lambertian observations to sparse maps, per pixel only "
                                              "where a Lambertian fit explains its observations; auto = with fewer "
                                              "than 50 images.")
+    heatmap_decoding: HeatmapDecoding = option("window", "Heat-map models only (a regression model ignores it): "
+                                                         "window = the centre of mass of the 5x5 cells around the "
+                                                         "maximum; parabola = the log-parabola vertex per axis, "
+                                                         "exact on Gaussian targets.")
 
 
 def default_model_path() -> Path:
@@ -102,7 +109,8 @@ def torch_device(device: str) -> str:
         raise ConfigError(f"--device {device}: {exc}") from None
 
 
-def load_predictor(model_path: Path, device: str, precision: str, batch_size: int | None):
+def load_predictor(model_path: Path, device: str, precision: str, batch_size: int | None,
+                   heatmap_decoding: str = "window"):
     """(MapPredictor, checkpoint meta, how the precision was chosen): the network prepared
     once for every tile (see the module docstring)."""
     from cnnps.models.checkpoint import load_checkpoint
@@ -134,7 +142,9 @@ def load_predictor(model_path: Path, device: str, precision: str, batch_size: in
             from cnnps.models.inference import set_cpu_threads
 
             how["threads"] = set_cpu_threads()  # every CPU the affinity allows
-    return MapPredictor(net, device=dev, precision=precision, batch_size=batch_size), meta, how
+    predictor = MapPredictor(net, device=dev, precision=precision, batch_size=batch_size,
+                             heatmap_decoding=heatmap_decoding)
+    return predictor, meta, how
 
 
 class CapturePixels(NamedTuple):
@@ -186,7 +196,8 @@ class NetworkSolver(Solver):
     @classmethod
     def prepare(cls, options: NetworkOptions) -> "NetworkSolver":
         model_path = resolve_model(options.model)
-        predictor, meta, how = load_predictor(model_path, options.device, options.precision, options.batch_size)
+        predictor, meta, how = load_predictor(model_path, options.device, options.precision, options.batch_size,
+                                              options.heatmap_decoding)
         return cls(predictor, options.rotations, model_path, meta, how, options.precision, options.sparse_fill)
 
     def quick(self) -> "NetworkSolver":
@@ -325,7 +336,8 @@ class NetworkSolver(Solver):
                 "precision_choice": self.precision_how,
                 "sparse_fill": {"mode": self.sparse_fill, "used": self.fills(n_images, shared_lights),
                                 "filled_pixels": int(counts.get("filled", 0))},
-                "shadow_threshold": None}
+                "shadow_threshold": None,
+                **({"heatmap_decoding": self.predictor.heatmap_decoding} if self.heatmap else {})}
 
     def finish(self, n_pixels: int, seconds: float) -> None:
         """Tell the precision probe how fast this run went (maps per second), so a cached

@@ -48,3 +48,29 @@ def test_cnnps_predict_runs_a_tiny_heatmap_checkpoint(tmp_path, capsys):
     np.testing.assert_allclose(confidence[mask], want_conf, atol=1e-4)
     assert np.all(confidence[~mask] == 0) and np.all((want_conf > 0) & (want_conf <= 1))
 
+
+
+def test_heatmap_decoding_option_changes_the_normals_only_for_parabola(tmp_path):
+    import cnnps
+    from cnnps.models.heatmap import decode_heatmaps
+
+    rng = np.random.default_rng(3)
+    L = rng.normal(size=(20, 3))
+    L[:, 2] = np.abs(L[:, 2]) + 1.0
+    L /= np.linalg.norm(L, axis=1, keepdims=True)
+    images = rng.uniform(0.1, 1.0, size=(20, 4, 5)).astype(np.float32)
+    torch.manual_seed(0)
+    net = build_model(arch="unet", head="heatmap", w=16).eval()
+    model = save_checkpoint(tmp_path / "heat.pt", net, meta={"note": "random weights"})
+    common = dict(model=model, rotations=1, device="cpu", precision="fp32", sparse_fill="off")
+    default = cnnps.predict(images, L, **common).normals
+    window = cnnps.predict(images, L, heatmap_decoding="window", **common).normals
+    parabola = cnnps.predict(images, L, heatmap_decoding="parabola", **common).normals
+    np.testing.assert_array_equal(window, default)
+    # the parabola's normals: the same heat-maps decoded by the other method
+    maps = torch.from_numpy(observation_maps(images.reshape(20, -1).T, L, w=16))[:, None]
+    with torch.no_grad():
+        heat = net(maps)
+    want = decode_heatmaps(heat, method="parabola").numpy().reshape(4, 5, 3)
+    np.testing.assert_allclose(parabola, want, atol=1e-5)
+    assert np.abs(parabola - window).max() > 1e-3
