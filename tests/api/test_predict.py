@@ -57,7 +57,8 @@ class _FakeMapPredictor:
 
     w = 32
 
-    def __init__(self, model, device="auto", precision="fp32", batch_size=None, calls=None, fail=False):
+    def __init__(self, model, device="auto", precision="fp32", batch_size=None, calls=None, fail=False,
+                 heatmap_decoding="window"):
         self.calls, self.fail, self.precision = calls, fail, precision
         calls["predict"] = dict(model=model, device=device, precision=precision, batch_size=batch_size, maps=0)
 
