@@ -4,6 +4,7 @@ CPU-time ledger, and a fallback to committed weights.
     .venv/bin/python tools/long_run.py start v4 --preset cpu-train-v4 [--commit HEAD] [--root /work/runs]
     .venv/bin/python tools/long_run.py start fx --preset cpu-train-v5-continue --set train.max_steps=1500
     .venv/bin/python tools/long_run.py resume v4 [--root /work/runs] [--stages render extract train]
+    .venv/bin/python tools/long_run.py start arm --preset P --data-from v6 --set seed=1   # v6's renders, linked
     .venv/bin/python tools/long_run.py resume fx --stages train eval --testset-from v4   # one rendered test set
     .venv/bin/python tools/long_run.py save v4 [--root /work/runs]      # then commit tools/runs/v4/
     .venv/bin/python tools/long_run.py save v5 --final           # ended before its plan: the record, not the weights
@@ -256,6 +257,21 @@ run_timed.base = 0.0
 # ----------------------------------------------------------------------------- the run
 
 
+def parse_data_from(item: str) -> dict:
+    """``RUN[:STAGE,STAGE...]`` (``start --data-from``) as ``{"run": RUN, "stages": [...]}``;
+    the stages default to the data phase's first three, whose outputs arms of a study share.
+
+    >>> parse_data_from("v6"), parse_data_from("v6x1:extract")
+    ({'run': 'v6', 'stages': ['meshes', 'materials', 'render']}, {'run': 'v6x1', 'stages': ['extract']})
+    """
+    name, _, stages = item.partition(":")
+    chosen = [s for s in stages.split(",") if s] if stages else ["meshes", "materials", "render"]
+    bad = [s for s in chosen if s not in STAGES[:4]]
+    if not name or bad:
+        raise SystemExit(f"--data-from {item!r}: expected RUN[:STAGE,...] with stages among {', '.join(STAGES[:4])}")
+    return {"run": name, "stages": chosen}
+
+
 class Run:
     def __init__(self, name: str, root: Path, carried: Path = CARRIED):
         self.name, self.dir = name, Path(root) / name
@@ -303,6 +319,7 @@ class Run:
         if not (self.code / ".git").is_dir() or not self.params.is_file():
             self.create(rec["commit"], rec["preset"], rec.get("overrides", []))
             notes.append(f"cloned {rec['commit'][:12]} again into {self.code}")
+        notes += self.link_data(rec.get("data_from", []), self.dir.parent)
         if not any((self.data / "train" / "checkpoints").glob("step-*.pt")):
             w, kept = self.carried / run_weights.WEIGHTS, run_weights.read_record(self.carried)
             if kept is not None or w.is_file():
@@ -611,6 +628,28 @@ class Run:
         last = cks[-1] + self._offset()
         return round(total * min(step, last) / last, 3)
 
+    def link_data(self, links: list[dict], root: Path) -> list[str]:
+        """Make ``data/<stage>`` a link to another run's for each ``{"run": NAME, "stages":
+        [...]}`` of ``links`` (``start --data-from``), so the arms of a study read one set of
+        renders (and one extract) instead of making their own; a real folder already here
+        is an error (it would hide the other run's data), a link is kept. What was linked."""
+        notes = []
+        for link in links:
+            other = Run(link["run"], root, self.carried.parent)
+            for stage in link["stages"]:
+                mine, theirs = self.data / stage, other.data / stage
+                if mine.is_symlink():
+                    continue
+                if mine.exists():
+                    raise SystemExit(f"{mine}: a folder of this run's own; --data-from {link['run']}:{stage} would "
+                                     f"hide it (remove it, or start the run without that link)")
+                if not theirs.is_dir():
+                    raise SystemExit(f"{theirs}: no {stage} folder in run {link['run']!r} to link to")
+                mine.parent.mkdir(parents=True, exist_ok=True)
+                mine.symlink_to(theirs.resolve(), target_is_directory=True)
+                notes.append(f"{mine} -> {theirs.resolve()}")
+        return notes
+
     def link_testset(self, other: "Run") -> str:
         """Make ``data/eval/testset`` a link to ``other``'s (created there if missing), so
         runs with one eval plan render it once; a folder already here is kept."""
@@ -806,6 +845,9 @@ def main(argv=None) -> int:
     ap.add_argument("--stages", nargs="+", default=STAGES, choices=STAGES)
     ap.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE",
                     help="start: change the preset (e.g. train.max_steps=1500); recorded in run.json")
+    ap.add_argument("--data-from", action="append", default=[], metavar="RUN[:STAGE,STAGE...]",
+                    help="start: read those stages' outputs from another run under --root (links; default stages "
+                         "meshes,materials,render); recorded in run.json, so resume links them again")
     ap.add_argument("--testset-from", metavar="RUN",
                     help="resume: the eval stage reuses that run's rendered test set (a link; captures carry content keys)")
     ap.add_argument("--poll", type=float, default=30.0)
@@ -827,12 +869,19 @@ def main(argv=None) -> int:
         if not a.preset:
             ap.error("start needs --preset")
         old = run.record() if (run.carried / "run.json").is_file() else None
+        links = [parse_data_from(item) for item in a.data_from]
+        for link in links:  # before anything is made
+            for stage in link["stages"]:
+                if not (Run(link["run"], a.root, a.carried).data / stage).is_dir():
+                    raise SystemExit(f"--data-from {link['run']}: run {link['run']!r} under {a.root} has no {stage} folder")
         made = run.create(a.commit, a.preset, a.set)
-        rec = {"name": a.name, **made}
+        rec = {"name": a.name, **made, **({"data_from": links} if links else {})}
         if old and old["commit"] != made["commit"]:  # the same run, its next phase at another commit
             rec["history"] = [*old.get("history", []), {"commit": old["commit"], "preset": old["preset"],
                                                         "until": time.strftime("%Y-%m-%dT%H:%M:%S%z")}]
         _write_json(run.carried / "run.json", rec)
+        for note in run.link_data(links, a.root):
+            print(note)
         print(f"{run.dir}: code at {made['commit'][:12]}, data in {run.data}; record in {run.carried}/run.json")
         return 0
     if a.cmd == "resume":

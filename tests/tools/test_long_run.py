@@ -349,3 +349,29 @@ def test_a_variant_run_changes_its_preset_and_shares_a_test_set(tmp_path):
     (other.data / "eval" / "testset" / "cap").mkdir()
     assert (run.data / "eval" / "testset" / "cap").is_dir()
     assert "kept" in run.link_testset(other)
+
+
+def test_arms_of_a_study_read_another_runs_renders(tmp_path):
+    root, carried = tmp_path / "runs", tmp_path / "carried"
+    args = ["--root", str(root), "--carried", str(carried)]
+    assert long_run.main(["start", "data", "--preset", "demo", *args]) == 0
+    renders = root / "data" / "data" / "render"
+    (renders / "scene-0").mkdir(parents=True)
+    for stage in ("meshes", "materials", "extract"):
+        (root / "data" / "data" / stage).mkdir()
+    assert long_run.main(["start", "arm", "--preset", "demo", "--data-from", "data",
+                          "--data-from", "data:extract", "--set", "seed=1", *args]) == 0
+    arm = long_run.Run("arm", root, carried)
+    assert (arm.data / "render" / "scene-0").is_dir() and (arm.data / "extract").is_symlink()
+    assert not (arm.data / "train").exists()  # what the arm makes is its own
+    assert arm.record()["data_from"] == [{"run": "data", "stages": ["meshes", "materials", "render"]},
+                                         {"run": "data", "stages": ["extract"]}]
+    # a bare machine: the clone and the links are made again from the record
+    shutil.rmtree(root / "arm")
+    arm.ensure()
+    assert (arm.data / "render" / "scene-0").is_dir()
+    with pytest.raises(SystemExit, match="expected RUN"):
+        long_run.parse_data_from("data:train")
+    with pytest.raises(SystemExit, match="run 'gone' under .* has no meshes folder"):
+        long_run.main(["start", "arm2", "--preset", "demo", "--data-from", "gone", *args])
+    assert not (root / "arm2").exists() and not (carried / "arm2").exists()
