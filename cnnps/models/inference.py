@@ -31,12 +31,16 @@ does; the U-Net (:mod:`cnnps.models.unet`) runs as built (bf16: under autocast).
 Patch models (``patch`` b > 1, :mod:`cnnps.models.patch`) take each pixel's b x b
 neighbourhood: (P, b^2, m) grey values, shared distant lights, an orthographic camera,
 and K in 1, 2, 4 (:func:`check_patch_inputs`): under each rotation the patch grid turns
-with the lights by whole quarter turns.
+with the lights by whole quarter turns. The cells and their maps are training's
+(:func:`cnnps.ps.patches.quarter_turn_cells`, :func:`cnnps.ps.patches.patch_maps`): given
+the neighbourhoods with zeros outside the mask, the patches equal
+:func:`cnnps.ps.patches.capture_patches`'s bit for bit (``tests/models/test_patch_agreement.py``).
 """
 
 from __future__ import annotations
 
 import copy
+import math
 import os
 
 import numpy as np
@@ -221,7 +225,8 @@ def predict_normals(
     (``in_channels`` 4) also (P, m, 3), each channel divided by its own intensity (the
     grey map is then their mean's; (P, m) grey values stand for R = G = B); for a patch
     model (``patch`` b > 1) (P, b^2, m), each pixel's b x b neighbourhood row by row, the
-    pixel itself at the centre (:func:`check_patch_inputs`).
+    pixel itself at the centre, zeros for a cell outside the mask or the image (the edge
+    rule of training, :mod:`cnnps.ps.patches`) (:func:`check_patch_inputs`).
     lights: (m, 3) unit light directions (camera frame: x right, y up, z to the camera),
     or (P, m, 3) each pixel's own (point lights near the object; never sparse-filled).
     rotations: K test-time rotations (K = 1: none; the paper uses 10).
@@ -411,33 +416,45 @@ def rotated_answers(predictor: MapPredictor, maps: np.ndarray, angles: np.ndarra
 
 
 def turn_patch_grids(maps: np.ndarray, angles: np.ndarray) -> np.ndarray:
-    """(K, n, b, b, w, w) maps with the b x b patch grid of rotation k turned by
-    ``angles[k]`` (whole quarter turns) counter-clockwise as seen from the camera (x right,
-    y up, grid row 0 on top): ``np.rot90`` over the grid axes, the lights' turn by
-    :func:`cnnps.ps.rotation.rotate_z`. Other angles raise ValueError."""
+    """(K, n, b, b, ...) with the b x b patch grid of rotation k turned by ``angles[k]``
+    (whole quarter turns) counter-clockwise as seen from the camera (x right, y up, grid
+    row 0 on top): the cells of :func:`cnnps.ps.patches.quarter_turn_cells`, those
+    :func:`cnnps.ps.patches.capture_patches` reads. Other angles raise ValueError."""
+    from cnnps.ps.patches import quarter_turn_cells
+
+    maps = np.asarray(maps)
+    K, n, b = maps.shape[:3]
     out = np.empty_like(maps)
     for k, a in enumerate(angles):
-        q = float(a) / (np.pi / 2)
-        if abs(q - round(q)) > 1e-9:
-            raise ValueError(f"a patch grid turns by quarter turns only, not {np.degrees(a):g} deg")
-        out[k] = np.rot90(maps[k], int(round(q)) % 4, axes=(1, 2))
+        cells = quarter_turn_cells(b, float(a))
+        out[k] = maps[k].reshape((n, b * b) + maps.shape[4:])[:, cells].reshape(maps.shape[1:])
     return out
 
 
 def patch_maps(intensities: np.ndarray, lights: np.ndarray, angles: np.ndarray, w: int,
                light_mask: np.ndarray | None = None) -> np.ndarray:
     """(K, n, b^2, w, w) float32 maps of n pixels' b x b patches, ``intensities`` (n, b^2, m)
-    (and ``light_mask``), under K light sets ``lights`` (K, m, 3), the lights turned by
-    ``angles`` (K,): every pixel's map (:func:`cnnps.ps.obsmap.observation_maps_multi`),
-    each rotation's patch grid turned with its lights (:func:`turn_patch_grids`)."""
-    from cnnps.ps.obsmap import observation_maps_multi
+    each pixel's unturned neighbourhood row by row (``light_mask`` (n, b^2, m): False
+    leaves an observation out), under K light sets ``lights`` (K, m, 3), the lights turned
+    by ``angles`` (K,), whole quarter turns: rotation k's cells are the neighbourhood's
+    turned with its lights (:func:`turn_patch_grids`), their maps those training builds
+    (:func:`cnnps.ps.patches.patch_maps` with the lights of rotation k), so each patch is
+    :func:`cnnps.ps.patches.capture_patches`'s of the same pixels, bit for bit."""
+    from cnnps.ps.patches import patch_maps as cell_maps
 
+    intensities = np.asarray(intensities)
     n, b2, m = intensities.shape
-    b = int(round(np.sqrt(b2)))
-    mask = None if light_mask is None else np.asarray(light_mask).reshape(n * b2, m)
-    maps = observation_maps_multi(np.asarray(intensities).reshape(n * b2, m), lights, w=w, light_mask=mask)
-    grids = turn_patch_grids(maps.reshape(len(lights), n, b, b, w, w), angles)
-    return grids.reshape(len(lights), n, b2, w, w)
+    b = math.isqrt(b2)
+    grids = turn_patch_grids(np.broadcast_to(intensities.reshape(n, b, b, m), (len(angles), n, b, b, m)), angles)
+    missing = None
+    if light_mask is not None:
+        masks = np.broadcast_to(np.asarray(light_mask, bool).reshape(n, b, b, m), (len(angles), n, b, b, m))
+        missing = ~turn_patch_grids(masks, angles).reshape(len(angles), n, b2, m)
+    out = np.empty((len(angles), n, b2, w, w), np.float32)
+    for k in range(len(angles)):  # the lights already turned: no further turn (theta 0)
+        out[k] = cell_maps(grids[k].reshape(n, b2, m), lights[k], np.zeros(n), w,
+                           missing=None if missing is None else missing[k]).reshape(n, b2, w, w)
+    return out
 
 
 def _grey_and_colour(intensities, colour, channels: int):

@@ -34,7 +34,9 @@ Other angles put a cell between pixels. ``interpolation``:
 Edge rule: a cell whose pixel (all of its bilinear pixels) lies outside the mask or the
 image has all-zero observations, so its map is all zero (:func:`observation_maps` leaves a
 pixel with no positive value at 0). Training (:mod:`cnnps.train.patch_dataset`) and
-prediction (:func:`capture_patches`) use this one rule.
+prediction (:func:`capture_patches`) use this one rule; a caller holding each pixel's
+unturned b x b neighbourhood (zeros outside the mask; ``predict_normals`` of
+:mod:`cnnps.models.inference`) turns it by :func:`quarter_turn_cells` to the same cells.
 
 Example (prediction, one tile of mask pixels ``[start, stop)`` of a
 :class:`cnnps.io.pixel_store.PixelStack`, in chunks)::
@@ -85,6 +87,27 @@ def patch_offsets(b: int, thetas: np.ndarray) -> np.ndarray:
     off = np.stack([c * di + s * dj, c * dj - s * di], axis=-1)
     near = np.rint(off)
     return np.where(np.abs(off - near) < SNAP, near, off)
+
+
+def quarter_turn_cells(b: int, theta: float) -> np.ndarray:
+    """(b*b,) int64: cell ``i * b + j`` of a patch turned by ``theta`` (a whole number of
+    quarter turns) is cell ``[result[i * b + j]]`` of the unturned patch of the same
+    centre, the :func:`patch_offsets` of that angle read as cells. So a caller holding an
+    unturned b x b neighbourhood ``obs`` (n, b*b, m) gets the turned patch's cells as
+    ``obs[:, quarter_turn_cells(b, theta)]``, the cells :func:`capture_patches` reads.
+    ValueError for other angles (their cells fall between pixels).
+
+    >>> quarter_turn_cells(3, np.pi / 2).reshape(3, 3)  # the stored cell below is on the right
+    array([[2, 5, 8],
+           [1, 4, 7],
+           [0, 3, 6]])
+    """
+    b = check_patch_size(b)
+    off = patch_offsets(b, [theta])[0]
+    if not np.array_equal(off, np.rint(off)):
+        raise ValueError(f"a patch grid turns by quarter turns only, not {np.degrees(theta):g} deg")
+    half = b // 2
+    return ((off[:, 0] + half) * b + off[:, 1] + half).astype(np.int64)
 
 
 def reach(b: int, interpolation: str = "bilinear") -> int:
