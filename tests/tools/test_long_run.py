@@ -375,3 +375,112 @@ def test_arms_of_a_study_read_another_runs_renders(tmp_path):
     with pytest.raises(SystemExit, match="run 'gone' under .* has no meshes folder"):
         long_run.main(["start", "arm2", "--preset", "demo", "--data-from", "gone", *args])
     assert not (root / "arm2").exists() and not (carried / "arm2").exists()
+
+
+_ARM_EVAL = {"rotations": [10], "real_subsets": [10], "real_exclude_from_mean": ["ballPNG"],
+             "real_captures": [f"/shared/{n}PNG" for n in ("ball", "cow", "goblet", "pot1", "pot2")]}
+
+
+def _scored_run(root, carried, name, crops, ball, crops_10, ratios, seed, train_h=2.0, eval_h=0.5, **ev):
+    """A run folder as the eval stage leaves it: params.yaml (``ev`` over the arms' eval
+    section), data/eval/metrics.json with the four crops' K=10 means (dev-real: their
+    mean, as the stage writes it), BALL, the crops' mean at 10 images and the non-convex
+    ratios at 10 / 17 / 305 lights; a ledger of ``train_h`` + ``eval_h`` CPU-hours and a
+    quarter-hour probe (in the run's total, not in its train and eval hours). ``crops``
+    None: trained, not scored yet."""
+    run = long_run.Run(name, root, carried)
+    run.params.parent.mkdir(parents=True)
+    run.params.write_text(yaml.safe_dump({"seed": 0, "train": {"seed": seed}, "eval": {**_ARM_EVAL, **ev}}))
+    for i, (stage, hours) in enumerate([("train", train_h), ("eval", eval_h), ("probe", 0.25)]):
+        run._record_call({"id": f"{i}", "stage": stage, "cpu_s": hours * 3600, "wall_s": hours * 1800})
+    if crops is None:
+        return run
+    k10 = lambda v: {"cnn_k10": {"mean_deg": v}, "lambertian": {"mean_deg": 9.0}}  # noqa: E731
+    caps = {f"{n}PNG": {"methods": k10(v)} for n, v in zip(("cow", "goblet", "pot1", "pot2"), crops)}
+    caps["ballPNG"] = {"methods": k10(ball)}
+    em = {"summary_real": k10(sum(crops) / 4), "summary_real_subsets": {"10": k10(crops_10)},
+          "by_lights_nonconvex": {n: {"cnn_k10_vs_least_squares": r} for n, r in zip(("10", "17", "305"), ratios)},
+          "captures": caps}
+    (run.data / "eval").mkdir(parents=True)
+    (run.data / "eval" / "metrics.json").write_text(json.dumps(em))
+    return run
+
+
+def test_arms_are_judged_by_the_selection_rule(tmp_path, capsys):
+    root, carried = tmp_path / "runs", tmp_path / "carried"
+    args = ["--root", str(root), "--carried", str(carried)]
+
+    def run(name, *a, **kw):
+        _scored_run(root, carried, name, *a, **kw)
+
+    # hm: dev-real 5.0 and 5.4 -> 5.2 +- 0.2
+    run("hm1", (5.0, 6.0, 4.0, 5.0), 1.8, 7.5, (0.64, 0.47, 0.17), seed=1)
+    run("hm2", (5.4, 6.4, 4.4, 5.4), 2.4, 8.1, (0.66, 0.48, 0.18), seed=2, train_h=3.0)
+    # re: 6.0 and 6.2 -> 6.1 +- 0.1: 0.9 above hm, more than the larger spread 0.2
+    run("re1", (6.0, 7.0, 5.0, 6.0), 1.5, 8.0, (0.70, 0.50, 0.20), seed=1)
+    run("re2", (6.2, 7.2, 5.2, 6.2), 1.5, 8.0, (0.70, 0.50, 0.20), seed=1)  # the same seed twice
+    # pt: 5.0 and 5.6 -> 5.3 +- 0.3: 0.1 from hm, inside the larger spread 0.3
+    run("pt1", (4.8, 5.8, 4.2, 5.2), 1.0, 6.0, (0.60, 0.40, 0.15), seed=1)
+    run("pt2", (5.4, 6.4, 4.8, 5.8), 1.2, 6.4, (0.60, 0.40, 0.15), seed=2)
+    # one: a seed scored (in bf16), a seed still training
+    run("one1", (4.0, 5.0, 3.0, 4.0), 1.0, 6.0, (0.60, 0.40, 0.15), seed=1, precision="bf16")
+    run("one2", None, None, None, None, seed=2)
+    # the reference: v4's model scored by the same eval section
+    run("v4", (6.0, 7.0, 5.5, 5.5), 2.5, 9.0, (0.67, 0.482, 0.173), seed=0, train_h=0.0, eval_h=0.1, model="/w/v4.pt")
+    arms = ["--arm", "hm=hm1,hm2", "--arm", "re=re1,re2", "--arm", "pt=pt1,pt2", "--arm", "one=one1,one2"]
+    assert long_run.main(["arms", "st", *arms, "--reference", "v4", *args]) == 0
+    out = json.loads((carried / "st" / "arms.json").read_text())
+    hm, re_, pt, one = out["arms"]
+    cols = hm["columns"]
+    assert cols["dev_real"] == {"mean": pytest.approx(5.2, abs=1e-9), "spread": pytest.approx(0.2, abs=1e-9)}
+    assert cols["gobletPNG"]["mean"] == pytest.approx(6.2, abs=1e-9) and cols["ballPNG"]["mean"] == pytest.approx(2.1)
+    assert cols["crops_10"] == {"mean": pytest.approx(7.8), "spread": pytest.approx(0.3)}
+    assert cols["nonconvex_305"] == {"mean": pytest.approx(0.175), "spread": pytest.approx(0.005)}
+    assert cols["cpu_hours"] == {"mean": 3.0, "spread": 0.5}  # 2.5 and 3.5 (train + eval)
+    assert (hm["cpu_hours_total"], hm["cpu_hours_all"]) == (6.0, 6.5)  # the probes count in the total only
+    assert re_["columns"]["dev_real"]["mean"] == pytest.approx(6.1) and pt["columns"]["dev_real"]["spread"] == pytest.approx(0.3)
+    assert one["seeds"] == 1 and one["columns"]["dev_real"] == {"mean": 4.0, "spread": None}
+    assert out["not_scored"] == [{"arm": "one", "run": "one2"}]
+    pairs = {tuple(p["arms"]): p for p in out["pairs"]}
+    assert pairs["hm", "re"]["verdict"] == "hm" and pairs["hm", "re"]["difference"] == pytest.approx(-0.9)
+    assert pairs["hm", "pt"]["verdict"] == "inside the spread" and pairs["hm", "pt"]["bar"] == pytest.approx(0.3)
+    assert pairs["re", "pt"]["verdict"] == "pt" and pairs["hm", "one"]["verdict"] == "not judged"
+    assert [a["vs_reference"] for a in out["arms"]] == [True, False, True, None]  # 6.0 - 5.2 = 0.8 > 0.2; 6.1 > 6.0
+    assert hm["gates"] == {"dev_real": True, "crops": True, "goblet": True, "ball": False,  # BALL 2.1
+                           "nonconvex": False, "crops_10": True}  # 305 lights: 0.175 > 0.173; @10: 7.8 <= 9.0 - 1
+    assert re_["gates"] == {"dev_real": False, "crops": False, "goblet": False, "ball": True, "nonconvex": False,
+                            "crops_10": True}  # @10: 8.0, exactly 1 under the reference's 9.0
+    assert out["best"] == "hm"  # one's 4.0 is a single seed: not judged
+    assert out["reference"]["dev_real"] == pytest.approx(6.0) and out["reference"]["cpu_hours"] == 0.1
+    assert out["notes"] == ["arm re: runs of the same train.seed (1) are not independent seeds",
+                            "run one1 is scored on another eval section than v4 (precision differ)"]
+    text = capsys.readouterr().out.splitlines()
+    assert ("| hm | 2 | 3.00 ± 0.50 | 5.20 ± 0.20 | 5.20 ± 0.20 / 6.20 ± 0.20 / 4.20 ± 0.20 / 5.20 ± 0.20 "
+            "| 2.10 ± 0.30 | 7.80 ± 0.30 | 0.650 ± 0.010 / 0.475 ± 0.005 / 0.175 ± 0.005 |") in text
+    assert "| one | 1 | 2.50 ± ? | 4.00 ± ? | 4.00 ± ? / 5.00 ± ? / 3.00 ± ? / 4.00 ± ? | 1.00 ± ? | 6.00 ± ? " \
+           "| 0.600 ± ? / 0.400 ± ? / 0.150 ± ? |" in text
+    assert "| reference: v4 | 1 | 0.10 | 6.00 | 6.00 / 7.00 / 5.50 / 5.50 | 2.50 | 9.00 | 0.670 / 0.482 / 0.173 |" in text
+    assert "- hm vs re: hm beats re by 0.90, more than the larger spread 0.20" in text
+    assert any(t.startswith("- hm vs pt: 0.10 apart, inside the larger spread 0.30: neither beats") for t in text)
+    assert "| hm | pass | pass | pass | FAIL | FAIL | pass |" in text
+    assert "Not scored yet, left out: run one2 of arm one (no data/eval/metrics.json)" in text
+
+
+def test_arms_stop_with_one_line_on_a_missing_run(tmp_path):
+    root, carried = tmp_path / "runs", tmp_path / "carried"
+    args = ["--root", str(root), "--carried", str(carried)]
+    _scored_run(root, carried, "a1", (5.0, 6.0, 4.0, 5.0), 1.8, 7.5, (0.64, 0.47, 0.17), seed=1)
+    _scored_run(root, carried, "ref", None, None, None, None, seed=0)
+    with pytest.raises(SystemExit, match=re.escape(f"{root / 'a2' / 'params.yaml'}: no such file: 'a2' is not a run")):
+        long_run.main(["arms", "st", "--arm", "a=a1,a2", *args])
+    with pytest.raises(SystemExit, match=re.escape(f"{root / 'ref' / 'data' / 'eval' / 'metrics.json'}: no such file: "
+                                                   "the reference run 'ref' is not scored yet")):
+        long_run.main(["arms", "st", "--arm", "a=a1", "--reference", "ref", *args])
+    with pytest.raises(SystemExit, match="--arm 'a': expected NAME=RUN"):
+        long_run.main(["arms", "st", "--arm", "a", *args])
+    assert not (carried / "st").exists()
+    # as a command: one line on stderr, a non-zero exit
+    proc = subprocess.run([sys.executable, str(REPO / "tools" / "long_run.py"), "arms", "st", "--arm", "a=a1,a2", *args],
+                          capture_output=True, text=True)
+    assert proc.returncode != 0 and proc.stderr.strip().splitlines() == [f"{root / 'a2' / 'params.yaml'}: no such file: "
+                                                                         f"'a2' is not a run under {root}"]
