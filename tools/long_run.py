@@ -4,7 +4,7 @@ CPU-time ledger, and a fallback to committed weights.
     .venv/bin/python tools/long_run.py start v4 --preset cpu-train-v4 [--commit HEAD] [--root /work/runs]
     .venv/bin/python tools/long_run.py start fx --preset cpu-train-v5-continue --set train.max_steps=1500
     .venv/bin/python tools/long_run.py resume v4 [--root /work/runs] [--stages render extract train]
-    .venv/bin/python tools/long_run.py start arm --preset P --data-from v6 --set seed=1   # v6's renders, linked
+    .venv/bin/python tools/long_run.py start arm --preset P --data-from v6 --set train.seed=1   # v6's renders, linked
     .venv/bin/python tools/long_run.py resume fx --stages train eval --testset-from v4   # one rendered test set
     .venv/bin/python tools/long_run.py save v4 [--root /work/runs]      # then commit tools/runs/v4/
     .venv/bin/python tools/long_run.py save v5 --final           # ended before its plan: the record, not the weights
@@ -280,6 +280,14 @@ def parse_data_from(item: str) -> dict:
     if not name or bad:
         raise SystemExit(f"--data-from {item!r}: expected RUN[:STAGE,...] with stages among {', '.join(STAGES[:4])}")
     return {"run": name, "stages": chosen}
+
+
+def check_linked(link: dict, root: Path, carried: Path) -> None:
+    """One line (SystemExit) when run ``link["run"]`` under ``root`` lacks a folder of
+    ``link["stages"]`` that ``--data-from`` would link to."""
+    for stage in link["stages"]:
+        if not (Run(link["run"], root, carried).data / stage).is_dir():
+            raise SystemExit(f"--data-from {link['run']}: run {link['run']!r} under {root} has no {stage} folder")
 
 
 class Run:
@@ -653,8 +661,7 @@ class Run:
                 if mine.exists():
                     raise SystemExit(f"{mine}: a folder of this run's own; --data-from {link['run']}:{stage} would "
                                      f"hide it (remove it, or start the run without that link)")
-                if not theirs.is_dir():
-                    raise SystemExit(f"{theirs}: no {stage} folder in run {link['run']!r} to link to")
+                check_linked(link, root, self.carried.parent)
                 mine.parent.mkdir(parents=True, exist_ok=True)
                 mine.symlink_to(theirs.resolve(), target_is_directory=True)
                 notes.append(f"{mine} -> {theirs.resolve()}")
@@ -1125,9 +1132,7 @@ def main(argv=None) -> int:
         old = run.record() if (run.carried / "run.json").is_file() else None
         links = [parse_data_from(item) for item in a.data_from]
         for link in links:  # before anything is made
-            for stage in link["stages"]:
-                if not (Run(link["run"], a.root, a.carried).data / stage).is_dir():
-                    raise SystemExit(f"--data-from {link['run']}: run {link['run']!r} under {a.root} has no {stage} folder")
+            check_linked(link, a.root, a.carried)
         made = run.create(a.commit, a.preset, a.set)
         rec = {"name": a.name, **made, **({"data_from": links} if links else {})}
         if old and old["commit"] != made["commit"]:  # the same run, its next phase at another commit
