@@ -191,16 +191,36 @@ def write_observations(out_dir: str | Path, scene: str, values, lights, normals,
             "lights": header["lights"], "bytes": len(data), "sha256": bytes_sha256(data)}
 
 
-def write_capture_observations(out_dir: str | Path, scene: str, capture, *, scene_key: str = "") -> dict:
+def write_capture_observations(out_dir: str | Path, scene: str, capture, *, scene_key: str = "",
+                               clip_fraction: float = 0.0) -> dict:
     """:func:`write_observations` of a :class:`cnnps.io.capture.Capture` with ground-truth
-    normals (its mask pixels' grey values, lights, normals); a value float16 cannot hold
-    raises InputError naming the capture folder."""
+    normals (its mask pixels' grey values, lights, normals).
+
+    Finite values above float16's largest (65504) are clipped to it, as a saturating sensor
+    would, when they are at most ``clip_fraction`` of the capture's values (a render's rare
+    firefly), and the record gains ``"clipped_values"``, their count. More of them (an
+    exposure far off), or any value that is not finite, raises InputError naming the
+    capture folder. The default 0 clips nothing.
+
+    Example: ``write_capture_observations(out, "s00", load_capture(folder), clip_fraction=1e-4)``."""
     rows, cols = np.nonzero(capture.mask)
+    values = capture.pixel_intensities()
+    high = values > FLOAT16_MAX  # NaN compares False: it is refused below
+    clipped = int(high.sum())
+    if clipped and clipped <= clip_fraction * values.size:
+        values = np.where(high, np.float32(FLOAT16_MAX), values)
+    elif clipped:
+        raise InputError(capture.root, f"cannot store its observations: {clipped} of {values.size} "
+                         f"values ({100 * clipped / values.size:.3g}%) above float16's range (+-{FLOAT16_MAX:g}), more "
+                         f"than the {100 * clip_fraction:.3g}% clipped as fireflies; check its exposure")
     try:
-        return write_observations(out_dir, scene, capture.pixel_intensities(), capture.lights,
-                                  capture.normal_gt[rows, cols], rows, cols, capture.mask.shape, scene_key=scene_key)
+        record = write_observations(out_dir, scene, values, capture.lights, capture.normal_gt[rows, cols], rows,
+                                    cols, capture.mask.shape, scene_key=scene_key)
     except ValueError as exc:
         raise InputError(capture.root, f"cannot store its observations: {exc}") from None
+    if clipped:
+        record["clipped_values"] = clipped
+    return record
 
 
 def read_observations(path: str | Path) -> SceneObservations:

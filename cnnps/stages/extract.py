@@ -233,6 +233,9 @@ OMITTED_AT_DEFAULT = {
     "scenes": (),
 }
 LAYOUTS = ("maps", "observations")
+# layout observations: at most this share of a render's values may lie above float16's range
+# and be clipped to it (Cycles fireflies); more stops the stage naming the scene
+FIREFLY_FRACTION = 1e-4
 
 
 def scene_cache_key(scene_key: str, params: Params) -> str:
@@ -326,7 +329,8 @@ def extract_scene(job: SceneJob) -> dict:
     if cap.normal_gt is None:
         raise InputError(job.folder, f"rendered scene has no ground-truth normals (normal_gt.npy); {FIX_RENDER}")
     if p.layout == "observations":
-        info = write_capture_observations(job.out_dir, job.scene_id, cap, scene_key=job.scene_key)
+        info = write_capture_observations(job.out_dir, job.scene_id, cap, scene_key=job.scene_key,
+                                          clip_fraction=FIREFLY_FRACTION)
         return _write_marker(job, t0, info["lights"], info["rows"], 0, info["rows"], [info])
     rr, cc = np.nonzero(cap.mask)
     normals = cap.normal_gt[rr, cc].astype(np.float64)

@@ -1,6 +1,7 @@
 """Per-pixel observation files: round trip, deterministic bytes, integrity checks."""
 
 import hashlib
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from cnnps.io.observation_store import (
     observation_path,
     read_observations,
     verify_observations,
+    write_capture_observations,
     write_observations,
 )
 from tests.support.renders import random_lights, sphere_normals
@@ -68,6 +70,40 @@ def test_refuses_what_float16_cannot_hold_and_unordered_pixels():
         encode_observations("s", bad, lights, normals, rows, cols, mask.shape)
     with pytest.raises(ValueError, match="row-major"):
         encode_observations("s", values, lights, normals, rows[::-1], cols[::-1], mask.shape)
+
+
+def _capture(values, lights, normals, rows, cols, mask):
+    normal_gt = np.zeros((*mask.shape, 3))
+    normal_gt[rows, cols] = normals
+    return SimpleNamespace(root="renders/sc", mask=mask, lights=lights, normal_gt=normal_gt,
+                           pixel_intensities=lambda: values)
+
+
+def test_a_capture_value_above_float16_is_refused_or_clipped_on_request(tmp_path):
+    values, lights, normals, rows, cols, mask = _arrays()
+    values[4, 1] = 129000.0  # a firefly float16 cannot hold
+    values[5, 0] = FLOAT16_MAX  # exactly the largest: kept
+    cap = _capture(values, lights, normals, rows, cols, mask)
+    with pytest.raises(InputError, match="renders/sc.*float16"):
+        write_capture_observations(tmp_path, "sc", cap)
+    assert not observation_path(tmp_path, "sc").exists()
+    with pytest.raises(InputError, match="renders/sc.*1 of .* values.*exposure"):  # more than the share allowed
+        write_capture_observations(tmp_path, "sc", cap, clip_fraction=0.5 / values.size)
+    rec = write_capture_observations(tmp_path, "sc", cap, clip_fraction=1.0 / values.size)
+    assert rec["clipped_values"] == 1
+    obs = read_observations(observation_path(tmp_path, "sc"))
+    assert obs.values[4, 1] == np.float16(FLOAT16_MAX) and obs.values[5, 0] == np.float16(FLOAT16_MAX)
+    want = values.copy()
+    want[4, 1] = FLOAT16_MAX
+    assert np.array_equal(obs.values, want.astype(np.float16))  # nothing else moved
+    values[6, 2] = np.nan  # a broken render is still refused
+    with pytest.raises(InputError, match="finite"):
+        write_capture_observations(tmp_path / "nan", "sc", _capture(values, lights, normals, rows, cols, mask),
+                                   clip_fraction=1e-2)
+    values[6, 2] = 1.0
+    rec = write_capture_observations(tmp_path / "fine", "sc", _capture(values, lights, normals, rows, cols, mask),
+                                     clip_fraction=1e-2)
+    assert rec["clipped_values"] == 1
 
 
 def test_damaged_files_are_named_in_one_line(tmp_path):

@@ -10,6 +10,7 @@ import pytest
 
 from cnnps.infra.errors import ConfigError, InputError
 from cnnps.io.capture import load_capture
+from cnnps.io.images import read_image, write_exr
 from cnnps.io.observation_store import manifest_observations, read_observations, verify_observations
 from cnnps.io.shards import load_manifest, manifest_digest
 from cnnps.stages import extract
@@ -102,3 +103,19 @@ def test_a_value_float16_cannot_hold_is_one_line_naming_the_scene(data):
         extract.run(Params(**OBS), data)
     assert str(folder) in str(exc.value) and "float16" in str(exc.value) and "\n" not in str(exc.value)
     assert not (data / "extract" / "obs-s01.cnnobs").exists() and not list((data / "extract").glob(".obs-*"))
+
+
+def test_a_render_firefly_above_float16_is_clipped_and_counted(tmp_path):
+    data = make_render_dir(tmp_path, n_scenes=2, size=40, m=60)  # ~60k values a scene: one is under 1e-4
+    scene = data / "render" / "s01"
+    r, c = np.argwhere(load_capture(scene).mask)[7]
+    first = scene / "000.exr"
+    img = np.array(read_image(first), np.float32)
+    img[r, c] = 129000.0  # one Cycles firefly, beyond float16's 65504
+    write_exr(first, img)
+    extract.run(Params(**OBS), data)
+    out = data / "extract"
+    assert json.loads((out / "scene-s01.json").read_text())["shards"][0]["clipped_values"] == 1
+    obs = read_observations(out / "obs-s01.cnnobs")
+    assert obs.values[obs.index_image()[r, c], 0] == np.float16(65504)
+    assert "clipped_values" not in json.loads((out / "scene-s00.json").read_text())["shards"][0]
