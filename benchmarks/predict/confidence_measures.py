@@ -1,11 +1,11 @@
 """Which per-pixel measures predict the network's angular error on real objects.
 
     .venv/bin/python -m benchmarks.predict.confidence_measures [--pixels 3000] [--rotations 10]
-        [--captures DIR ...] [--out FILE]
+        [--captures DIR ...] [--model WEIGHTS] [--out FILE]
 
 For each real capture with ground truth (default: DiLiGenT BALL and the four 8-bit crops
 in ``../shared``), a seeded sample of ``--pixels`` mask pixels is predicted by the shipped
-model with K rotations (``cnnps predict``'s network path: ``MapPredictor``, maps of the
+model (or ``--model``, a weights file) with K rotations (``cnnps predict``'s network path: ``MapPredictor``, maps of the
 rotated lights), keeping each rotation's answer. Candidate measures of how far to trust a
 pixel, each oriented so that larger means less trust:
 
@@ -18,12 +18,17 @@ pixel, each oriented so that larger means less trust:
   (shadowed or facing away);
 - ``grazing``: 1 - n_z of the network's normal;
 - ``spread_per_lit_share``: the rotation spread divided by the share of lit lights (what
-  :func:`cnnps.ps.confidence.network_confidence` ranks by).
+  :func:`cnnps.ps.confidence.network_confidence` ranks by);
+- a heat-map model only: ``heatmap_spread``, its heat-map's windowed second moment in
+  degrees (:func:`cnnps.models.heatmap.heatmap_spread_deg`) averaged over the K rotations,
+  and ``heatmap_spread_per_lit_share`` (what :func:`cnnps.ps.confidence.heatmap_confidence`
+  ranks by, the heat-map model's confidence map).
 
 For each measure: Spearman's rank correlation with the network's angular error, and the
 mean error of the half of the pixels it trusts most against the other half. Results go to
-``benchmarks/results/predict/confidence_measures_<cpu kind>.json`` (the harness's record:
-the CPU model, the command, the commit).
+``benchmarks/results/predict/confidence_measures_<cpu kind>.json`` (with ``--model``,
+``confidence_measures_<weights file stem>_<cpu kind>.json``; the harness's record: the CPU
+model, the command, the commit).
 """
 
 from __future__ import annotations
@@ -45,6 +50,7 @@ def measures(capture: Path, predictor, pixels: int, rotations: int) -> dict:
     from scipy.stats import spearmanr
 
     from cnnps.io.capture import load_capture
+    from cnnps.models.heads import HEATMAP
     from cnnps.ps.least_squares import least_squares
     from cnnps.ps.metrics import angular_error_deg
     from cnnps.ps.obsmap import observation_maps_multi
@@ -62,7 +68,8 @@ def measures(capture: Path, predictor, pixels: int, rotations: int) -> dict:
     rotated = np.stack([rotate_z(cap.lights, a) for a in angles])
     maps = observation_maps_multi(I, rotated, w=predictor.w)  # (K, P, w, w)
     K, P = maps.shape[:2]
-    preds = predictor(maps.reshape(K * P, predictor.w, predictor.w)).reshape(K, P, 3).astype(np.float64)
+    hm = np.empty(K * P, np.float32) if predictor.head == HEATMAP else None
+    preds = predictor(maps.reshape(K * P, predictor.w, predictor.w), spread=hm).reshape(K, P, 3).astype(np.float64)
     back = np.stack([rotate_z(p, -a) for p, a in zip(preds, angles)])
     n = normalize(back.mean(axis=0))
     err = angular_error_deg(n, gt)
@@ -79,6 +86,9 @@ def measures(capture: Path, predictor, pixels: int, rotations: int) -> dict:
         "grazing": 1.0 - n[:, 2],
         "spread_per_lit_share": spread / np.maximum(lit.mean(axis=1), 0.05),  # what the confidence map uses
     }
+    if hm is not None:  # a heat-map model: its own spread, the mean over the K rotations
+        cand["heatmap_spread"] = hm.reshape(K, P).mean(axis=0)
+        cand["heatmap_spread_per_lit_share"] = cand["heatmap_spread"] / np.maximum(lit.mean(axis=1), 0.05)
     out = {"pixels": int(P), "rotations": rotations, "mean_error_deg": round(float(err.mean()), 3), "measures": {}}
     for name, m in cand.items():
         order = np.argsort(m, kind="stable")
@@ -101,18 +111,21 @@ def main(argv=None) -> int:
     ap.add_argument("--pixels", type=int, default=3000, help="sampled pixels with ground truth per capture (0: all)")
     ap.add_argument("--rotations", type=int, default=10)
     ap.add_argument("--captures", type=Path, nargs="*", default=None)
+    ap.add_argument("--model", type=Path, default=None, help="a weights file (default: the shipped model)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args(argv)
     captures = args.captures or [c for c in DEFAULT_CAPTURES if c.is_dir()]
     if not captures:
         print("no captures (../shared/data absent): nothing to measure")
         return 0
-    predictor = MapPredictor(load_checkpoint(shipped_model_path(), "cpu")[0], device="cpu", precision="fp32")
+    predictor = MapPredictor(load_checkpoint(args.model or shipped_model_path(), "cpu")[0], device="cpu",
+                             precision="fp32")
     rows = {}
     for c in captures:
         rows[c.name] = measures(c, predictor, args.pixels, args.rotations)
         print(c.name, json.dumps(rows[c.name]), flush=True)
-    out = args.out or result_path(__spec__.name, cpu_kind())
+    name = __spec__.name if args.model is None else f"{__spec__.name}_{args.model.stem}"
+    out = args.out or result_path(name, cpu_kind())
     write_result(out, __spec__.name, args, {"captures": rows}, argv=argv)
     return 0
 
