@@ -52,6 +52,7 @@ from cnnps.models.devices import resolve_device  # also part of this module's AP
 from cnnps.models.heads import HEATMAP, model_head
 from cnnps.models.heatmap import check_decoding, decode_heatmaps, decode_with_spread
 from cnnps.models.network import CNNPS, RGB_CHANNELS, fast_cpu_model, fold_for_inference
+from cnnps.models.unet import HeatmapUNet
 from cnnps.ps.rotation import average_rotated_predictions, rotate_z, rotation_angles
 
 PRECISIONS = ("fp32", "bf16")
@@ -161,6 +162,8 @@ class MapPredictor:
                 self.autocast = False
             else:
                 net = fold_for_inference(model)  # CUDA: the plain folded network (bf16: autocast)
+        elif fold and isinstance(model, HeatmapUNet):
+            net = model.for_inference()  # its patch layer folded into one convolution
         else:
             net = copy.deepcopy(model)
         self.net = net.to(self.device).eval().to(memory_format=torch.channels_last)

@@ -28,6 +28,8 @@ Example::
 
 from __future__ import annotations
 
+import copy
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -69,6 +71,16 @@ class HeatmapUNet(nn.Module):
         for mod in self.modules():
             if isinstance(mod, nn.Conv2d):
                 nn.init.kaiming_normal_(mod.weight, nonlinearity="relu")
+
+    def for_inference(self) -> HeatmapUNet:
+        """An eval-mode copy whose patch layer (b > 1) is one folded 3 x 3 convolution
+        (:meth:`cnnps.models.patch.PatchConv.folded`): the same heat-maps up to float
+        rounding, 3 to 7 times the maps per second on a CPU (the unfolded layer convolves
+        each of the b^2 maps apart; docs/performance.md). ``self`` is not modified."""
+        net = copy.deepcopy(self)
+        if isinstance(net.enc1a, PatchConv):
+            net.enc1a = net.enc1a.folded()
+        return net.eval()
 
     def set_mask_key(self, key, row0: int = 0) -> None:
         """Nothing to key: the U-Net has no dropout (the training loop's call is accepted)."""

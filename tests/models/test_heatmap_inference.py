@@ -8,6 +8,8 @@ import torch
 from cnnps.infra.errors import ConfigError
 from cnnps.models.inference import MapPredictor, patch_maps, predict_normals, rotated_normals
 from cnnps.models.model_options import build_model
+from cnnps.models.patch import PatchConv
+from cnnps.ps.metrics import angular_error_deg
 from cnnps.ps.obsmap import observation_maps
 from cnnps.ps.rotation import average_rotated_predictions, rotate_z, rotation_angles
 
@@ -70,3 +72,25 @@ def test_the_precision_probe_runs_heatmap_and_patch_models(monkeypatch, tmp_path
         choice = pp.probe(model, torch.device("cpu"), batch_size=32)
         assert choice.precision in ("fp32", "bf16") and "fp32" in choice.reason
         assert np.isfinite(choice.error_change_deg.get("bf16", 0.0))
+
+
+@pytest.mark.parametrize("b", [3, 5])
+def test_a_unet_predicts_through_its_folded_patch_layer(b):
+    torch.manual_seed(b)
+    model = build_model(arch="unet", head="heatmap", patch=b, w=16)
+    model.train()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    maps = np.random.default_rng(b).random((40, b * b, 16, 16)).astype(np.float32)
+    folded = MapPredictor(model, device="cpu")
+    plain = MapPredictor(model, device="cpu", fold=False)
+    assert not any(isinstance(m, PatchConv) for m in folded.net.modules())
+    assert any(isinstance(m, PatchConv) for m in plain.net.modules())
+    s_folded, s_plain = np.empty(40, np.float32), np.empty(40, np.float32)
+    n_folded, n_plain = folded(maps, spread=s_folded), plain(maps, spread=s_plain)
+    # one float32 convolution against two: float rounding only, far below a decoded cell
+    assert angular_error_deg(n_folded, n_plain).max() < 1e-3
+    np.testing.assert_allclose(s_folded, s_plain, atol=1e-3)
+    assert model.training and all(torch.equal(before[k], v) for k, v in model.state_dict().items())  # untouched
+    with torch.no_grad():  # the heat-maps themselves, against the training network's
+        x = torch.from_numpy(maps)
+        np.testing.assert_allclose(folded.net(x).numpy(), model.eval()(x).numpy(), rtol=1e-4, atol=1e-5)
