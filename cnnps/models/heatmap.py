@@ -69,6 +69,23 @@ def heatmap_loss(output: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
     return LOSS_SCALE * F.mse_loss(out, heatmap_targets(normals.to(out.device), out.shape[-1]))
 
 
+def softmax_heatmap_loss(logits: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """The cross-entropy between the softmax over the w x w cells of ``logits`` (B, w, w)
+    and the Gaussian targets of unit ``normals`` (B, 3) normalised to sum 1 (the
+    ``heatmap-softmax`` head's loss): a float32 scalar, the mean over the batch."""
+    out = logits.float().flatten(1)
+    target = heatmap_targets(normals.to(out.device), logits.shape[-1]).flatten(1)
+    target = target / target.sum(dim=1, keepdim=True)
+    return -(target * F.log_softmax(out, dim=1)).sum(dim=1).mean()
+
+
+def softmax_maps(logits: torch.Tensor) -> torch.Tensor:
+    """(B, w, w) float32: the softmax over each map's w x w cells (the ``heatmap-softmax``
+    head's heat-maps, decoded and spread like any heat-map)."""
+    out = logits.float()
+    return F.softmax(out.flatten(1), dim=1).reshape(out.shape)
+
+
 def _window(maps: torch.Tensor):
     """(positive weights (B, k, k), cell-centre u (B, 1, k), v (B, k, 1), maximum's u, v (B,))
     of the window around each map's maximum."""

@@ -49,7 +49,7 @@ from torch import nn
 
 from cnnps.infra.errors import CnnpsError, ConfigError
 from cnnps.models.devices import resolve_device  # also part of this module's API
-from cnnps.models.heads import HEATMAP, model_head
+from cnnps.models.heads import heat_maps, is_heatmap, model_head
 from cnnps.models.heatmap import check_decoding, decode_heatmaps, decode_with_spread
 from cnnps.models.network import CNNPS, RGB_CHANNELS, fast_cpu_model, fold_for_inference
 from cnnps.models.unet import HeatmapUNet
@@ -181,7 +181,7 @@ class MapPredictor:
         """(B, 3) normals of ``maps``; ``spread`` (B,) float32, optional: filled with each
         heat-map's spread in degrees (:func:`cnnps.models.heatmap.heatmap_spread_deg`;
         ValueError for a regression model, which has none)."""
-        if spread is not None and self.head != HEATMAP:
+        if spread is not None and not is_heatmap(self.head):
             raise ValueError("spread= needs a heat-map model; a regression model's spread is rotation_spread")
         maps = np.ascontiguousarray(maps, dtype=np.float32)
         C = self.in_channels * self.patch * self.patch
@@ -196,7 +196,8 @@ class MapPredictor:
             x = x_all[start:start + self.batch_size].to(self.device, non_blocking=True)
             x = x.contiguous(memory_format=torch.channels_last)
             y = self._forward(x)
-            if self.head == HEATMAP:
+            if is_heatmap(self.head):
+                y = heat_maps(self.head, y)  # heatmap-softmax: the softmax of its logits
                 if spread is not None:
                     y, s = decode_with_spread(y, self.heatmap_decoding)
                     spread[start:start + x.shape[0]] = s.cpu().numpy()
@@ -407,7 +408,7 @@ def rotated_answers(predictor: MapPredictor, maps: np.ndarray, angles: np.ndarra
     (the heat-map spread, mean over the K rotations, of a heat-map predictor, else
     :func:`rotation_spread`)."""
     K, n = maps.shape[:2]
-    heat_spread = np.empty(K * n, np.float32) if spread is not None and model_head(predictor) == HEATMAP else None
+    heat_spread = np.empty(K * n, np.float32) if spread is not None and is_heatmap(model_head(predictor)) else None
     preds = predictor(maps.reshape((K * n,) + maps.shape[2:]), progress=progress,
                       **({} if heat_spread is None else {"spread": heat_spread})).reshape(K, n, 3)
     pred = preds[0] if K == 1 else average_rotated_predictions(preds, angles)

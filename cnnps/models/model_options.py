@@ -2,7 +2,7 @@
 
 Options (:func:`build_model`): ``arch`` ``cnnps`` (:class:`cnnps.models.network.CNNPS`)
 or ``unet`` (:class:`cnnps.models.unet.HeatmapUNet`, heat-map head only); ``head``
-``regression`` or ``heatmap`` (:mod:`cnnps.models.heads`); ``patch`` b in 1, 3, 5 (input
+``regression``, ``heatmap`` or ``heatmap-softmax`` (:mod:`cnnps.models.heads`); ``patch`` b in 1, 3, 5 (input
 (B, C b^2, w, w), :mod:`cnnps.models.patch`); ``w``; ``in_channels`` C; ``dropout``
 (CNN-PS only). A checkpoint's config holds ``arch``, ``head`` and ``patch`` when they
 differ from the paper's network (``cnnps``, ``regression``, 1: :data:`DEFAULTS`), so a

@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cnnps.models.heads import HEATMAP, REGRESSION, check_head, head_loss, head_normals
+from cnnps.models.heads import REGRESSION, check_head, head_loss, head_normals, is_heatmap
 from cnnps.models.patch import PatchConv, check_patch
 from cnnps.models.train_layers import (
     counter_keep,
@@ -166,7 +166,7 @@ class CNNPS(nn.Module):
 def head_output(head: str, y: torch.Tensor, w: int) -> torch.Tensor:
     """What the last dense layer's ``y`` (B, 3 or w^2) becomes: L2-normalised float32
     normals (regression) or float32 (B, w, w) heat-maps."""
-    if head == HEATMAP:
+    if is_heatmap(head):
         return y.float().reshape(y.shape[0], w, w)
     return F.normalize(y.float(), dim=1)
 
@@ -434,7 +434,7 @@ class FastCNNPS(nn.Module):
         h = torch.addmm(self.fc1_b, self._flat(z0), self.fc1_z0)
         h = h.addmm_(self._flat(z1), self.fc1_z1).addmm_(self._flat(z2), self.fc1_z2).relu_()
         y = torch.addmm(self.fc2_b, h.float(), self.fc2_wt)
-        if self.head == HEATMAP:
+        if is_heatmap(self.head):
             return y.reshape(y.shape[0], self.w, self.w)
         return F.normalize(y, dim=1)
 

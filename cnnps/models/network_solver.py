@@ -302,7 +302,9 @@ class NetworkSolver(Solver):
     @property
     def heatmap(self) -> bool:
         """Whether the model has a heat-map head (its confidence is the heat-map spread)."""
-        return getattr(self.predictor, "head", "regression") == "heatmap"
+        from cnnps.models.heads import REGRESSION, is_heatmap
+
+        return is_heatmap(getattr(self.predictor, "head", REGRESSION))
 
     def confidence_record(self) -> dict | None:
         if self.heatmap:

@@ -211,7 +211,7 @@ class CpuParams:
 # cnnps.models.model_options.ARCHS, cnnps.models.heads.HEADS, cnnps.models.patch.PATCHES
 # (named here: this module loads without torch; tests/train/test_params.py checks they agree)
 ARCHS = ("cnnps", "unet")
-HEADS = ("regression", "heatmap")
+HEADS = ("regression", "heatmap", "heatmap-softmax")
 PATCHES = (1, 3, 5)
 
 
@@ -219,8 +219,10 @@ PATCHES = (1, 3, 5)
 class ModelParams:
     """``train.model``: the network trained (:func:`cnnps.models.model_options.build_model`).
     ``arch``: ``cnnps`` (the paper's CNN-PS) or ``unet`` (the bias-free heat-map U-Net,
-    heat-map head only); ``head``: ``regression`` (a unit normal, MSE loss) or ``heatmap``
-    (a w x w heat-map, its loss and decoding in :mod:`cnnps.models.heads`); ``patch``: b,
+    heat-map head only); ``head``: ``regression`` (a unit normal, MSE loss), ``heatmap``
+    (a w x w heat-map, MSE against a Gaussian) or ``heatmap-softmax`` (w x w logits, the
+    cross-entropy of their softmax; what trains on the CNN-PS trunk), losses and decoding
+    in :mod:`cnnps.models.heads`; ``patch``: b,
     the network takes the b x b maps around a pixel (b > 1 needs the extract stage's
     ``layout: observations``: patches are drawn from per-pixel observations,
     :mod:`cnnps.train.patch_dataset`). The defaults are the paper's network::
@@ -230,7 +232,7 @@ class ModelParams:
     """
 
     arch: Literal["cnnps", "unet"] = "cnnps"
-    head: Literal["regression", "heatmap"] = "regression"
+    head: Literal["regression", "heatmap", "heatmap-softmax"] = "regression"
     patch: Literal[1, 3, 5] = 1
 
     def __post_init__(self):

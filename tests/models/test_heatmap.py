@@ -8,7 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from cnnps.models.heads import decode_output, head_loss, training_loss, unwrapped
+from cnnps.models.heads import decode_output, head_loss, head_normals, training_loss, unwrapped
 from cnnps.models.heatmap import (
     EMPTY_SPREAD_DEG,
     decode_heatmaps,
@@ -16,6 +16,8 @@ from cnnps.models.heatmap import (
     heatmap_loss,
     heatmap_targets,
     heatmap_spread_deg,
+    softmax_heatmap_loss,
+    softmax_maps,
 )
 
 
@@ -132,3 +134,29 @@ def test_regression_loss_is_the_plain_mse_bit_for_bit_and_wrappers_are_seen_thro
     assert torch.equal(decode_output(compiled, heat), decode_heatmaps(heat))
     with pytest.raises(ValueError, match="unknown head 'nope'"):
         head_loss("nope", pred, normals)
+
+
+def test_softmax_heatmap_loss_is_the_cross_entropy_against_the_normalised_targets():
+    rng = np.random.default_rng(1)
+    normals = _unit(rng.normal(size=(6, 3)) + [0, 0, 2])
+    logits = rng.normal(size=(6, 8, 8)) * 3
+    target = heatmap_targets(torch.tensor(normals, dtype=torch.float32), 8).numpy().astype(np.float64)
+    t = target.reshape(6, -1) / target.reshape(6, -1).sum(axis=1, keepdims=True)
+    z = logits.reshape(6, -1)
+    log_p = z - z.max(axis=1, keepdims=True)
+    log_p -= np.log(np.exp(log_p).sum(axis=1, keepdims=True))
+    want = float(np.mean(-(t * log_p).sum(axis=1)))
+    x, n = torch.tensor(logits, dtype=torch.float32), torch.tensor(normals, dtype=torch.float32)
+    got = softmax_heatmap_loss(x, n)
+    assert got.dtype == torch.float32 and got.item() == pytest.approx(want, rel=1e-5)
+    assert torch.equal(head_loss("heatmap-softmax", x, n), got)
+    # its heat-map is the softmax over the cells: decoded and spread like any heat-map
+    p = np.exp(log_p).reshape(6, 8, 8)
+    np.testing.assert_allclose(softmax_maps(x).numpy(), p, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(head_normals("heatmap-softmax", x), decode_heatmaps(softmax_maps(x)))
+    for b in range(6):
+        np.testing.assert_allclose(head_normals("heatmap-softmax", x)[b].numpy(), _reference_decode(p[b])[0], atol=1e-5)
+    model = types.SimpleNamespace(head="heatmap-softmax")
+    assert torch.equal(decode_output(model, x), head_normals("heatmap-softmax", x))
+    # a shift of every logit changes nothing: the softmax sees differences only
+    assert softmax_heatmap_loss(x + 7.0, n).item() == pytest.approx(got.item(), rel=1e-5)

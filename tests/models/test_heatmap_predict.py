@@ -4,9 +4,11 @@ confidence recomputed independently of the tile loop."""
 import json
 
 import numpy as np
+import pytest
 import torch
 
 from cnnps.models.checkpoint import save_checkpoint
+from cnnps.models.heads import heat_maps
 from cnnps.models.heatmap import decode_with_spread
 from cnnps.models.model_options import build_model
 from cnnps.ps.confidence import heatmap_confidence, lit_share
@@ -16,10 +18,11 @@ from tests.support.cli import run_cli
 from tests.support.synthetic import write_capture
 
 
-def test_cnnps_predict_runs_a_tiny_heatmap_checkpoint(tmp_path, capsys):
+@pytest.mark.parametrize("arch, head", [("unet", "heatmap"), ("cnnps", "heatmap-softmax")])
+def test_cnnps_predict_runs_a_tiny_heatmap_checkpoint(tmp_path, capsys, arch, head):
     truth = write_capture(tmp_path / "cap", fmt="exr", size=12, m=20, max_tilt_deg=45)
     torch.manual_seed(0)
-    net = build_model(arch="unet", head="heatmap", w=16).eval()
+    net = build_model(arch=arch, head=head, w=16).eval()
     model = save_checkpoint(tmp_path / "heat.pt", net, meta={"note": "random weights"})
     out = tmp_path / "out"
     code, _, err = run_cli(["predict", str(tmp_path / "cap"), "--out", str(out), "--model", str(model), "--rotations", "2",
@@ -39,7 +42,7 @@ def test_cnnps_predict_runs_a_tiny_heatmap_checkpoint(tmp_path, capsys):
     for a in angles:
         maps = torch.from_numpy(observation_maps(I, rotate_z(L, a), w=16))[:, None]
         with torch.no_grad():
-            n, s = decode_with_spread(net(maps))
+            n, s = decode_with_spread(heat_maps(head, net(maps)))  # heatmap-softmax: the softmax of its logits
         each.append(n.numpy())
         spreads.append(s.numpy())
     want = average_rotated_predictions(np.stack(each), angles)

@@ -72,7 +72,7 @@ def test_options_round_trip_through_a_checkpoint(tmp_path, options):
 def test_a_config_naming_an_unknown_head_names_the_file(tmp_path):
     torch.manual_seed(0)
     save_checkpoint(tmp_path / "m.pt", CNNPS(w=8), config={"head": "bogus"})
-    with pytest.raises(InputError, match="head must be one of regression, heatmap, got 'bogus'") as info:
+    with pytest.raises(InputError, match="head must be one of regression, heatmap, heatmap-softmax, got 'bogus'") as info:
         load_checkpoint(tmp_path / "m.pt")
     assert info.value.path == tmp_path / "m.pt"
     with pytest.raises(ValueError, match=r"config\['head'\] = 'regression' disagrees"):

@@ -71,7 +71,7 @@ def test_the_model_section_keys_runs_only_off_its_defaults_and_names_a_bad_key()
     p = build_params(config_from_dict({"train": {"model": {"arch": "unet", "head": "heatmap", "patch": 5}}}), "train")
     assert p.model.options() == {"arch": "unet", "head": "heatmap", "patch": 5}
     assert Params.from_record(dataclasses.asdict(p)).model == p.model
-    for bad, said in (({"head": "heatmaps"}, "train.model.head must be one of regression, heatmap, got 'heatmaps'"),
+    for bad, said in (({"head": "heatmaps"}, "train.model.head must be one of regression, heatmap, heatmap-softmax, got 'heatmaps'"),
                       ({"patch": 2}, "train.model.patch must be one of 1, 3, 5, got 2"),
                       ({"arch": "unet"}, "train.model.head: arch unet has the heatmap head only"),
                       ({"size": 3}, "train.model: unknown key 'size'")):
