@@ -767,7 +767,7 @@ class Run:
         import torch
 
         from cnnps.models.checkpoint import save_checkpoint
-        from cnnps.models.network import CNNPS
+        from cnnps.models.model_options import build_model
 
         state = torch.load(checkpoint, map_location="cpu", weights_only=True)
         params = yaml.safe_load(self.params.read_text())
@@ -775,8 +775,13 @@ class Run:
         manifest = self.data / "extract" / "manifest.json"  # shards carry their map width
         per_pixel_only = train_value(train, "pixelwise", 0) >= 1
         w = json.loads(manifest.read_text())["w"] if manifest.is_file() and not per_pixel_only else train_value(train, "w", 32)
-        channels = int(state["model"]["conv0.weight"].shape[1])  # 4: a colour model (train.pixelwise.rgb)
-        net = CNNPS(w=int(w), dropout=float(train.get("dropout", 0.2)), in_channels=channels)
+        model = train.get("model") or {}  # train.model: arch, head, patch (absent: the paper's CNN-PS)
+        opts = {"arch": model.get("arch", "cnnps"), "head": model.get("head", "regression"),
+                "patch": int(model.get("patch", 1))}
+        first = next(k for k in ("conv0.weight", "conv0.map_conv.weight", "enc1a.weight", "enc1a.map_conv.weight")
+                     if k in state["model"])  # the first convolution: its inputs are the map's channels
+        channels = int(state["model"][first].shape[1])  # 4: a colour model (train.pixelwise.rgb)
+        net = build_model(**opts, w=int(w), dropout=float(train.get("dropout", 0.2)), in_channels=channels)
         net.load_state_dict(state["model"])
         return save_checkpoint(out, net, meta=meta, half=half)
 

@@ -484,3 +484,22 @@ def test_arms_stop_with_one_line_on_a_missing_run(tmp_path):
                           capture_output=True, text=True)
     assert proc.returncode != 0 and proc.stderr.strip().splitlines() == [f"{root / 'a2' / 'params.yaml'}: no such file: "
                                                                          f"'a2' is not a run under {root}"]
+
+
+@pytest.mark.parametrize("options", [{"head": "heatmap-softmax"}, {"head": "regression", "patch": 3},
+                                     {"arch": "unet", "head": "heatmap", "patch": 5}])
+def test_save_exports_the_network_the_run_trains(tmp_path, options):
+    import torch
+
+    from cnnps.models.checkpoint import load_checkpoint
+    from cnnps.models.model_options import build_model, model_options
+
+    run = _fake_run(tmp_path, [10])
+    run.params.write_text(yaml.safe_dump({"train": {"max_steps": 40, "model": options}}))
+    torch.manual_seed(1)
+    net = build_model(**options, w=32)
+    torch.save({"model": net.state_dict(), "step": 10}, run.data / "train" / "checkpoints" / "step-00000010.pt")
+    out = run.export(run.data / "train" / "checkpoints" / "step-00000010.pt", tmp_path / "w.pt", {"steps": 10})
+    saved = load_checkpoint(out)[0]
+    assert model_options(saved) == model_options(net)
+    assert all(torch.equal(v, net.state_dict()[k]) for k, v in saved.state_dict().items())
