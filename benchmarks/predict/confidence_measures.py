@@ -50,7 +50,7 @@ def measures(capture: Path, predictor, pixels: int, rotations: int) -> dict:
     from scipy.stats import spearmanr
 
     from cnnps.io.capture import load_capture
-    from cnnps.models.heads import HEATMAP
+    from cnnps.models.heads import is_heatmap
     from cnnps.ps.least_squares import least_squares
     from cnnps.ps.metrics import angular_error_deg
     from cnnps.ps.obsmap import observation_maps_multi
@@ -68,7 +68,7 @@ def measures(capture: Path, predictor, pixels: int, rotations: int) -> dict:
     rotated = np.stack([rotate_z(cap.lights, a) for a in angles])
     maps = observation_maps_multi(I, rotated, w=predictor.w)  # (K, P, w, w)
     K, P = maps.shape[:2]
-    hm = np.empty(K * P, np.float32) if predictor.head == HEATMAP else None
+    hm = np.empty(K * P, np.float32) if is_heatmap(predictor.head) else None
     preds = predictor(maps.reshape(K * P, predictor.w, predictor.w), spread=hm).reshape(K, P, 3).astype(np.float64)
     back = np.stack([rotate_z(p, -a) for p, a in zip(preds, angles)])
     n = normalize(back.mean(axis=0))
