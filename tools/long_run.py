@@ -91,9 +91,10 @@ from pathlib import Path
 import yaml
 
 try:
-    from tools import run_weights  # imported as tools.long_run (the tests)
+    from tools import run_weights, tree_size  # imported as tools.long_run (the tests)
 except ImportError:  # run as a script: its own folder is on the path
     import run_weights
+    import tree_size
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -721,7 +722,9 @@ class Run:
         checkpoint's weights (float16) into git's folder: the weights file while the run
         is in progress, their record alone once it is finished (its plan spent, or
         ``final``: it ends here), the file then in ``ROOT/NAME/intermediate.pt``
-        (:func:`tools.run_weights.carry`). Returns the weights file."""
+        (:func:`tools.run_weights.carry`); in progress too when git's folder is in this
+        checkout and the file would take its tracked tree over :data:`tools.tree_size.LIMIT`.
+        Returns the weights file."""
         dst = self.carried
         if self.ledger.is_file():
             shutil.copy(self.ledger, dst / "ledger.json")
@@ -741,7 +744,9 @@ class Run:
         self.export(cks[-1], out, meta={"steps": done, "run": self.name, "commit": self.record()["commit"]}, half=True)
         prev = run_weights.read_record(dst)  # a run ended with --final stays ended while its step is the same
         ended = prev is not None and prev["finished"] and int(prev["steps"]) == done
-        carried = run_weights.carry(dst, out, steps=done, planned=planned, finished=final or ended or done >= planned)
+        room = tree_size.room(REPO, replacing=dst / run_weights.WEIGHTS) if dst.resolve().is_relative_to(REPO.resolve()) else None
+        carried = run_weights.carry(dst, out, steps=done, planned=planned, finished=final or ended or done >= planned,
+                                    room=room)
         return carried or out
 
     def _save_val_curve(self, dst: Path) -> None:
@@ -1198,9 +1203,13 @@ def main(argv=None) -> int:
             print(f"saved {run.carried}/ledger.json (no checkpoint yet)")
         elif out.parent == run.carried:
             print(f"saved {run.carried}/ledger.json and {out} (in progress)")
-        else:
+        elif run_weights.read_record(run.carried)["finished"]:
             print(f"saved {run.carried}/ledger.json and {run.carried / run_weights.RECORD} (finished: the weights "
                   f"stay in {out}, outside git)")
+        else:
+            print(f"saved {run.carried}/ledger.json and {run.carried / run_weights.RECORD} (in progress; the "
+                  f"weights stay in {out}, outside git: they would take the tracked tree over "
+                  f"{tree_size.LIMIT / 1e6:.0f} MB)")
         return 0
     print(json.dumps({"dir": str(run.dir), "exists": run.dir.is_dir(), "totals": run.totals()}, indent=1))
     return 0

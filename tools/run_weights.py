@@ -1,7 +1,9 @@
 """The weights a run's folder in git (``tools/runs/NAME/``) keeps: the newest weights
 themselves (``intermediate.pt``, float16) while the run is in progress, and only their
 record (``intermediate.json``) once it is finished, so the tracked tree holds no finished
-run's weights.
+run's weights. Weights that would take the tracked tree over its limit
+(:mod:`tools.tree_size`) stay outside it even while the run is in progress: the record
+alone, with ``kept``.
 
 ``intermediate.json``::
 
@@ -65,18 +67,26 @@ def read_record(folder: Path) -> dict | None:
     return rec
 
 
-def carry(folder: Path, weights: Path, *, steps: int, planned: int, finished: bool) -> Path | None:
+def carry(folder: Path, weights: Path, *, steps: int, planned: int, finished: bool,
+          room: int | None = None) -> Path | None:
     """Put a run's newest weights (the file ``weights``, outside the tree) into its folder
     in git: while the run is in progress, the file as ``intermediate.pt`` (replacing the
     one there) with its record; once finished, the record alone (``kept``: ``weights``),
-    and the folder's ``intermediate.pt`` goes. Returns the weights file in the folder, or
-    None when the run is finished."""
+    and the folder's ``intermediate.pt`` goes. ``room``: the bytes git's tracked tree may
+    still grow by (:func:`tools.tree_size.room`, counting the folder's present weights as
+    gone); weights bigger than that stay where they are, as for a finished run, with a
+    record that says the run is in progress. Returns the weights file in the folder, or
+    None when the weights stay outside it."""
     folder = Path(folder)
     weights = Path(weights).resolve()
     dst = folder / WEIGHTS
     if finished:
         record = weights_record(weights, steps=steps, planned=planned, finished=True, kept=str(weights))
         write_record(folder, record)
+        dst.unlink(missing_ok=True)
+        return None
+    if room is not None and weights != dst.resolve() and weights.stat().st_size > room:
+        write_record(folder, weights_record(weights, steps=steps, planned=planned, finished=False, kept=str(weights)))
         dst.unlink(missing_ok=True)
         return None
     record = weights_record(weights, steps=steps, planned=planned, finished=False)

@@ -503,3 +503,38 @@ def test_save_exports_the_network_the_run_trains(tmp_path, options):
     saved = load_checkpoint(out)[0]
     assert model_options(saved) == model_options(net)
     assert all(torch.equal(v, net.state_dict()[k]) for k, v in saved.state_dict().items())
+
+
+def test_in_progress_weights_stay_outside_git_without_room(tmp_path):
+    from cnnps.models.checkpoint import load_checkpoint, save_checkpoint
+    from cnnps.models.network import CNNPS
+
+    weights = tmp_path / "outside" / "intermediate.pt"
+    weights.parent.mkdir()
+    save_checkpoint(weights, CNNPS(w=32), meta={"steps": 30})
+    size = weights.stat().st_size
+    folder = tmp_path / "r"
+    # room for them: the file goes into the folder, as before
+    assert run_weights.carry(folder, weights, steps=30, planned=100, finished=False, room=size) == folder / "intermediate.pt"
+    assert not run_weights.read_record(folder)["finished"]
+    # one byte short: the record alone, in progress, naming where the file is; the stale copy goes
+    assert run_weights.carry(folder, weights, steps=30, planned=100, finished=False, room=size - 1) is None
+    record = run_weights.read_record(folder)
+    assert not (folder / "intermediate.pt").exists()
+    assert not record["finished"] and record["steps"] == 30 and record["kept"] == str(weights)
+    with pytest.raises(SystemExit, match=re.escape(f"it was written to {weights}")):
+        run_weights.carried_weights(folder)
+    assert load_checkpoint(weights)[2]["steps"] == 30
+
+
+def test_room_counts_the_file_replaced(tmp_path):
+    from tools import tree_size
+
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    (tmp_path / "a.bin").write_bytes(b"x" * 300)
+    (tmp_path / "b.bin").write_bytes(b"y" * 200)
+    subprocess.run(["git", "-C", str(tmp_path), "add", "a.bin", "b.bin"], check=True)
+    assert tree_size.room(tmp_path, limit=1000) == 500
+    assert tree_size.room(tmp_path, limit=1000, replacing=tmp_path / "a.bin") == 800
+    assert tree_size.room(tmp_path, limit=400) == -100
+    assert tree_size.room(tmp_path / "a.bin", limit=1000) is None  # not the top of a checkout
