@@ -80,13 +80,9 @@ def carry(folder: Path, weights: Path, *, steps: int, planned: int, finished: bo
     folder = Path(folder)
     weights = Path(weights).resolve()
     dst = folder / WEIGHTS
-    if finished:
-        record = weights_record(weights, steps=steps, planned=planned, finished=True, kept=str(weights))
-        write_record(folder, record)
-        dst.unlink(missing_ok=True)
-        return None
-    if room is not None and weights != dst.resolve() and weights.stat().st_size > room:
-        write_record(folder, weights_record(weights, steps=steps, planned=planned, finished=False, kept=str(weights)))
+    no_room = room is not None and weights != dst.resolve() and weights.stat().st_size > room
+    if finished or no_room:  # the record alone, naming where the file is
+        write_record(folder, weights_record(weights, steps=steps, planned=planned, finished=finished, kept=str(weights)))
         dst.unlink(missing_ok=True)
         return None
     record = weights_record(weights, steps=steps, planned=planned, finished=False)
