@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.predict.tilt_bias import lambert_images, tilt_rows
+from benchmarks.predict.tilt_bias import lambert_images, sample_mask, tilt_rows
 
 
 def _tilted(tilt_deg: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
@@ -39,3 +39,13 @@ def test_lambert_images_shade_by_the_cosine_inside_the_mask():
     assert img[0, 0, 0] == pytest.approx(0.6) and img[1, 0, 0] == pytest.approx(0.6 * np.cos(0.5))
     assert img[0, 0, 1] == 0.0 and img[1, 0, 1] == pytest.approx(0.6 * np.sin(0.5))  # n = +x: only the tilted light
     assert img[:, 1, 1].tolist() == [0.0, 0.0]  # outside the mask
+
+
+def test_the_pixel_sample_is_seeded_inside_the_mask():
+    mask = np.zeros((40, 50), bool)
+    mask[5:30, 10:45] = True  # 875 pixels
+    a, b = sample_mask(mask, 100), sample_mask(mask, 100)
+    assert a.sum() == 100 and not (a & ~mask).any()  # N pixels, all of the mask
+    assert (a == b).all()  # the same sample every call
+    assert not (sample_mask(mask, 100, seed=1) == a).all()  # another seed, another sample
+    assert (sample_mask(mask, 0) == mask).all() and (sample_mask(mask, 10_000) == mask).all()  # 0 or more: all
