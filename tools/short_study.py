@@ -160,7 +160,7 @@ def score_weights(weights: Path, label: str, shared: Path, pixels: int, rotation
                "--rotations", str(rotations), "--exclude-from-mean", BALL, "--precision", "fp32", "--out", str(real_out)]
         if timed(cmd, lambda w, c, rc: book(w, c, rc, what="real")):
             raise SystemExit(f"cnnps score exited with an error on {weights}")
-        proxy = json.loads(proxy_out.read_text())["models"][label][PROXY]
+        proxy = json.loads(proxy_out.read_text())["results"]["models"][label][PROXY]
         real = json.loads(real_out.read_text())
     k = f"cnn_k{rotations}"
     row = {"proxy_mean": proxy["mean_deg"], **{f"lean_{b}": v for b, v in proxy["tilt_bias_deg"].items()}}

@@ -32,12 +32,12 @@ from cnnps.io.shards import SceneShardWriter, make_batch, shard_schema
 from cnnps.ps.obsmap import observation_maps
 from cnnps.ps.rotation import rotation_angles
 from cnnps.stages.extract import Params
+from cnnps.synth.light_subsets import sample_light_masks
 from cnnps.synth.training_samples import (
     STREAM_SPARSE,
     apply_capture_effects,
     build_rows,
     draw_capture_effects,
-    sample_light_masks,
     stream,
 )
 

@@ -88,12 +88,12 @@ from cnnps.io.shards import (
 )
 from cnnps.ps.rotation import rotation_angles
 from cnnps.synth.render.rendered_folder import SCENE_TIMINGS, folder_problems
+from cnnps.synth.light_subsets import RULE, check_light_subsets, sample_light_masks
 from cnnps.synth.training_samples import (
     STREAM_SPARSE,
     apply_capture_effects,
     build_rows,
     draw_capture_effects,
-    sample_light_masks,
     stream,
 )
 
@@ -106,10 +106,11 @@ FIX_RENDER = "rerun `cnnps run-stage render` (it re-renders exactly the damaged 
 @dataclass(frozen=True)
 class Params:
     w: int = 32
-    min_lights: int = 50
-    max_lights: int = 1300
-    cone_min_deg: float = 20.0
-    cone_max_deg: float = 90.0
+    # the light-subset rule (module docstring, steps 1 and 2): cnnps.synth.light_subsets declares it
+    min_lights: int = RULE.min_lights
+    max_lights: int = RULE.max_lights
+    cone_min_deg: float = RULE.cone_min_deg
+    cone_max_deg: float = RULE.cone_max_deg
     rotations: int = 10
     ambient_max: float = 0.0  # per-pixel ambient offset a ~ U(0, ambient_max), times the pixel's brightest light
     # sensor and capture realism (module docstring, step 4; each 0 / empty = off)
@@ -121,7 +122,7 @@ class Params:
     quantize_bits: tuple[int, ...] = ()  # per scene: a bit depth drawn from these, grid E / (2^bits - 1)
     # sparse light subsets (module docstring, step 2): a pixel is sparse with this probability
     sparse_fraction: float = 0.0
-    sparse_min_lights: int = 6  # sparse k is log-uniform in [sparse_min_lights, min_lights)
+    sparse_min_lights: int = RULE.sparse_min_lights  # sparse k is log-uniform in [sparse_min_lights, min_lights)
     pixels_per_scene: int = 0  # 0 = every foreground pixel
     val_fraction: float = 0.1
     val_scenes: tuple[str, ...] = ()  # explicit validation scenes (or view ids); overrides val_fraction
@@ -148,14 +149,7 @@ class Params:
             raise ConfigError(f"extract.layout must be one of {', '.join(LAYOUTS)}, got {self.layout!r}")
         if not 4 <= self.w <= 256:
             raise ConfigError(f"extract.w must be in [4, 256], got {self.w}")
-        if self.min_lights < 1 or self.max_lights < self.min_lights:
-            raise ConfigError(
-                f"extract: need 1 <= min_lights <= max_lights, got {self.min_lights} and {self.max_lights}"
-            )
-        if not 0.0 < self.cone_min_deg <= self.cone_max_deg <= 180.0:
-            raise ConfigError(
-                f"extract: need 0 < cone_min_deg <= cone_max_deg <= 180, got {self.cone_min_deg}, {self.cone_max_deg}"
-            )
+        check_light_subsets("extract", self, self.sparse_fraction)
         if not 1 <= self.rotations <= 127:
             raise ConfigError(f"extract.rotations must be in [1, 127], got {self.rotations}")
         if not 0.0 <= self.ambient_max <= 1.0:
@@ -169,12 +163,6 @@ class Params:
         if not all(isinstance(b, (int, np.integer)) and not isinstance(b, bool) and 1 <= b <= 16 for b in bits):
             raise ConfigError(f"extract.quantize_bits must be bit depths in [1, 16], got {list(bits)}")
         object.__setattr__(self, "quantize_bits", tuple(sorted({int(b) for b in bits})))
-        if self.sparse_min_lights < 1:
-            raise ConfigError(f"extract.sparse_min_lights must be >= 1, got {self.sparse_min_lights}")
-        if self.sparse_fraction and self.sparse_min_lights >= self.min_lights:
-            raise ConfigError(
-                f"extract: need sparse_min_lights < min_lights, got {self.sparse_min_lights} and {self.min_lights}"
-            )
         if self.pixels_per_scene < 0:
             raise ConfigError(f"extract.pixels_per_scene must be >= 0, got {self.pixels_per_scene}")
         if not 0.0 <= self.val_fraction < 1.0:
@@ -228,7 +216,7 @@ OMITTED_AT_DEFAULT = {
     "saturated_fraction_max": 0.0,
     "quantize_bits": (),
     "sparse_fraction": 0.0,
-    "sparse_min_lights": 6,
+    "sparse_min_lights": RULE.sparse_min_lights,
     "layout": "maps",
     "scenes": (),
 }

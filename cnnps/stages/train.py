@@ -102,7 +102,6 @@ from cnnps.train.params import (  # the stage's typed params (torch-free), re-ex
     FROM_SECTIONS,
     MOVED_KEYS,
     OMITTED_AT_DEFAULT,
-    PIXELWISE_EFFECTS,
     SECTIONS,
     CpuParams,
     DataParams,
@@ -112,7 +111,7 @@ from cnnps.train.params import (  # the stage's typed params (torch-free), re-ex
     SynthesisParams,
 )
 
-__all__ = ["FROM_SECTIONS", "MOVED_KEYS", "OMITTED_AT_DEFAULT", "PIXELWISE_EFFECTS", "SECTIONS", "CpuParams",
+__all__ = ["FROM_SECTIONS", "MOVED_KEYS", "OMITTED_AT_DEFAULT", "SECTIONS", "CpuParams",
            "DataParams", "OptimiserParams", "Params", "PixelwiseParams", "SynthesisParams", "run", "run_key"]
 
 

@@ -2,10 +2,7 @@
 the rotated observation-map rows (the rules, distributions, order of operations and random
 streams are in :mod:`cnnps.stages.extract`'s docstring).
 
-- :func:`sample_light_masks`: per pixel a cone about the view axis (+z) of random
-  half-angle, widened to hold at least ``min_lights``, and a random subset of k lights in
-  it; optionally a share of *sparse* pixels with k log-uniform in [``sparse_min_lights``,
-  ``min_lights``);
+- per-pixel light subsets: :mod:`cnnps.synth.light_subsets` (its rule, settings and draws);
 - :func:`add_ambient`: the ambient offset augmentation (real attached shadows are not black);
 - sensor and capture realism: :func:`draw_capture_effects` makes a scene's draws
   (:class:`CaptureEffects`: per-light intensity mis-calibration :func:`light_gains`,
@@ -24,69 +21,6 @@ import numpy as np
 
 from cnnps.ps.obsmap import observation_maps_multi
 from cnnps.ps.rotation import rotate_z
-
-
-def sample_light_masks(
-    rng: np.random.Generator,
-    lights: np.ndarray,
-    n_pixels: int,
-    min_lights: int,
-    max_lights: int,
-    cone_min_deg: float,
-    cone_max_deg: float,
-    *,
-    sparse_fraction: float = 0.0,
-    sparse_min_lights: int = 6,
-    sparse_rng: np.random.Generator | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Draw per-pixel light subsets restricted to cones about +z.
-
-    Returns (mask (P, m) bool, cone_deg (P,) float64 half-angle actually used, k (P,)
-    lights used). The rules are in :mod:`cnnps.stages.extract`'s docstring (steps 1, 2).
-
-    ``sparse_fraction`` > 0 (with ``sparse_rng``, its own stream): each pixel is sparse
-    with that probability and then uses :func:`sparse_subset_sizes` lights instead of
-    the dense size; the cone, the subset keys and ``rng``'s draws are the same either way,
-    and the cone always holds ``min(min_lights, m)`` > k lights, so a sparse pixel gets
-    exactly its k.
-    """
-    lights = np.asarray(lights, dtype=np.float64)
-    m = lights.shape[0]
-    P = n_pixels
-    z = np.clip(lights[:, 2], -1.0, 1.0)
-    lo = min(min_lights, m)
-    hi = min(max_lights, m)
-    half = rng.uniform(cone_min_deg, cone_max_deg, size=P)
-    cos_half = np.cos(np.radians(half))
-    # widen cones holding fewer than `lo` lights to the lo-th nearest light to the axis
-    z_lo = np.sort(z)[::-1][lo - 1]
-    cos_used = np.minimum(cos_half, z_lo)
-    in_cone = z[None, :] >= cos_used[:, None]  # (P, m)
-    n_in = in_cone.sum(axis=1)
-    k = rng.integers(lo, hi + 1, size=P)
-    if sparse_fraction > 0:
-        if sparse_rng is None:
-            raise ValueError("sparse_fraction > 0 needs sparse_rng (its own stream)")
-        sparse = sparse_rng.random(P) < sparse_fraction
-        k = np.where(sparse, sparse_subset_sizes(sparse_rng, P, sparse_min_lights, lo), k)
-    k = np.minimum(k, n_in)
-    keys = rng.random((P, m))
-    keys[~in_cone] = 2.0  # never chosen
-    kth = np.take_along_axis(np.sort(keys, axis=1), (k - 1)[:, None], axis=1)
-    mask = keys <= kth
-    cone_deg = np.degrees(np.arccos(cos_used))
-    return mask, cone_deg, mask.sum(axis=1)
-
-
-def sparse_subset_sizes(rng: np.random.Generator, n: int, sparse_min_lights: int, dense_min: int) -> np.ndarray:
-    """n sparse subset sizes, log-uniform over the integers [a, b] with
-    ``a = min(sparse_min_lights, dense_min)`` and ``b = max(a, dense_min - 1)``:
-    ``k = floor(exp(U(ln a, ln(b + 1))))``, so ``P(k) = ln((k + 1) / k) / ln((b + 1) / a)``
-    (for [6, 49]: 6 lights 7.3 %, 6-11 lights 33 %, 6-20 lights 59 %)."""
-    a = max(1, min(int(sparse_min_lights), int(dense_min)))
-    b = max(a, int(dense_min) - 1)
-    k = np.floor(np.exp(rng.uniform(np.log(a), np.log(b + 1), size=n))).astype(np.int64)
-    return np.clip(k, a, b)
 
 
 def add_ambient(rng: np.random.Generator, I: np.ndarray, mask: np.ndarray, ambient_max: float) -> np.ndarray:

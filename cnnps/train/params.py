@@ -29,10 +29,8 @@ from typing import Annotated, ClassVar, Literal
 from cnnps.infra.errors import ConfigError
 from cnnps.infra.options import Range, check_fields
 from cnnps.synth.bsdf import CATEGORIES, DEFAULT_CATEGORIES, MaterialRanges
-
-# cnnps.synth.pixelwise.EFFECT_NAMES (named here: this module loads without torch)
-PIXELWISE_EFFECTS = ("cast_shadow", "interreflection", "ambient", "intensity_error", "noise", "saturation",
-                     "quantisation", "boundary_mix", "interreflection_share", "ambient_share", "grazing_falloff")
+from cnnps.synth.effect_settings import EFFECT_NAMES
+from cnnps.synth.light_subsets import RULE, SETTINGS, check_light_subsets
 
 
 def _at_least(section: object, prefix: str, names: tuple[str, ...], low: int) -> None:
@@ -112,9 +110,9 @@ class PixelwiseParams:
         if not isinstance(self.rgb, bool):
             raise ConfigError(f"train.pixelwise.rgb must be true or false, got {self.rgb!r}")
         for k, v in self.effects.items():
-            if k not in PIXELWISE_EFFECTS:
+            if k not in EFFECT_NAMES:
                 raise ConfigError(f"train.pixelwise.effects: unknown effect {k!r}; "
-                                  f"effects (cnnps.synth.pixelwise.Effects): {', '.join(PIXELWISE_EFFECTS)}")
+                                  f"effects (cnnps.synth.pixelwise.Effects): {', '.join(EFFECT_NAMES)}")
             if not 0.0 <= float(v) <= 1.0:
                 raise ConfigError(f"train.pixelwise.effects.{k} must be a number in [0, 1], got {v!r}")
 
@@ -134,11 +132,12 @@ class SynthesisParams:
 
     categories: tuple[str, ...] = DEFAULT_CATEGORIES
     ranges: MaterialRanges = field(default_factory=MaterialRanges)
-    min_lights: int = 50
-    max_lights: int = 1300
-    cone_min_deg: float = 20.0
-    cone_max_deg: float = 90.0
-    sparse_min_lights: int = 6  # sparse maps (train.pixelwise.sparse_fraction): k log-uniform in [this, min_lights)
+    # the light-subset rule's settings (cnnps.synth.light_subsets declares them and their defaults)
+    min_lights: int = RULE.min_lights
+    max_lights: int = RULE.max_lights
+    cone_min_deg: float = RULE.cone_min_deg
+    cone_max_deg: float = RULE.cone_max_deg
+    sparse_min_lights: int = RULE.sparse_min_lights  # sparse maps (train.pixelwise.sparse_fraction)
 
     def __post_init__(self):
         if isinstance(self.ranges, Mapping):
@@ -153,14 +152,7 @@ class SynthesisParams:
         if not cats or unknown or len(set(cats)) != len(cats):
             raise ConfigError(f"train.synthesis.categories must name distinct categories of "
                               f"{', '.join(CATEGORIES)}, got {list(cats)}")
-        if not 1 <= self.min_lights <= self.max_lights:
-            raise ConfigError(f"train.synthesis: need 1 <= min_lights <= max_lights, "
-                              f"got {self.min_lights} and {self.max_lights}")
-        if not 0.0 < self.cone_min_deg <= self.cone_max_deg <= 180.0:
-            raise ConfigError(f"train.synthesis: need 0 < cone_min_deg <= cone_max_deg <= 180, "
-                              f"got {self.cone_min_deg}, {self.cone_max_deg}")
-        if self.sparse_min_lights < 1:
-            raise ConfigError(f"train.synthesis.sparse_min_lights must be >= 1, got {self.sparse_min_lights}")
+        check_light_subsets("train.synthesis", self)
 
     def changed(self) -> dict:
         """The settings not at their defaults, as plain data (what a run key holds);
@@ -173,7 +165,7 @@ class SynthesisParams:
                   if self.ranges.get(c) != default.ranges.get(c)}
         if ranges:
             out["ranges"] = ranges
-        for name in ("min_lights", "max_lights", "cone_min_deg", "cone_max_deg", "sparse_min_lights"):
+        for name in SETTINGS:
             if getattr(self, name) != getattr(default, name):
                 out[name] = getattr(self, name)
         return out
@@ -273,7 +265,7 @@ OMITTED_AT_DEFAULT = {"pixelwise.rgb": False, "optimiser.average_from": 0, "pixe
 FROM_SECTIONS = {
     "synthesis": {
         "materials": ("categories", "ranges"),
-        "extract": ("min_lights", "max_lights", "cone_min_deg", "cone_max_deg", "sparse_min_lights"),
+        "extract": SETTINGS,
     },
 }
 

@@ -71,11 +71,11 @@ from cnnps.ps.patches import (
     rotated_normals,
 )
 from cnnps.ps.rotation import rotation_angles
+from cnnps.synth.light_subsets import RULE, check_light_subsets, sample_light_masks
 from cnnps.synth.training_samples import (
     CaptureEffects,
     apply_capture_effects,
     draw_capture_effects,
-    sample_light_masks,
 )
 from cnnps.train.shard_dataset import ShardDataset
 
@@ -94,12 +94,12 @@ class PatchSampling:
     w: int = 32
     interpolation: str = "bilinear"
     rotations: int = 10
-    min_lights: int = 50
-    max_lights: int = 1300
-    cone_min_deg: float = 20.0
-    cone_max_deg: float = 90.0
+    min_lights: int = RULE.min_lights
+    max_lights: int = RULE.max_lights
+    cone_min_deg: float = RULE.cone_min_deg
+    cone_max_deg: float = RULE.cone_max_deg
     sparse_fraction: float = 0.0
-    sparse_min_lights: int = 6
+    sparse_min_lights: int = RULE.sparse_min_lights
     ambient_max: float = 0.0
     intensity_error: float = 0.0
     direction_error_deg: float = 0.0
@@ -120,13 +120,7 @@ class PatchSampling:
             raise ConfigError(f"patch.w must be in [4, 256], got {self.w}")
         if not 0 <= self.rotations <= 127:
             raise ConfigError(f"patch.rotations must be in [0, 127], got {self.rotations}")
-        if self.min_lights < 1 or self.max_lights < self.min_lights:
-            raise ConfigError(f"patch: need 1 <= min_lights <= max_lights, got {self.min_lights}, {self.max_lights}")
-        if not 0.0 < self.cone_min_deg <= self.cone_max_deg <= 180.0:
-            raise ConfigError(f"patch: need 0 < cone_min_deg <= cone_max_deg <= 180, got "
-                              f"{self.cone_min_deg}, {self.cone_max_deg}")
-        if self.sparse_fraction and not 1 <= self.sparse_min_lights < self.min_lights:
-            raise ConfigError(f"patch: need 1 <= sparse_min_lights < min_lights, got {self.sparse_min_lights}")
+        check_light_subsets("patch", self, self.sparse_fraction)
         object.__setattr__(self, "quantize_bits", tuple(sorted({int(b) for b in self.quantize_bits})))
 
     @classmethod

@@ -13,7 +13,8 @@ from cnnps.ps.obsmap import observation_maps
 from cnnps.ps.rotation import rotate_z, rotation_angles
 from cnnps.stages import extract
 from cnnps.stages.extract import Params
-from cnnps.synth.training_samples import add_ambient, build_rows, sample_light_masks
+from cnnps.synth.light_subsets import sample_light_masks
+from cnnps.synth.training_samples import add_ambient, build_rows
 from tests.support.renders import (  # noqa: F401
     make_render_dir,
     make_scene,

@@ -11,7 +11,9 @@ import pytest
 import torch
 
 from cnnps.ps.obsmap import observation_maps
+from cnnps.synth import obsmap_torch as omt
 from cnnps.synth import pixelwise as px
+from cnnps.synth import principled_torch as pt
 from cnnps.synth.bsdf import MaterialRanges
 from cnnps.synth.lights import hemisphere_lights, uniform_lights
 
@@ -61,7 +63,7 @@ def test_light_cells_match_numpy():
 
     L = np.r_[hemisphere_lights(500, 10.0, seed=3), [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]]
     row, col = light_cells(L, 32)
-    np.testing.assert_array_equal(px.light_cells_torch(torch.from_numpy(L), 32).numpy(), row * 32 + col)
+    np.testing.assert_array_equal(omt.light_cells_torch(torch.from_numpy(L), 32).numpy(), row * 32 + col)
 
 
 # --------------------------------------------------------------------------- the BSDF
@@ -84,7 +86,7 @@ def test_ggx_d_is_normalised():
     c = (torch.arange(200_000, dtype=torch.float64) + 0.5) / 200_000
     for alpha in (0.05, 0.3, 0.8, 1.0):
         a2 = torch.tensor(alpha**2, dtype=torch.float64)
-        total = (px.ggx_d(a2, c) * c).mean().item() * 2 * math.pi
+        total = (pt.ggx_d(a2, c) * c).mean().item() * 2 * math.pi
         assert total == pytest.approx(1.0, abs=1e-4), alpha
 
 
@@ -94,31 +96,31 @@ def test_specular_lobe_is_reciprocal():
     b = px.sample_normals(200, generator=g, grazing_fraction=0).double()
     a2 = torch.tensor(0.2, dtype=torch.float64)
     h = (a + b) / (a + b).norm(dim=1, keepdim=True)  # surface normal (0, 0, 1): cosines are the z's
-    f_ab = px.ggx_single(a2, h[:, 2], a[:, 2], b[:, 2]) / b[:, 2]  # BRDF f(a -> b)
-    f_ba = px.ggx_single(a2, h[:, 2], b[:, 2], a[:, 2]) / a[:, 2]
+    f_ab = pt.ggx_single(a2, h[:, 2], a[:, 2], b[:, 2]) / b[:, 2]  # BRDF f(a -> b)
+    f_ba = pt.ggx_single(a2, h[:, 2], b[:, 2], a[:, 2]) / a[:, 2]
     torch.testing.assert_close(f_ab, f_ba)
     eta = torch.tensor(1.5, dtype=torch.float64)
-    torch.testing.assert_close(px.fresnel_dielectric((a * h).sum(1), eta), px.fresnel_dielectric((b * h).sum(1), eta))
+    torch.testing.assert_close(pt.fresnel_dielectric((a * h).sum(1), eta), pt.fresnel_dielectric((b * h).sum(1), eta))
 
 
 def test_fresnel_dielectric_known_values():
     eta = torch.tensor([1.5, 1.5, 1.0])
-    F = px.fresnel_dielectric(torch.tensor([1.0, 0.0, 0.5]), eta)
+    F = pt.fresnel_dielectric(torch.tensor([1.0, 0.0, 0.5]), eta)
     torch.testing.assert_close(F, torch.tensor([0.04, 1.0, 0.0]), atol=1e-6, rtol=0)
     # Principled's F0 = 0.08 * specular (Specular IOR Level with IOR 1.5)
-    eta = px.specular_eta(torch.tensor([0.5, 1.0, 4.0]))
-    torch.testing.assert_close(px.fresnel_dielectric(torch.ones(3), eta), torch.tensor([0.04, 0.08, 0.32]), atol=1e-6, rtol=0)
+    eta = pt.specular_eta(torch.tensor([0.5, 1.0, 4.0]))
+    torch.testing.assert_close(pt.fresnel_dielectric(torch.ones(3), eta), torch.tensor([0.04, 0.08, 0.32]), atol=1e-6, rtol=0)
 
 
 def test_albedo_table_against_monte_carlo():
-    E, Eavg = px.ggx_albedo_table()
+    E, Eavg = pt.ggx_albedo_table()
     d, dw = _hemisphere_grid(600)
     for i, j in ((31, 31), (15, 6), (8, 20)):
         r, mu = i / 31, j / 31
         v = torch.tensor([math.sqrt(1 - mu * mu), 0.0, mu], dtype=torch.float64)
         h = (d + v) / (d + v).norm(dim=1, keepdim=True)
         a2 = torch.tensor(r**4, dtype=torch.float64)
-        e = (px.ggx_single(a2, h[:, 2], torch.tensor(mu, dtype=torch.float64), d[:, 2]) * dw).sum().item()
+        e = (pt.ggx_single(a2, h[:, 2], torch.tensor(mu, dtype=torch.float64), d[:, 2]) * dw).sum().item()
         assert E[i, j] == pytest.approx(e, abs=5e-3), (i, j)
     assert np.all(E <= 1.0 + 1e-6) and np.all(Eavg <= 1.0 + 1e-6) and Eavg[0] == 1.0
 
@@ -153,14 +155,14 @@ def test_microfiber_sheen_reflects_its_albedo_and_covers_the_base():
     for deg in (0, 30, 60, 80):
         t = math.radians(deg)
         n = torch.tensor([[math.sin(t), 0.0, math.cos(t)]], dtype=torch.float64)
-        lobe, R = px.microfiber_sheen(n, d[None])
+        lobe, R = pt.microfiber_sheen(n, d[None])
         assert (lobe * dw).sum().item() / math.pi == pytest.approx(R.item(), rel=1e-3)
         albedos.append(R.item())
     assert 0.01 < albedos[0] < 0.04 and 0.4 < albedos[-1] < 0.6 and albedos == sorted(albedos)
     n = torch.tensor([[0.0, 0.0, 1.0], [0.8, 0.0, 0.6], [0.0, -0.9, 0.43589]])
     L = torch.from_numpy(uniform_lights(80)).float()
     white = _params(3, sheen=1.0, sheen_tint=0.0)
-    lobe, R = px.microfiber_sheen(n, L[None])
+    lobe, R = pt.microfiber_sheen(n, L[None])
     torch.testing.assert_close(px.shade(n, L, white),
                                (1 - R) * px.shade(n, L, white, sheen_model="none") + lobe * (n @ L.T > 0),
                                rtol=1e-5, atol=1e-6)

@@ -11,6 +11,7 @@ import torch
 
 from cnnps.infra.errors import ConfigError
 from cnnps.ps.obsmap import observation_maps
+from cnnps.synth import pixel_effects as pfx
 from cnnps.synth import pixelwise as px
 from cnnps.synth.bsdf import MaterialRanges
 from cnnps.synth.lights import hemisphere_lights
@@ -73,7 +74,6 @@ def test_new_effects_are_validated_and_named_in_train():
         with pytest.raises(ConfigError):
             px.Effects(**{name: 1.5})
     assert px.EFFECT_NAMES == tuple(px.Effects.__dataclass_fields__)
-    assert train.PIXELWISE_EFFECTS == px.EFFECT_NAMES
     train.Params(pixelwise={"effects": {k: 0.1 for k in px.EFFECT_NAMES}})
     with pytest.raises(ConfigError, match="boundary_mix"):
         train.Params(pixelwise={"effects": {"glare": 0.1}})
@@ -123,7 +123,7 @@ def test_saturation_clips_at_the_drawn_exposure_on_lambertian_pixels():
     peak = np.where(mask, I_ref, 0.0).max(1)
     e = cam["exposure"].double().numpy()
     k = e * peak  # where the brightest chosen value landed, in units of the clip level
-    lo, hi = px.SATURATION_RANGE
+    lo, hi = pfx.SATURATION_RANGE
     assert k.min() >= lo * (1 - 1e-5) and k.max() <= hi * (1 + 1e-5) and np.ptp(np.log(k)) > 0.5 * np.log(hi / lo)
     got = det["intensities"].numpy()
     assert got.max() <= 1.0  # no value above the clip level reaches a map
@@ -154,11 +154,11 @@ def test_quantisation_black_level_and_exposure_on_lambertian_pixels():
         v = got[bits == b] * levels
         assert np.abs(v - np.round(v)).max() < tol, b  # multiples of 1/255 or 1/65535
     black = cam["black_level"].double().numpy()
-    assert np.abs(black).max() <= px.BLACK_LEVEL_MAX + 1e-7 and black.min() < 0 < black.max()
+    assert np.abs(black).max() <= pfx.BLACK_LEVEL_MAX + 1e-7 and black.min() < 0 < black.max()
     I_ref = _lambert(det["params"]["base_color"].numpy(), normals.numpy(), Ln)
     e = cam["exposure"].double().numpy()
     k = e * np.where(mask, I_ref, 0.0).max(1)
-    lo, hi = px.EXPOSURE_RANGE
+    lo, hi = pfx.EXPOSURE_RANGE
     assert k.min() >= lo * (1 - 1e-5) and k.max() <= hi * (1 + 1e-5)
     levels = np.where(bits == 8, 255.0, 65535.0)[:, None]
     ref = np.round(np.clip(e[:, None] * I_ref + black[:, None], 0.0, 1.0) * levels) / levels
@@ -205,7 +205,7 @@ def test_boundary_mix_is_alpha_blend_of_two_lambertian_surfaces():
     mix = det["mix"]
     mixed, alpha = mix["mixed"].numpy(), mix["alpha"].double().numpy()
     assert 0.3 < mixed.mean() < 0.7
-    lo, hi = px.MIX_ALPHA_RANGE
+    lo, hi = pfx.MIX_ALPHA_RANGE
     assert np.all(alpha[~mixed] == 1) and alpha[mixed].min() >= lo and alpha[mixed].max() <= hi
     A = _lambert(det["params"]["base_color"].numpy(), normals.numpy(), Ln)
     B = _lambert(mix["params"]["base_color"].numpy(), mix["normals"].numpy(), Ln)
@@ -365,7 +365,7 @@ def test_grazing_falloff_darkens_lambertian_pixels_by_burleys_light_factor():
     fd90 = det["falloff_fd90"].double().numpy()
     some = fd90 < 1.0
     assert abs(some.mean() - 0.5) < 0.1  # binomial sd 0.025
-    lo, hi = px.FD90_RANGE
+    lo, hi = pfx.FD90_RANGE
     assert fd90[some].min() >= lo and fd90[some].max() <= hi and np.ptp(fd90[some]) > 0.5 * (hi - lo)
     cos = np.clip(normals.double().numpy() @ Ln.T, 0.0, None)
     ref = _lambert(det["params"]["base_color"].numpy(), normals.numpy(), Ln) * (1 + (fd90[:, None] - 1) * (1 - cos) ** 5)

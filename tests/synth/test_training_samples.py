@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from cnnps.synth.light_subsets import sample_light_masks, sparse_subset_sizes
 from cnnps.synth.lights import uniform_lights
 from cnnps.synth.training_samples import (
     STREAM_BLACK,
@@ -28,9 +29,7 @@ from cnnps.synth.training_samples import (
     perturb_directions,
     pixel_peaks,
     quantize,
-    sample_light_masks,
     saturate,
-    sparse_subset_sizes,
     stream,
 )
 from tests.support.renders import random_lights
