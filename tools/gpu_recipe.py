@@ -119,7 +119,7 @@ def _generator(device, seed: int):
 
 def generation_rate(device, batch: int, seconds: float, params) -> dict:
     """Per-pixel maps/s of the preset's draws (effects, sparse share) at ``batch``."""
-    from cnnps.train.loop import pixelwise_maker
+    from cnnps.train.pixelwise_batches import pixelwise_maker
 
     make, w = pixelwise_maker(params), params.pixelwise.w
     g = _generator(device, 0)
@@ -137,7 +137,7 @@ def step_rate(device, params, seconds: float) -> dict:
     """Bare train-step samples/s (random sparse maps already on the device)."""
     import torch
 
-    from cnnps.train.loop import input_channels
+    from cnnps.train.pixelwise_batches import input_channels
     from cnnps.train.optimiser import compile_model, make_model, train_step
 
     B, w, C = params.data.batch_size, params.pixelwise.w, input_channels(params)
@@ -165,7 +165,7 @@ def lr_probe(device, params, steps: int, val_n: int = 4096) -> dict:
     angular error (deg) on ``val_n`` held per-pixel maps, and the last 20 steps' loss."""
     import torch
 
-    from cnnps.train.loop import input_channels, pixelwise_maker
+    from cnnps.train.pixelwise_batches import input_channels, pixelwise_maker
     from cnnps.train.optimiser import make_model, train_step
 
     make, w = pixelwise_maker(params), params.pixelwise.w

@@ -579,7 +579,7 @@ class Run:
 
         from cnnps.io.shards import MANIFEST
         from cnnps.models.checkpoint import load_checkpoint
-        from cnnps.train.loop import open_training_data
+        from cnnps.train.training_data import open_training_data
         from cnnps.train.validation import load_val, val_errors
 
         if not (self.data / "extract" / MANIFEST).is_file():

@@ -41,7 +41,7 @@ def one_run(precision: str, seed: int, steps: int, ball: Path | None, work: Path
 
     import cnnps
     from cnnps.stages import train
-    from cnnps.train.loop import pixelwise_maker
+    from cnnps.train.pixelwise_batches import pixelwise_maker
 
     params = train.Params(pixelwise={"share": 1.0, "effects": EFFECTS, "sparse_fraction": 0.2}, precision=precision,
                           seed=seed, max_steps=steps, data={"batch_size": 128}, val_every=steps,

@@ -140,15 +140,19 @@ def run(params: Params, data_dir: Path, *, until=None, _stop_after_step: int | N
     """
     prefer_passive_openmp()  # before torch loads (the import below)
     from cnnps.train import loop
+    from cnnps.train.init_weights import load_init_weights
+    from cnnps.train.pixelwise_batches import input_channels
+    from cnnps.train.process_setup import training_processes
+    from cnnps.train.training_data import open_training_data, pixelwise_only_data
 
     data_dir = Path(data_dir)
-    with loop.training_processes(params) as (info, device):
+    with training_processes(params) as (info, device):
         if params.pixelwise.share >= 1.0:
-            data = loop.pixelwise_only_data(params.pixelwise.w)  # no shards at all
+            data = pixelwise_only_data(params.pixelwise.w)  # no shards at all
         else:
-            data = loop.open_training_data(params.data.shards or data_dir / "extract")
-        init_state, init_sha = loop.load_init_weights(params.init, data.w, loop.input_channels(params),
-                                                      params.model.options())
+            data = open_training_data(params.data.shards or data_dir / "extract")
+        init_state, init_sha = load_init_weights(params.init, data.w, input_channels(params),
+                                                 params.model.options())
         def key_for(precision: str) -> str:
             return run_key(params, data.manifest_sha256, init_sha, precision)
 

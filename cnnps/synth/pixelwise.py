@@ -32,7 +32,7 @@ This module takes every setting as an argument; its defaults are the paper's (ev
 category of :data:`cnnps.synth.bsdf.DEFAULT_CATEGORIES` at its default ranges, 50 to 1300
 of 1300 lights in cones of 20 to 90 degrees). The train stage passes params.yaml's:
 ``materials.categories`` and ``materials.ranges``, extract's light-subset keys, and
-``train.pixelwise``'s own (:func:`cnnps.train.loop.pixelwise_settings`).
+``train.pixelwise``'s own (:func:`cnnps.train.pixelwise_batches.pixelwise_settings`).
 
 Example::
 

@@ -6,8 +6,13 @@ maps; nothing below imports it. This file, like ``openmp``, loads no torch.
 The loop and what it keeps:
 
 - ``params``: the train section's typed tree, ``Params`` (loads no torch either);
-- ``loop``: data set-up, resume, the step loop, the model file and ``metrics.json``
+- ``process_setup``: this process's threads, device and (under torchrun) process group;
+- ``training_data``: the extract manifest and its shards opened and checked, or none;
+- ``init_weights``: the checkpoint a run starts from (``train.init``);
+- ``pixelwise_batches``: per-pixel batches from the train params, one a step;
+- ``loop``: resume, the step loop, checkpoints, the model file and ``metrics.json``
   (:func:`~cnnps.train.loop.train`, :class:`~cnnps.train.loop.Trainer`);
+- ``run_outputs``: the params the model file records and the curves for ``dvc plots``;
 - ``optimiser``: the model and Adam, the learning-rate schedule, one step;
 - ``resume``: the resumable ``checkpoints/step-*.pt`` files and RNG states;
 - ``validation``: the validation sample and its angular error;

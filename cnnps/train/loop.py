@@ -2,10 +2,10 @@
 
 :func:`cnnps.stages.train.run` does::
 
-    with training_processes(params) as (info, device):    # torchrun env, threads, device, process group
-        data = open_training_data(extract_dir)            # manifest, its hash, the shard (or observation) lists
+    with training_processes(params) as (info, device):    # process_setup: torchrun env, threads, device
+        data = open_training_data(extract_dir)            # training_data: manifest, its hash, the file lists
         init_state, init_sha = load_init_weights(params.init, data.w, input_channels(params), params.model.options())
-        return train(params, data, out_dir, key_for, info, device, init_state, init_sha)
+        return train(params, data, out_dir, key_for, info, device, init_state, init_sha)   # this module
 
 (``key_for(precision)``: the run key of these params stepping in ``precision``) and
 :func:`train` runs a :class:`Trainer`: build (the network of ``params.model``, optimiser,
@@ -25,43 +25,24 @@ processes, outputs.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import itertools
 import json
 import sys
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from cnnps.infra import storage
 from cnnps.infra.atomic import write_text
-from cnnps.infra.errors import ConfigError, InputError
+from cnnps.infra.errors import ConfigError
 from cnnps.infra.progress import progress_bar
-from cnnps.io.observation_store import manifest_observations, verify_observations
-from cnnps.io.shards import (
-    MANIFEST,
-    ShardStream,
-    load_manifest,
-    manifest_digest,
-    manifest_files,
-    shard_path,
-    verify_shards,
-)
-from cnnps.models.checkpoint import (
-    load_checkpoint,
-    read_checkpoint,
-    save_checkpoint,
-    write_sha256_file,
-)
+from cnnps.io.shards import ShardStream
+from cnnps.models.checkpoint import save_checkpoint, write_sha256_file
 from cnnps.models.model_options import model_options, recorded_options
-from cnnps.models.network import RGB_CHANNELS, widen_state
 from cnnps.models.train_layers import COUNTER_MASK_BITS
-from cnnps.train.allocator import keep_freed_memory
 from cnnps.train.averaging import WeightAverage
 from cnnps.train.batch_lookahead import Lookahead
 from cnnps.train.device_feed import fed
@@ -70,12 +51,8 @@ from cnnps.train.distributed import (
     all_gather,
     barrier,
     broadcast,
-    dist_env,
     mean_over_ranks,
-    process_device,
-    process_group,
     rank_steps_per_epoch,
-    set_threads,
 )
 from cnnps.train.maps_ahead import made_ahead
 from cnnps.train.observation_data import (
@@ -88,6 +65,7 @@ from cnnps.train.observation_data import (
 from cnnps.train.optimiser import compile_model, lr_at, make_model, set_lr, train_step
 from cnnps.train.params import Params
 from cnnps.train.patch_dataset import PatchStream
+from cnnps.train.pixelwise_batches import GeneratedBatches, input_channels, pixelwise_fewest_lights, pixelwise_maker
 from cnnps.train.precision import PRECISIONS
 from cnnps.train.resume import (
     CKPT_FORMAT,
@@ -99,242 +77,11 @@ from cnnps.train.resume import (
     save_training_state,
     set_rng_states,
 )
+from cnnps.train.run_outputs import recorded_params, write_plots
 from cnnps.train.shard_dataset import ShardDataset
 from cnnps.train.step_clock import StepClock
+from cnnps.train.training_data import OBSERVATIONS, PIXELWISE_VAL_ROWS, TrainingData, fewest_lights
 from cnnps.train.validation import load_val, no_val, val_errors
-
-# -- set-up -----------------------------------------------------------------------------
-
-
-@contextmanager
-def training_processes(params: Params) -> Iterator[tuple[DistInfo, torch.device]]:
-    """(this process's place in a torchrun job, its device), with torch's threads set and,
-    under torchrun, the process group up for the duration (see :mod:`cnnps.train.distributed`)."""
-    info = dist_env()
-    if info.enabled and params.data.batch_size % info.world_size:
-        raise ConfigError(
-            f"train.data.batch_size {params.data.batch_size} (the global batch) must be a multiple of the "
-            f"{info.world_size} processes"
-        )
-    set_threads(params.cpu.threads, info)
-    device = process_device(params.device, info)
-    if device.type == "cpu" and params.cpu.keep_freed_memory:
-        keep_freed_memory()  # every step's activations reuse the last step's pages
-    with process_group(info, device):
-        yield info, device
-
-
-@dataclasses.dataclass(frozen=True)
-class TrainingData:
-    """The extract stage's output as training reads it."""
-
-    manifest: dict
-    manifest_url: Path | str
-    manifest_sha256: str  # of the manifest's content (shards.manifest_digest): part of the run key
-    w: int
-    train_files: list
-    val_files: list
-    # "maps": Parquet shards of observation maps; "observations": per-pixel observation files
-    # (extract.layout: observations), (path, record) pairs, read as patches (cnnps.train.observation_data)
-    layout: str = "maps"
-
-
-OBSERVATIONS = "observations"  # the extract manifest's layout of per-pixel observation files
-
-
-SPARSE_MIN_LIGHTS_DEFAULT = 6  # cnnps.stages.extract.Params.sparse_min_lights (tests/stages/test_train.py checks they agree)
-
-
-def fewest_lights(manifest: dict) -> int | None:
-    """The fewest lights any training map was built from, read from the extract params the
-    manifest records (dense maps: ``min_lights``; with sparse pixels: ``sparse_min_lights``).
-    Prediction warns when a capture has fewer images than this."""
-    params = manifest.get("params") or {}
-    lo = params.get("min_lights")
-    if lo is None:
-        return None
-    if params.get("sparse_fraction"):
-        # manifests leave out extract parameters at their defaults: sparse_min_lights is 6 then
-        lo = min(int(lo), int(params.get("sparse_min_lights", SPARSE_MIN_LIGHTS_DEFAULT)))
-    return int(lo)
-
-
-def open_training_data(extract_dir: str | Path, verify: bool = True) -> TrainingData:
-    """Read the manifest at ``extract_dir`` (a folder or an fsspec URL) and check it: its
-    own checksum (an edited manifest is refused), that it lists training shards, and
-    that every shard it lists exists and, with ``verify``, has the size and SHA-256 the
-    manifest records (one read of every shard before the first step, small beside an
-    epoch of training; docs/reliability.md). Problems raise InputError naming the file and
-    the fix. A manifest of per-pixel observation files (``layout: observations``) gives
-    their (path, record) pairs as the files, ``layout`` ``observations`` and ``w`` the
-    width of the maps its patches are drawn at (:func:`cnnps.train.observation_data.sampling_of_manifest`)."""
-    if isinstance(extract_dir, str):
-        extract_dir = extract_dir.rstrip("/")
-    manifest = load_manifest(extract_dir)
-    manifest_url = shard_path(extract_dir, MANIFEST)
-    manifest_sha256 = manifest_digest(extract_dir, manifest)
-    layout = manifest.get("layout", "maps") if isinstance(manifest, dict) else "maps"
-    try:
-        if layout == OBSERVATIONS:
-            w = sampling_of_manifest(manifest, 1).w
-            train_files, val_files = (manifest_observations(extract_dir, manifest, split) for split in ("train", "val"))
-            if not train_files:
-                raise InputError(str(manifest_url), "lists no training observation files")
-            for f, _ in train_files + val_files:
-                if not storage.exists(f):
-                    raise InputError(str(f), "observation file listed in the manifest is missing; rerun "
-                                     "`cnnps run-stage extract`")
-            if verify:
-                verify_observations(extract_dir, manifest)
-            return TrainingData(manifest, manifest_url, manifest_sha256, w, train_files, val_files, layout)
-        w = int(manifest["w"])
-        train_files = manifest_files(extract_dir, manifest, "train")
-        val_files = manifest_files(extract_dir, manifest, "val")
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputError(str(manifest_url), f"not an extract manifest ({type(exc).__name__}: {exc}); "
-                         "rerun `cnnps run-stage extract`") from None
-    if not train_files:
-        raise InputError(str(manifest_url), "lists no training shards")
-    for f in train_files + val_files:
-        if not storage.exists(f):
-            raise InputError(str(f), "shard listed in the manifest is missing; rerun `cnnps run-stage extract` "
-                             "(it redoes the scenes whose shards are missing)")
-    if verify:
-        verify_shards(extract_dir, manifest)
-    return TrainingData(manifest, manifest_url, manifest_sha256, w, train_files, val_files)
-
-
-PIXELWISE_VAL_ROWS = 10000  # per-pixel validation maps when there are no val shards
-
-
-def pixelwise_only_data(w: int) -> TrainingData:
-    """What training reads when every map is made per pixel (``train.pixelwise.share: 1``): no
-    manifest, no shards; ``w`` is the maps' width."""
-    return TrainingData({}, "", "pixelwise", int(w), [], [])
-
-
-class GeneratedBatches:
-    """Per-pixel batches (:mod:`cnnps.synth.pixelwise`) where the shard dataset would be:
-    the same ``set_epoch`` / ``set_skip`` / iteration, one batch per step, each made from
-    a generator seeded by (seed, rank, step), so a resumed run makes what an uninterrupted
-    one made. ``steps``: the batches of one pass (the run's steps)."""
-
-    def __init__(self, make, steps: int, device: torch.device | None = None, ahead: int = 0):
-        self.make, self.steps, self.skip = make, int(steps), 0
-        self.device, self.ahead = device or torch.device("cpu"), int(ahead)
-
-    def set_epoch(self, epoch: int) -> None:
-        pass
-
-    def set_skip(self, batches: int) -> None:
-        self.skip = int(batches)
-
-    def __iter__(self):
-        # made ahead of the step in a background thread (cnnps.train.maps_ahead) when ``ahead``
-        yield from made_ahead(self.make, range(self.skip, self.steps), self.device, self.ahead)
-
-
-def input_channels(params: Params) -> int:
-    """The network's input channels for ``params``: :data:`cnnps.models.network.RGB_CHANNELS`
-    (grey, R, G, B) with ``train.pixelwise.rgb``, else 1."""
-    return RGB_CHANNELS if params.pixelwise.rgb else 1
-
-
-def pixelwise_settings(params: Params) -> dict:
-    """The keyword arguments of :func:`cnnps.synth.pixelwise.generate` that ``params`` sets:
-    the materials and light subsets of ``params.synthesis`` (``materials.categories`` /
-    ``ranges``, extract's light-subset rules), the light set's size, the sparse fraction
-    and the effects of ``params.pixelwise``, and ``rgb``."""
-    from cnnps.synth import pixelwise
-
-    px, syn = params.pixelwise, params.synthesis
-    return {
-        "categories": syn.categories, "ranges": syn.ranges, "n_lights": px.lights,
-        "min_lights": syn.min_lights, "max_lights": syn.max_lights,
-        "cone_min_deg": syn.cone_min_deg, "cone_max_deg": syn.cone_max_deg,
-        "sparse_fraction": px.sparse_fraction, "sparse_min_lights": syn.sparse_min_lights,
-        "effects": pixelwise.Effects(**{k: float(v) for k, v in px.effects.items()}),
-        "rgb": input_channels(params) > 1,
-    }
-
-
-def pixelwise_maker(params: Params):
-    """``(n, generator, device, w) -> (maps (n, C, w, w), normals (n, 3))``: per-pixel
-    training maps, :func:`cnnps.synth.pixelwise.generate` with every setting of
-    :func:`pixelwise_settings`, C = 1, or 4 (grey, R, G, B) with ``pixelwise.rgb``; None
-    when ``pixelwise.share`` is 0."""
-    if not params.pixelwise.share:
-        return None
-    from cnnps.synth import pixelwise
-
-    settings = pixelwise_settings(params)
-
-    def make(n, generator, device, w):
-        return pixelwise.generate(n, generator=generator, device=device, w=w, **settings)
-
-    return make
-
-
-def pixelwise_fewest_lights(params: Params) -> int:
-    """The fewest lights of any per-pixel map of ``params`` (:func:`cnnps.synth.pixelwise.light_subsets`'
-    bounds): ``min(synthesis.min_lights, pixelwise.lights)``, or with sparse maps
-    ``synthesis.sparse_min_lights`` below it."""
-    lo = min(params.synthesis.min_lights, params.pixelwise.lights)
-    if params.pixelwise.sparse_fraction > 0:
-        lo = max(1, min(params.synthesis.sparse_min_lights, lo))
-    return int(lo)
-
-
-def load_init_weights(init: str | None, w: int, in_channels: int = 1,
-                      options: dict | None = None) -> tuple[dict | None, str | None]:
-    """(state_dict for a network of ``in_channels`` input channels and the model
-    ``options`` (``{"arch", "head", "patch"}``, ``train.model``; None: the paper's
-    network), weights SHA-256) of the cnnps checkpoint ``init`` (``train.init``), or
-    (None, None). The SHA-256, not the path, enters the run key. A grey (1-channel)
-    checkpoint for a colour run is widened (:func:`cnnps.models.network.widen_state`: the
-    colour filters at 0, so it starts as the grey model), which one line on stderr says;
-    other mismatches (w, the model options the checkpoint records) are an InputError."""
-    if init is None:
-        return None, None
-    model, config, _ = load_checkpoint(init)
-    if int(config["w"]) != w:
-        raise InputError(init, f"train.init is a w={config['w']} model, the shards hold w={w} maps")
-    want, have = options or {"arch": "cnnps", "head": "regression", "patch": 1}, model_options(model)
-    if have != want:
-        have_s, want_s = (", ".join(f"{k} {o[k]}" for k in ("arch", "head", "patch")) for o in (have, want))
-        raise InputError(init, f"train.init is a model of {have_s}; train.model asks for {want_s}")
-    state = model.state_dict()
-    if model.in_channels != in_channels:
-        if model.in_channels != 1:
-            raise InputError(init, f"train.init takes {model.in_channels} input channels, this run trains "
-                             f"{in_channels} (train.pixelwise.rgb: {'true' if in_channels > 1 else 'false'})")
-        state = widen_state(state, in_channels)
-        print(f"train: train.init {init} is a grey model: widened to {in_channels} input channels "
-              "(grey, R, G, B; the colour filters start at 0)", file=sys.stderr)
-    return state, read_checkpoint(init)["weights_sha256"]
-
-
-def recorded_params(params: Params) -> dict:
-    """``params`` as ``model.pt``'s meta records them (:meth:`Params.from_record` reads them
-    back): every field, the ``model`` section only off the paper's network, so a file of
-    the paper's network holds the bytes it holds without the section."""
-    record = dataclasses.asdict(params)
-    if params.model == type(params.model)():
-        record.pop("model")
-    return record
-
-
-def write_plots(out_dir: Path, history: dict) -> None:
-    """``plots/loss.csv`` (step, loss) and ``plots/val.csv`` (step, mean, median) for ``dvc plots``."""
-    plots = out_dir / "plots"
-    write_text(plots / "loss.csv", "step,loss\n" + "".join(f"{s},{l:.6g}\n" for s, l in history["loss"]))
-    write_text(
-        plots / "val.csv",
-        "step,val_mean_deg,val_median_deg\n" + "".join(f"{s},{a:.4f},{b:.4f}\n" for s, a, b in history["val"]),
-    )
-
-
-# -- the loop ---------------------------------------------------------------------------
 
 
 def train(params: Params, data: TrainingData, out_dir: Path, key_for: Callable[[str], str], info: DistInfo,

@@ -127,7 +127,7 @@ class SynthesisParams:
     shards' maps are cut by). The config layer fills this section from those keys
     (:data:`Params.FROM_SECTIONS`); a params file's ``train:`` cannot set it. The defaults
     are those sections' defaults, so ``Params()`` in Python draws what an empty params file
-    does. :func:`cnnps.train.loop.pixelwise_maker` hands every field to
+    does. :func:`cnnps.train.pixelwise_batches.pixelwise_maker` hands every field to
     :func:`cnnps.synth.pixelwise.generate`."""
 
     categories: tuple[str, ...] = DEFAULT_CATEGORIES

@@ -15,6 +15,7 @@ from cnnps.infra.errors import ConfigError
 from cnnps.stages import extract, train
 from cnnps.train import loop
 from cnnps.train.optimiser import lr_at, make_model, train_step
+from cnnps.train.pixelwise_batches import pixelwise_fewest_lights
 from tests.support.renders import make_render_dir
 
 
@@ -78,7 +79,7 @@ def test_training_lowers_loss_and_val_error(dataset, tmp_path):
 
 
 def test_fewest_lights_reads_the_sparse_minimum_when_sparse_pixels_were_drawn():
-    from cnnps.train.loop import fewest_lights
+    from cnnps.train.training_data import fewest_lights
 
     assert fewest_lights({"params": {"min_lights": 50}}) == 50
     assert fewest_lights({"params": {"min_lights": 50, "sparse_fraction": 0.3, "sparse_min_lights": 6}}) == 6
@@ -420,7 +421,7 @@ def test_per_pixel_maps_only_train_without_shards_and_resume_exactly(tmp_path):
 
     _model, config, meta = load_checkpoint(a / "train/model.pt")
     # cnnps predict warns below the fewest lights of a training map: extract.min_lights' default here
-    assert config["w"] == 16 and meta["min_lights"] == loop.pixelwise_fewest_lights(p) == 50
+    assert config["w"] == 16 and meta["min_lights"] == pixelwise_fewest_lights(p) == 50
     with pytest.raises(Exception, match="train.max_steps"):
         train.Params(pixelwise={"share": 1.0})
 
@@ -580,7 +581,7 @@ def test_auto_chooses_once_per_run_though_the_precisions_speeds_cross(tmp_path, 
     assert cpu.timed == ["fp32"] * 4 + ["bf16"] * 4
     assert d["precision"] == "fp32" and "bf16 0.50x fp32" in d["precision_choice"]["reason"]
     key = torch.load(sorted((tmp_path / "d/train/checkpoints").glob("*.pt"))[-1], weights_only=True)["run_key"]
-    from cnnps.train.loop import pixelwise_only_data
+    from cnnps.train.training_data import pixelwise_only_data
 
     manifest = pixelwise_only_data(16).manifest_sha256
     assert state["run_key"] == train.run_key(p, manifest, precision="bf16")

@@ -14,7 +14,7 @@ import yaml
 from cnnps.infra.errors import ConfigError
 from cnnps.pipeline import config as cfg
 from cnnps.stages import train
-from cnnps.train import loop
+from cnnps.train.pixelwise_batches import pixelwise_fewest_lights, pixelwise_maker
 
 EDITED = {
     "materials": {"categories": ["specular"], "ranges": {"specular": {"roughness": [0.2, 0.3]}}},
@@ -31,7 +31,7 @@ def _train_params(tmp_path, sections: dict) -> train.Params:
 
 
 def test_an_edited_range_and_light_subsets_reach_the_per_pixel_maps(tmp_path, monkeypatch):
-    """The maps the training loop makes (loop.pixelwise_maker) are drawn from the params
+    """The maps the training loop makes (pixelwise_maker) are drawn from the params
     file's materials and extract keys: every pixel's category is the one chosen, its
     roughness in the edited range, its light subset within extract's bounds and cone."""
     p = _train_params(tmp_path, EDITED)
@@ -51,7 +51,7 @@ def test_an_edited_range_and_light_subsets_reach_the_per_pixel_maps(tmp_path, mo
         return maps, normals
 
     monkeypatch.setattr(pixelwise, "generate", generate)
-    make = loop.pixelwise_maker(p)
+    make = pixelwise_maker(p)
     maps, normals = make(2000, torch.Generator().manual_seed(0), torch.device("cpu"), 16)
     assert maps.shape == (2000, 1, 16, 16) and normals.shape == (2000, 3)
     d, kw = seen["details"], seen["kw"]
@@ -69,7 +69,7 @@ def test_an_edited_range_and_light_subsets_reach_the_per_pixel_maps(tmp_path, mo
     # cone already holds 20, so no cone is widened)
     z = d["lights"][:, 2].expand_as(d["mask"])
     assert (z[d["mask"]] >= math.cos(math.radians(40.0)) - 1e-6).all()
-    assert loop.pixelwise_fewest_lights(p) == 4
+    assert pixelwise_fewest_lights(p) == 4
 
 
 def test_the_defaults_are_the_sections_defaults_and_keep_the_maps():
@@ -80,7 +80,7 @@ def test_the_defaults_are_the_sections_defaults_and_keep_the_maps():
     from cnnps.synth import pixelwise
 
     p = train.Params(max_steps=1, pixelwise={"share": 1.0})
-    a = loop.pixelwise_maker(p)(64, torch.Generator().manual_seed(3), torch.device("cpu"), 8)
+    a = pixelwise_maker(p)(64, torch.Generator().manual_seed(3), torch.device("cpu"), 8)
     b = pixelwise.generate(64, generator=torch.Generator().manual_seed(3), w=8)
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
 

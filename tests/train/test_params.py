@@ -11,7 +11,7 @@ import pytest
 from cnnps.infra.errors import ConfigError
 from cnnps.pipeline.config import build_params, config_from_dict
 from cnnps.stages import train as stage
-from cnnps.train import loop, optimiser, precision
+from cnnps.train import loop, optimiser, pixelwise_batches, precision, process_setup
 from cnnps.train.params import OptimiserParams, Params
 
 
@@ -24,20 +24,21 @@ def test_the_stage_and_the_loop_share_one_params_tree():
 
 
 def test_the_loop_declares_the_typed_params_where_it_reads_them():
-    for fn in (loop.train, loop.training_processes, loop.input_channels, loop.pixelwise_settings,
-               loop.pixelwise_maker, loop.pixelwise_fewest_lights, optimiser.make_model, optimiser.compile_model,
+    for fn in (loop.train, process_setup.training_processes, pixelwise_batches.input_channels,
+               pixelwise_batches.pixelwise_settings, pixelwise_batches.pixelwise_maker,
+               pixelwise_batches.pixelwise_fewest_lights, optimiser.make_model, optimiser.compile_model,
                precision.resolve, precision.time_steps, precision.cache_key):
         assert typing.get_type_hints(fn)["params"] is Params, fn.__qualname__
     assert typing.get_type_hints(optimiser.lr_at)["optimiser"] is OptimiserParams
 
 
 def test_the_fields_the_loop_reads_carry_their_defaults():
-    assert loop.input_channels(Params()) == 1
-    assert loop.input_channels(Params(max_steps=1, pixelwise={"share": 1.0, "rgb": True})) == 4
+    assert pixelwise_batches.input_channels(Params()) == 1
+    assert pixelwise_batches.input_channels(Params(max_steps=1, pixelwise={"share": 1.0, "rgb": True})) == 4
     # min(extract.min_lights 50, pixelwise.lights 1300); sparse maps go down to sparse_min_lights 6
-    assert loop.pixelwise_fewest_lights(Params()) == 50
-    assert loop.pixelwise_fewest_lights(Params(pixelwise={"lights": 20})) == 20
-    assert loop.pixelwise_fewest_lights(Params(pixelwise={"share": 0.5, "sparse_fraction": 0.1})) == 6
+    assert pixelwise_batches.pixelwise_fewest_lights(Params()) == 50
+    assert pixelwise_batches.pixelwise_fewest_lights(Params(pixelwise={"lights": 20})) == 20
+    assert pixelwise_batches.pixelwise_fewest_lights(Params(pixelwise={"share": 0.5, "sparse_fraction": 0.1})) == 6
     # lr 2e-3 halved at steps 4 and 8: 2e-3, 1e-3, 5e-4
     o = OptimiserParams(lr=2e-3, lr_milestones=(4, 8), lr_gamma=0.5)
     assert [optimiser.lr_at(o, k) for k in (3, 4, 7, 8)] == pytest.approx([2e-3, 1e-3, 1e-3, 5e-4])
