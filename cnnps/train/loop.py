@@ -62,7 +62,7 @@ from cnnps.train.observation_data import (
     steps_per_epoch,
     stream_rows,
 )
-from cnnps.train.optimiser import compile_model, lr_at, make_model, set_lr, train_step
+from cnnps.train.optimiser import AdamSchedule, compile_model, make_model, train_step
 from cnnps.train.params import Params
 from cnnps.train.patch_dataset import PatchStream
 from cnnps.train.pixelwise_batches import GeneratedBatches, input_channels, pixelwise_fewest_lights, pixelwise_maker
@@ -151,6 +151,7 @@ class Trainer:
         or under torchrun its DDP wrapper (then each rank reseeds: its own dropout masks)."""
         params, info, device = self.params, self.info, self.device
         self.raw, self.opt = make_model(self.data.w, params, device, in_channels=self.in_channels)
+        self.schedule = AdamSchedule(params.optimiser)  # asked for the learning rate once a step
         if init_state is not None:  # every rank loads the same file: replicas start equal
             self.raw.load_state_dict(init_state)
         self.model = self.raw
@@ -474,7 +475,6 @@ class Trainer:
         clock = self.clock = StepClock(self.device)
         loss_acc, loss_n = torch.zeros((), device=self.device), 0  # summed on the device: no wait per step
         while self.step < self.total_steps:
-            set_lr(self.opt, lr_at(p.optimiser, self.step))
             epoch, skip = divmod(self.step, self.steps_per_epoch)
             ds.set_epoch(epoch)
             ds.set_skip(skip)
@@ -487,11 +487,10 @@ class Trainer:
                             maps, normals = self._mix(maps, normals, next(made))
                     nxt = self.step + 1  # read the next batch early unless this step ends the epoch or the run
                     ahead = nxt % self.steps_per_epoch and nxt < self.total_steps and nxt != stop_after_step
+                    self.schedule.before_step(self.opt, self.step)  # the learning rate of this step
                     loss, step_model = self._train_step(step_model, maps, normals, feed.pull if ahead else None)
                     self.step += 1
                     step = self.step
-                    if step in p.optimiser.lr_milestones:
-                        set_lr(self.opt, lr_at(p.optimiser, step))
                     if until is not None and until(step):
                         self.total_steps = step  # ends here: the loss, the checkpoint and the loop below see the end
                     loss_acc += loss.float()

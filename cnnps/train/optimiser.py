@@ -1,4 +1,5 @@
-"""Training a CNN-PS: the model and its Adam optimiser, the learning-rate schedule, one step.
+"""Training a CNN-PS: the model, its Adam optimiser and learning-rate schedule as one object
+(:class:`AdamSchedule`, which the loop asks once a step), one step.
 
 ``params`` here is the train section's typed tree (:class:`cnnps.train.params.Params`,
 its ``optimiser`` and ``cpu`` sections included).
@@ -42,6 +43,39 @@ def set_lr(opt: torch.optim.Optimizer, lr: float) -> None:
         group["lr"] = lr
 
 
+class AdamSchedule:
+    """Adam and its learning-rate schedule from one ``train.optimiser`` section (nerfstudio's
+    optimiser-and-scheduler config): :meth:`build` makes the optimiser, the training run's
+    and the precision probe's alike (``lr``, ``weight_decay``, ``fused_adam``), and
+    :meth:`before_step` sets the learning rate of the next step (:func:`lr_at`), which the
+    loop calls once before every step. Setting the same rate again changes nothing, so a
+    resumed or uninterrupted run takes the same steps::
+
+        schedule = AdamSchedule(params.optimiser)
+        opt = schedule.build(model.parameters())
+        for step in range(steps):          # steps done
+            schedule.before_step(opt, step)
+            ...                            # forward, backward, opt.step()
+    """
+
+    def __init__(self, optimiser: OptimiserParams):
+        self.params = optimiser
+
+    def build(self, parameters) -> torch.optim.Adam:
+        o = self.params
+        return torch.optim.Adam(parameters, lr=o.lr, weight_decay=o.weight_decay, fused=True if o.fused_adam else None)
+
+    def lr_at(self, step: int) -> float:
+        """The learning rate of the step after ``step`` steps (:func:`lr_at`)."""
+        return lr_at(self.params, step)
+
+    def before_step(self, opt: torch.optim.Optimizer, step: int) -> float:
+        """Set ``opt``'s learning rate for the step after ``step`` steps; returns it."""
+        lr = self.lr_at(step)
+        set_lr(opt, lr)
+        return lr
+
+
 def autocast(device: torch.device, precision: str):
     """bf16 autocast on ``device`` for ``precision == "bf16"``, nothing for "fp32" (a run's
     ``auto`` is resolved before a step: :mod:`cnnps.train.precision`)."""
@@ -58,7 +92,7 @@ def make_model(w: int, params: Params, device: torch.device,
     :func:`cnnps.models.model_options.build_model`; the defaults are the paper's CNN-PS)
     taking (B, ``in_channels`` patch^2, w, w) maps, weights drawn after
     ``torch.manual_seed(params.seed)``, on ``device``, channels_last if asked, and its
-    Adam optimiser."""
+    Adam optimiser (:meth:`AdamSchedule.build`)."""
     torch.manual_seed(params.seed)
     try:
         model = build_model(**params.model.options(), w=w, in_channels=in_channels, dropout=params.dropout)
@@ -69,10 +103,7 @@ def make_model(w: int, params: Params, device: torch.device,
     model.mask_bits = COUNTER_MASK_BITS.get(params.cpu.dropout_masks, 32)
     if params.channels_last:
         model = model.to(memory_format=torch.channels_last)
-    o = params.optimiser
-    opt = torch.optim.Adam(model.parameters(), lr=o.lr, weight_decay=o.weight_decay,
-                           fused=True if o.fused_adam else None)
-    return model, opt
+    return model, AdamSchedule(params.optimiser).build(model.parameters())
 
 
 def compile_model(model, params: Params):

@@ -109,12 +109,11 @@ def time_steps(model, params: Params, device: torch.device, precision: str, maps
     """(steps/s, the first step's loss, the CPU share of the timed steps: CPU seconds /
     (wall seconds x intra-op threads), None on a GPU) of ``precision`` on a copy of
     ``model`` with its own Adam (see the module docstring, step 3)."""
-    from cnnps.train.optimiser import train_step
+    from cnnps.train.optimiser import AdamSchedule, train_step
 
     net = copy.deepcopy(model)
     net.train()
-    opt = torch.optim.Adam(net.parameters(), lr=float(params.optimiser.lr),
-                           fused=True if params.optimiser.fused_adam else None)
+    opt = AdamSchedule(params.optimiser).build(net.parameters())  # the training run's optimiser, weight decay included
     counter = hasattr(net, "set_mask_key") and params.cpu.dropout_masks != "torch"
     first, walls, cpu = None, [], 0.0
     for i in range(WARM_STEPS + TIMED_STEPS):
@@ -208,7 +207,8 @@ def cache_key(model, params: Params, device: torch.device, batch_rows: int) -> s
         net += f" {head} b{patch}"
     cpu = params.cpu
     step = (f"channels_last {bool(params.channels_last)}, layers {cpu.layers}, masks {cpu.dropout_masks}, "
-            f"fused_adam {bool(params.optimiser.fused_adam)}, compile {bool(params.compile)}")
+            f"fused_adam {bool(params.optimiser.fused_adam)}, weight_decay {float(params.optimiser.weight_decay):g}, "
+            f"compile {bool(params.compile)}")
     return f"{where} | torch {torch.__version__} | {device.type} | {net} | {int(batch_rows)} rows | {step}"
 
 
