@@ -90,6 +90,8 @@ from pathlib import Path
 
 import yaml
 
+from cnnps.stages import STAGES as stage_names
+
 try:
     from tools import run_weights, tree_size  # imported as tools.long_run (the tests)
 except ImportError:  # run as a script: its own folder is on the path
@@ -98,7 +100,7 @@ except ImportError:  # run as a script: its own folder is on the path
 
 REPO = Path(__file__).resolve().parents[1]
 
-STAGES = ["meshes", "materials", "render", "extract", "train", "eval"]
+STAGES = list(stage_names)  # cnnps.stages.STAGES
 
 
 CARRIED = REPO / "tools" / "runs"  # what git carries of every run

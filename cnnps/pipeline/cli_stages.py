@@ -26,6 +26,7 @@ import typer
 
 from cnnps.infra.errors import CnnpsError, ConfigError
 from cnnps.pipeline.app import app
+from cnnps.stages import STAGES
 
 PARAMS_HELP = "Params file (default: params.yaml in the current folder)."
 PRESET_HELP = (
@@ -101,7 +102,7 @@ def stages_cmd(
 
 @app.command("run-stage")
 def run_stage_cmd(
-    name: str = typer.Argument(..., help="Stage: meshes, materials, render, extract, train or eval."),
+    name: str = typer.Argument(..., help=f"Stage: {', '.join(STAGES[:-1])} or {STAGES[-1]}."),
     params: Optional[Path] = typer.Option(None, "--params", help=PARAMS_HELP),
     preset: Optional[str] = typer.Option(None, "--preset", help=PRESET_HELP),
     data_dir: Optional[Path] = typer.Option(None, "--data-dir", help=DATA_HELP),

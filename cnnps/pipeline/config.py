@@ -50,8 +50,9 @@ import yaml
 from cnnps.infra import options as declared
 from cnnps.infra.errors import ConfigError
 from cnnps.infra.executor import ExecutorParams
+from cnnps.stages import STAGES as stage_names
 
-STAGES = ["meshes", "materials", "render", "extract", "train", "eval"]
+STAGES = list(stage_names)  # cnnps.stages.STAGES: in the order they run
 STAGE_MODULES = {name: f"cnnps.stages.{name}" for name in STAGES}
 STAGE_MODULES["eval"] = "cnnps.stages.evaluate"  # `eval` would shadow the builtin
 SHARED_KEYS = ("seed", "data_dir", "executor")

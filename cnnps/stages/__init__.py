@@ -5,4 +5,9 @@ A stage module holds only its parameters, its plan (what to write, with content 
 the per-scene job and ``run``; the library it calls lives in :mod:`cnnps.synth`,
 :mod:`cnnps.train`, :mod:`cnnps.models`, :mod:`cnnps.io`, :mod:`cnnps.ps` and :mod:`cnnps.infra`. Importing a
 stage module never imports bpy. ``eval_report`` is the eval stage's table and report.
+
+:data:`STAGES` is the list of stages, in the order they run, declared here once: the config
+layer, the CLI's help, ``tools/long_run.py`` and the tests read it.
 """
+
+STAGES = ("meshes", "materials", "render", "extract", "train", "eval")

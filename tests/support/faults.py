@@ -66,8 +66,9 @@ from pathlib import Path
 
 import yaml
 
+from cnnps.stages import STAGES
+
 REPO = Path(__file__).resolve().parents[2]
-STAGES = ("meshes", "materials", "render", "extract", "train", "eval")
 OUTPUT_DIRS = {s: s for s in STAGES}  # data_dir/<folder> each stage writes (and only it)
 
 # (stage, glob of the path relative to the stage's output folder) -> JSON fields left out
