@@ -106,11 +106,9 @@ def make_record(solver, camera, found, stack, *, n_images: int, image_size, opti
     confidence = found.counts.confidence
     return {
         "method": solver.name,
-        "model": own.pop("model", None),
-        "rotations": own.pop("rotations", None),
+        **own,  # what the solver says of itself, in its own words and order (the network: model, rotations, ...)
         "camera": camera.record(),
         "lights": found.lights,
-        **own,
         "confidence": None if confidence is None else {
             **(solver.confidence_record() or {}),
             "median": round(float(np.median(confidence[found.normal.any(axis=2)])), 4)},

@@ -309,11 +309,10 @@ class NetworkSolver(Solver):
     def confidence_record(self) -> dict | None:
         if self.heatmap:
             return {"measure": "1 / (1 + u / 6.5 deg), u = the heat-map spread (its windowed second moment, deg, "
-                               "mean over the K rotations) / the lit share", "rotations": self.rotations}
+                               "mean over the K rotations) / the lit share"}
         if self.rotations == 1:
             return None  # one answer a pixel: no spread to measure
-        return {"measure": "1 / (1 + u / 3 deg), u = the spread of the K rotated answers (deg) / the lit share",
-                "rotations": self.rotations}
+        return {"measure": "1 / (1 + u / 3 deg), u = the spread of the K rotated answers (deg) / the lit share"}
 
     def progress_bar(self, n_pixels: int):
         from cnnps.infra.progress import progress_bar
