@@ -57,6 +57,7 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import asdict, dataclass, replace
+from typing import Annotated, Literal, get_args
 from fnmatch import fnmatch, fnmatchcase
 from pathlib import Path
 
@@ -72,6 +73,7 @@ from cnnps.infra.hashing import (
     json_checksum_ok,
     stable_hash,
 )
+from cnnps.infra.options import Count, Range, check_fields
 from cnnps.infra.progress import progress_bar
 from cnnps.io.capture import SCENE_FILE, SCENE_INDENT
 from cnnps.io.observation_store import OBSERVATION_FORMAT, write_capture_observations
@@ -87,8 +89,8 @@ from cnnps.io.shards import (
     shard_schema,
 )
 from cnnps.ps.rotation import rotation_angles
-from cnnps.synth.render.rendered_folder import SCENE_TIMINGS, folder_problems
 from cnnps.synth.light_subsets import RULE, check_light_subsets, sample_light_masks
+from cnnps.synth.render.rendered_folder import SCENE_TIMINGS, folder_problems
 from cnnps.synth.training_samples import (
     STREAM_SPARSE,
     apply_capture_effects,
@@ -103,75 +105,63 @@ MARKER_TIMINGS = ("seconds",)  # not in the marker's checksum: it varies between
 FIX_RENDER = "rerun `cnnps run-stage render` (it re-renders exactly the damaged part), then this stage"
 
 
+Fraction = Annotated[float, Range(ge=0.0, le=1.0)]  # a share or strength in [0, 1]
+Layout = Literal["maps", "observations"]  # what a scene becomes: shards of maps, or per-pixel observations
+LAYOUTS = get_args(Layout)
+
+
 @dataclass(frozen=True)
 class Params:
-    w: int = 32
+    """``extract:`` in params.yaml. A field declared with a type (a range, a choice) is
+    checked from its declaration (:func:`cnnps.infra.options.check_fields`); the light-subset
+    settings by :func:`cnnps.synth.light_subsets.check_light_subsets`; the rest below."""
+
+    w: Annotated[int, Range(ge=4, le=256)] = 32
     # the light-subset rule (module docstring, steps 1 and 2): cnnps.synth.light_subsets declares it
     min_lights: int = RULE.min_lights
     max_lights: int = RULE.max_lights
     cone_min_deg: float = RULE.cone_min_deg
     cone_max_deg: float = RULE.cone_max_deg
-    rotations: int = 10
-    ambient_max: float = 0.0  # per-pixel ambient offset a ~ U(0, ambient_max), times the pixel's brightest light
+    rotations: Annotated[int, Range(ge=1, le=127)] = 10
+    ambient_max: Fraction = 0.0  # per-pixel ambient offset a ~ U(0, ambient_max), times the pixel's brightest light
     # sensor and capture realism (module docstring, step 4; each 0 / empty = off)
-    intensity_error: float = 0.0  # per scene and light: intensity factor 1 + e, e ~ N(0, intensity_error)
-    direction_error_deg: float = 0.0  # per scene and light: written direction turned by |N(0, this)| degrees
-    black_level_max: float = 0.0  # per scene: offset b * E, b ~ U(0, black_level_max), E the scene's full scale
-    noise_max: float = 0.0  # per pixel: read and shot noise levels ~ U(0, noise_max) x the pixel's brightest value
-    saturated_fraction_max: float = 0.0  # per scene: clip at the (1 - f) quantile of pixel peaks, f ~ U(0, this)
+    intensity_error: Fraction = 0.0  # per scene and light: intensity factor 1 + e, e ~ N(0, intensity_error)
+    direction_error_deg: Annotated[float, Range(ge=0.0, le=90.0)] = 0.0  # per scene and light: written direction turned by |N(0, this)| degrees
+    black_level_max: Fraction = 0.0  # per scene: offset b * E, b ~ U(0, black_level_max), E the scene's full scale
+    noise_max: Fraction = 0.0  # per pixel: read and shot noise levels ~ U(0, noise_max) x the pixel's brightest value
+    saturated_fraction_max: Fraction = 0.0  # per scene: clip at the (1 - f) quantile of pixel peaks, f ~ U(0, this)
     quantize_bits: tuple[int, ...] = ()  # per scene: a bit depth drawn from these, grid E / (2^bits - 1)
     # sparse light subsets (module docstring, step 2): a pixel is sparse with this probability
-    sparse_fraction: float = 0.0
+    sparse_fraction: Fraction = 0.0
     sparse_min_lights: int = RULE.sparse_min_lights  # sparse k is log-uniform in [sparse_min_lights, min_lights)
-    pixels_per_scene: int = 0  # 0 = every foreground pixel
-    val_fraction: float = 0.1
+    pixels_per_scene: Annotated[int, Range(ge=0)] = 0  # 0 = every foreground pixel
+    val_fraction: Annotated[float, Range(ge=0.0, lt=1.0)] = 0.1
     val_scenes: tuple[str, ...] = ()  # explicit validation scenes (or view ids); overrides val_fraction
     seed: int = 0
-    rows_per_group: int = 8192
-    rows_per_shard: int = 262144
-    chunk_pixels: int = 2048
+    rows_per_group: Count = 8192
+    rows_per_shard: Count = 262144
+    chunk_pixels: Count = 2048
     # how scenes are run: params.yaml's shared ``executor`` section (None = in this process);
     # ``workers`` overrides executor.workers when set (1 = in this process, 0 = one per core)
     executor: ExecutorParams | None = None
-    workers: int | None = None
+    workers: Annotated[int, Range(ge=0)] | None = None
     # where shards + manifest go: a path or an fsspec URL (s3://, gs://, file://, memory://);
     # None = data_dir/extract. The train stage reads the same place (train.data.shards).
     output: str | None = None
     # what a scene becomes: "maps" (the shards) or "observations" (one file of per-pixel
     # observations, cnnps.io.observation_store; pixels_per_scene and the map params unused)
-    layout: str = "maps"
+    layout: Layout = "maps"
     # which rendered scenes the stage reads: fnmatch patterns of scene ids
     # (``<source>-<view>-<hash>``, e.g. ["*-0-*", "*-1-*"] = views 0 and 1); empty = every scene
     scenes: tuple[str, ...] = ()
 
     def __post_init__(self):
-        if self.layout not in LAYOUTS:
-            raise ConfigError(f"extract.layout must be one of {', '.join(LAYOUTS)}, got {self.layout!r}")
-        if not 4 <= self.w <= 256:
-            raise ConfigError(f"extract.w must be in [4, 256], got {self.w}")
+        check_fields(self, "extract.")
         check_light_subsets("extract", self, self.sparse_fraction)
-        if not 1 <= self.rotations <= 127:
-            raise ConfigError(f"extract.rotations must be in [1, 127], got {self.rotations}")
-        if not 0.0 <= self.ambient_max <= 1.0:
-            raise ConfigError(f"extract.ambient_max must be in [0, 1], got {self.ambient_max}")
-        for name, hi in (("intensity_error", 1.0), ("black_level_max", 1.0), ("noise_max", 1.0),
-                         ("saturated_fraction_max", 1.0), ("sparse_fraction", 1.0), ("direction_error_deg", 90.0)):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and 0.0 <= v <= hi):
-                raise ConfigError(f"extract.{name} must be in [0, {hi:g}], got {v!r}")
         bits = tuple(self.quantize_bits)
         if not all(isinstance(b, (int, np.integer)) and not isinstance(b, bool) and 1 <= b <= 16 for b in bits):
             raise ConfigError(f"extract.quantize_bits must be bit depths in [1, 16], got {list(bits)}")
         object.__setattr__(self, "quantize_bits", tuple(sorted({int(b) for b in bits})))
-        if self.pixels_per_scene < 0:
-            raise ConfigError(f"extract.pixels_per_scene must be >= 0, got {self.pixels_per_scene}")
-        if not 0.0 <= self.val_fraction < 1.0:
-            raise ConfigError(f"extract.val_fraction must be in [0, 1), got {self.val_fraction}")
-        for name in ("rows_per_group", "rows_per_shard", "chunk_pixels"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"extract.{name} must be >= 1, got {getattr(self, name)}")
-        if self.workers is not None and self.workers < 0:
-            raise ConfigError(f"extract.workers must be >= 0, got {self.workers}")
         if self.output is not None and (not isinstance(self.output, str) or not self.output.strip()):
             raise ConfigError(f"extract.output must be a folder path or URL, got {self.output!r}")
         object.__setattr__(self, "val_scenes", tuple(self.val_scenes))
@@ -220,7 +210,6 @@ OMITTED_AT_DEFAULT = {
     "layout": "maps",
     "scenes": (),
 }
-LAYOUTS = ("maps", "observations")
 # layout observations: at most this share of a render's values may lie above float16's range
 # and be clipped to it (Cycles fireflies); more stops the stage naming the scene
 FIREFLY_FRACTION = 1e-4
