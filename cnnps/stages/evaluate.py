@@ -68,7 +68,6 @@ from cnnps.infra.options import UnitFraction, check_fields
 from cnnps.ps.sparse_fill import SparseFill
 from cnnps.stages.eval_report import (  # noqa: F401 (format_table: part of this stage's API)
     LAMBERTIAN,
-    PICTURE_MIN_SIZE,
     format_table,
     input_picture,
     method_name,
@@ -79,14 +78,10 @@ from cnnps.stages.eval_report import (  # noqa: F401 (format_table: part of this
 )
 from cnnps.stages.eval_testset import (  # noqa: F401 (part of this stage's API)
     SPHERE,
-    TEST_SEED_OFFSET,
     build_rig_twins,
     build_testset,
-    rig_name,
-    test_mesh,
-    testset_plan,
 )
-from cnnps.synth.bsdf import MaterialRanges
+from cnnps.synth.bsdf import MaterialRanges, checked_categories, checked_ranges
 
 
 @dataclass(frozen=True)
@@ -176,10 +171,7 @@ class Params:
         for name in ("test_shapes", "categories", "light_sets", "rotations", "real_captures", "real_subsets",
                      "real_exclude_from_mean"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
-        if isinstance(self.ranges, dict):
-            object.__setattr__(self, "ranges", MaterialRanges.from_dict(self.ranges))
-        if not isinstance(self.ranges, MaterialRanges):
-            raise ConfigError(f"eval.ranges must be a mapping of categories, got {self.ranges!r}")
+        object.__setattr__(self, "ranges", checked_ranges("eval", self.ranges))
         if self.synthetic:
             if not self.test_shapes:
                 raise ConfigError("eval.test_shapes is empty (set eval.synthetic: false to score real captures only)")
@@ -190,8 +182,7 @@ class Params:
                     raise ConfigError(f"eval.test_shapes: unknown shape {s!r} (choose from {SPHERE}, {', '.join(PROCEDURAL_KINDS)})")
             if len(set(self.test_shapes)) != len(self.test_shapes):
                 raise ConfigError(f"eval.test_shapes: duplicates in {list(self.test_shapes)}")
-            if not self.categories:
-                raise ConfigError("eval.categories is empty")
+            object.__setattr__(self, "categories", checked_categories("eval", self.categories))
             if not self.light_sets:
                 raise ConfigError("eval.light_sets is empty")
             for n in self.light_sets:

@@ -26,10 +26,11 @@ from cnnps.infra.hashing import entropy_seed, key_entropy, stable_hash
 from cnnps.infra.stage_folders import prune_stale, read_json
 from cnnps.stages.meshes import list_views
 from cnnps.synth.bsdf import (
-    CATEGORIES,
     DEFAULT_CATEGORIES,
     CategoryRanges,
     MaterialRanges,
+    checked_categories,
+    checked_ranges,
 )
 from cnnps.synth.material_maps import sample_material_maps, write_material_maps
 from cnnps.synth.meshes import read_view_mesh
@@ -63,23 +64,8 @@ class Params:
     prune: bool = True
 
     def __post_init__(self):
-        if isinstance(self.ranges, dict):
-            object.__setattr__(self, "ranges", MaterialRanges.from_dict(self.ranges))
-        elif self.ranges is None:
-            object.__setattr__(self, "ranges", MaterialRanges())
-        if not isinstance(self.ranges, MaterialRanges):
-            raise ConfigError(f"materials.ranges must be a mapping, got {type(self.ranges).__name__}")
-        if isinstance(self.categories, str):
-            raise ConfigError("materials.categories must be a list of category names")
-        cats = tuple(str(c).lower() for c in self.categories)
-        object.__setattr__(self, "categories", cats)
-        if not cats:
-            raise ConfigError("materials.categories is empty")
-        for c in cats:
-            if c not in CATEGORIES:
-                raise ConfigError(f"materials.categories: unknown category {c!r} (choose from {', '.join(CATEGORIES)})")
-        if len(set(cats)) != len(cats):
-            raise ConfigError(f"materials.categories has duplicates: {list(cats)}")
+        object.__setattr__(self, "ranges", checked_ranges("materials", self.ranges))
+        object.__setattr__(self, "categories", checked_categories("materials", self.categories))
         if not isinstance(self.size, int) or not 8 <= self.size <= 4096:
             raise ConfigError(f"materials.size must be an integer in [8, 4096], got {self.size!r}")
         if not isinstance(self.superpixels, int) or self.superpixels < 1:

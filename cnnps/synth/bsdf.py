@@ -46,6 +46,7 @@ Example::
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
@@ -161,17 +162,18 @@ class MaterialRanges:
     narrow: CategoryRanges = field(default_factory=lambda: _default("narrow"))
 
     @classmethod
-    def from_dict(cls, d: dict | None) -> "MaterialRanges":
-        """Per-category overrides of the paper's defaults, e.g. ``{"specular": {"specular": [0, 2]}}``."""
+    def from_dict(cls, d: dict | None, where: str = "materials") -> "MaterialRanges":
+        """Per-category overrides of the paper's defaults, e.g. ``{"specular": {"specular": [0, 2]}}``;
+        messages name ``where.ranges`` (the params section: ``materials``, ``eval``, ...)."""
         if d is None:
             return cls()
         if not isinstance(d, dict):
-            raise ConfigError(f"materials.ranges must be a mapping, got {type(d).__name__}")
+            raise ConfigError(f"{where}.ranges must be a mapping of categories, got {type(d).__name__}")
         kw = {}
         for cat, sub in d.items():
             c = str(cat).lower()
             if c not in CATEGORIES:
-                raise ConfigError(f"materials.ranges: unknown category {cat!r} (choose from {', '.join(CATEGORIES)})")
+                raise ConfigError(f"{where}.ranges: unknown category {cat!r} (choose from {', '.join(CATEGORIES)})")
             kw[c] = CategoryRanges.from_dict(sub or {}, c, base=_default(c))
         return cls(**kw)
 
@@ -293,3 +295,33 @@ def to_blender_inputs(params: dict) -> dict:
         "Thin Film Thickness": val(zeros),
         "Alpha": val(np.ones(shape)),
     }
+
+
+def checked_ranges(where: str, ranges) -> MaterialRanges:
+    """A params section's ``ranges`` (None, a mapping of per-category overrides, or a
+    :class:`MaterialRanges`) as :class:`MaterialRanges`; the one conversion and check that
+    ``materials``, ``eval`` and ``train.synthesis`` share, messages naming ``where.ranges``."""
+    if ranges is None:
+        return MaterialRanges()
+    if isinstance(ranges, MaterialRanges):
+        return ranges
+    if isinstance(ranges, Mapping):
+        return MaterialRanges.from_dict(dict(ranges), where)
+    raise ConfigError(f"{where}.ranges must be a mapping of categories, got {ranges!r}")
+
+
+def checked_categories(where: str, categories) -> tuple[str, ...]:
+    """A params section's ``categories`` as a tuple of lower-case names of :data:`CATEGORIES`,
+    none twice and at least one; the one check ``materials``, ``eval`` and ``train.synthesis``
+    share, messages naming ``where.categories``."""
+    if isinstance(categories, str) or not isinstance(categories, (list, tuple)):
+        raise ConfigError(f"{where}.categories must be a list of category names, got {categories!r}")
+    cats = tuple(str(c).lower() for c in categories)
+    if not cats:
+        raise ConfigError(f"{where}.categories is empty")
+    for c in cats:
+        if c not in CATEGORIES:
+            raise ConfigError(f"{where}.categories: unknown category {c!r} (choose from {', '.join(CATEGORIES)})")
+    if len(set(cats)) != len(cats):
+        raise ConfigError(f"{where}.categories has duplicates: {list(cats)}")
+    return cats

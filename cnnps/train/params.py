@@ -28,7 +28,7 @@ from typing import Annotated, ClassVar, Literal
 
 from cnnps.infra.errors import ConfigError
 from cnnps.infra.options import Range, check_fields
-from cnnps.synth.bsdf import CATEGORIES, DEFAULT_CATEGORIES, MaterialRanges
+from cnnps.synth.bsdf import DEFAULT_CATEGORIES, MaterialRanges, checked_categories, checked_ranges
 from cnnps.synth.effect_settings import EFFECT_NAMES
 from cnnps.synth.light_subsets import RULE, SETTINGS, check_light_subsets
 
@@ -140,18 +140,8 @@ class SynthesisParams:
     sparse_min_lights: int = RULE.sparse_min_lights  # sparse maps (train.pixelwise.sparse_fraction)
 
     def __post_init__(self):
-        if isinstance(self.ranges, Mapping):
-            object.__setattr__(self, "ranges", MaterialRanges.from_dict(dict(self.ranges)))
-        if not isinstance(self.ranges, MaterialRanges):
-            raise ConfigError(f"train.synthesis.ranges must be a mapping, got {self.ranges!r}")
-        if isinstance(self.categories, str):
-            raise ConfigError("train.synthesis.categories must be a list of category names")
-        cats = tuple(str(c).lower() for c in self.categories)
-        object.__setattr__(self, "categories", cats)
-        unknown = [c for c in cats if c not in CATEGORIES]
-        if not cats or unknown or len(set(cats)) != len(cats):
-            raise ConfigError(f"train.synthesis.categories must name distinct categories of "
-                              f"{', '.join(CATEGORIES)}, got {list(cats)}")
+        object.__setattr__(self, "ranges", checked_ranges("train.synthesis", self.ranges))
+        object.__setattr__(self, "categories", checked_categories("train.synthesis", self.categories))
         check_light_subsets("train.synthesis", self)
 
     def changed(self) -> dict:
