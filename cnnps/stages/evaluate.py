@@ -68,6 +68,7 @@ from cnnps.infra.options import UnitFraction, check_fields
 from cnnps.ps.sparse_fill import SparseFill
 from cnnps.stages.eval_report import (  # noqa: F401 (format_table: part of this stage's API)
     LAMBERTIAN,
+    PICTURE_MIN_SIZE,
     format_table,
     input_picture,
     method_name,
@@ -78,8 +79,12 @@ from cnnps.stages.eval_report import (  # noqa: F401 (format_table: part of this
 )
 from cnnps.stages.eval_testset import (  # noqa: F401 (part of this stage's API)
     SPHERE,
+    TEST_SEED_OFFSET,
     build_rig_twins,
     build_testset,
+    rig_name,
+    test_mesh,
+    testset_plan,
 )
 from cnnps.synth.bsdf import MaterialRanges, checked_categories, checked_ranges
 
