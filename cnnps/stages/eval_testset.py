@@ -60,10 +60,10 @@ def twin_size(size: int, rig) -> int:
     """Image size of a rig twin: ``rig.size``, or the orthographic capture's ``size``
     scaled so that the object spans as many pixels. The orthographic camera sees 2 object
     radii across; the pinhole camera, 5 radii from the object's centre
-    (:data:`cnnps.synth.blender_renderer.CAMERA_ORIGIN`), sees 2 x 5 tan(fov / 2) there."""
+    (:data:`cnnps.synth.render.scene.CAMERA_ORIGIN`), sees 2 x 5 tan(fov / 2) there."""
     if rig.size is not None:
         return int(rig.size)
-    from cnnps.synth.blender_renderer import CAMERA_ORIGIN
+    from cnnps.synth.render.scene import CAMERA_ORIGIN
 
     return int(round(size * CAMERA_ORIGIN[2] * np.tan(np.radians(rig.fov_deg) / 2)))
 

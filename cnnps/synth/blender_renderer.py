@@ -74,15 +74,14 @@ import contextlib
 import math
 import os
 import shutil
-import tempfile
-import time
-from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
 from cnnps.infra.errors import CnnpsError, ConfigError
+from cnnps.infra.locked_temp import make_locked_tmpdir
 from cnnps.io.images import read_exr
+from cnnps.synth.render.scene import CAMERA_ORIGIN
 
 LAMBERTIAN = "lambertian"
 # the one line every command says when it must render and bpy is missing
@@ -91,11 +90,8 @@ _GPU_BACKENDS = ("OPTIX", "CUDA", "HIP", "ONEAPI", "METAL")
 
 
 CYCLES_SEED_RANGE = 2**31  # Cycles' seed property takes 0 .. 2^31 - 1
-_TMP_PREFIX = "cnnps-blender-"
+TMP_PREFIX = "cnnps-blender-"  # the renderer's temp folders (cnnps.infra.locked_temp)
 
-# The camera's optical centre in the world frame (both cameras): world point (x, y, z) is
-# capture-frame point (x, y, z) - CAMERA_ORIGIN, and its depth along the optical axis is 5 - z.
-CAMERA_ORIGIN = (0.0, 0.0, 5.0)
 # Blender point-light power (W) per unit of radiant intensity: a point light of power
 # POINT_POWER * I makes a white Lambertian patch facing it at distance r read I / r^2
 # (Cycles: radiant intensity P / (4 pi) per steradian, and the Lambertian 1 / pi).
@@ -117,56 +113,6 @@ def _check_camera(camera: Mapping[str, Any] | None) -> dict[str, float] | None:
 def cycles_seed(seed: int) -> int:
     """``seed`` folded into the range Cycles accepts (seeds already in range are unchanged)."""
     return int(seed) % CYCLES_SEED_RANGE
-
-
-def _make_tmpdir() -> tuple[Path, int | None]:
-    """A private temp folder for Blender's output file, and a lock held on it while it lives.
-
-    A renderer killed with SIGKILL never runs :meth:`BlenderRenderer.close`; its folder is
-    removed by a later renderer, which sees that nobody holds the lock any more (the
-    kernel drops a dead process's locks).
-    """
-    _remove_stale_tmpdirs()
-    d = Path(tempfile.mkdtemp(prefix=_TMP_PREFIX))
-    try:
-        import fcntl
-    except ImportError:  # no flock (Windows): no clean-up of killed renderers' folders
-        return d, None
-    fd = os.open(d / ".lock", os.O_CREAT | os.O_RDWR, 0o600)
-    fcntl.flock(fd, fcntl.LOCK_EX)
-    return d, fd
-
-
-def _remove_stale_tmpdirs(root: str | Path | None = None, min_age_s: float = 60.0) -> list[Path]:
-    """Remove temp folders of renderers whose process is gone (their ``.lock`` is free).
-
-    Folders younger than ``min_age_s`` are left alone (a new renderer takes its lock just
-    after creating its folder), and so are folders without a ``.lock``. Returns the
-    folders removed.
-    """
-    try:
-        import fcntl
-    except ImportError:
-        return []
-    removed = []
-    now = time.time()
-    for d in Path(root or tempfile.gettempdir()).glob(_TMP_PREFIX + "*"):
-        try:
-            if not d.is_dir() or now - d.stat().st_mtime < min_age_s:
-                continue
-            fd = os.open(d / ".lock", os.O_RDWR)
-        except OSError:
-            continue
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            continue  # a live renderer holds it
-        else:
-            shutil.rmtree(d, ignore_errors=True)
-            removed.append(d)
-        finally:
-            os.close(fd)
-    return removed
 
 
 def blender_available() -> bool:
@@ -253,7 +199,7 @@ class BlenderRenderer:
         self.persistent = bool(persistent)
         self.environment = float(environment)  # world radiance (0 = black world)
         self.renders = 0  # number of light renders done (for tests / benchmarks)
-        self._tmpdir, self._lock_fd = _make_tmpdir()
+        self._tmpdir, self._lock_fd = make_locked_tmpdir(TMP_PREFIX)
         self._images: list[Any] = []
         self.obj = None
         self.point = None  # the point light, made by the first render_point

@@ -37,7 +37,7 @@ to the light count), ``filenames.txt``, ``light_intensities.txt``, ``mask.png``,
 
 - orthographic camera (``fov_deg`` None: it covers x, y in [-1, 1]): nothing more; suns:
   ``light_directions.txt`` (unit, camera frame);
-- pinhole camera (``fov_deg`` F, at :data:`cnnps.synth.blender_renderer.CAMERA_ORIGIN`
+- pinhole camera (``fov_deg`` F, at :data:`cnnps.synth.render.scene.CAMERA_ORIGIN`
   (0, 0, 5) looking down -z, F across the square image): ``intrinsics.txt`` (K, OpenCV)
   and ``depth_gt.npy`` (H x W depth along the optical axis, NaN outside the mask;
   ``scene.json`` records its median as ``median_depth``); with suns
@@ -198,7 +198,7 @@ def _render_missing_images(r, out: Path, names: list[str], lights: np.ndarray, s
                            progress: bool, desc: str) -> int:
     """Render every image of ``names`` not in ``out`` yet, each written atomically; how
     many. ``lights``: directions (suns) or capture-frame positions (point lights)."""
-    from cnnps.synth.blender_renderer import CAMERA_ORIGIN
+    from cnnps.synth.render.scene import CAMERA_ORIGIN
 
     todo = [i for i, n in enumerate(names) if not (out / n).is_file()]
     rendered = 0
@@ -226,7 +226,8 @@ def _scene_record(out: Path, meta: dict | None, *, key: str, names: list[str], s
     """The contents of ``scene.json`` (``meta`` first), without its checksum: the settings,
     the camera and lights, the renderer, the timings and the size and SHA-256 of every
     other file."""
-    from cnnps.synth.blender_renderer import CAMERA_ORIGIN, blender_version
+    from cnnps.synth.blender_renderer import blender_version
+    from cnnps.synth.render.scene import CAMERA_ORIGIN
 
     s = settings
     record = dict(meta or {})

@@ -50,23 +50,23 @@ def test_cycles_seed_is_folded_into_range():
 def test_killed_renderers_temp_folders_are_removed(tmp_path):
     """Blender's temp folder carries a lock: once its process is SIGKILLed, a later
     renderer removes it; a live one's folder is left alone."""
-    code = ("import sys, time; from cnnps.synth.blender_renderer import _make_tmpdir; "
-            "d, fd = _make_tmpdir(); print(d, flush=True); time.sleep(120)")
+    code = ("import sys, time; from cnnps.infra.locked_temp import make_locked_tmpdir; "
+            "d, fd = make_locked_tmpdir('cnnps-blender-'); print(d, flush=True); time.sleep(120)")
     env = {**os.environ, "TMPDIR": str(tmp_path), "PYTHONPATH": str(REPO)}
     proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env=env, stdout=subprocess.PIPE, text=True)
     try:
         d = Path(proc.stdout.readline().strip())
         assert d.parent == tmp_path and d.name.startswith("cnnps-blender-") and d.is_dir()
-        from cnnps.synth.blender_renderer import _remove_stale_tmpdirs
+        from cnnps.infra.locked_temp import remove_stale_tmpdirs
 
         old = time.time() - 3600
         os.utime(d, (old, old))
-        assert _remove_stale_tmpdirs(tmp_path) == [] and d.is_dir()  # alive: its lock is held
+        assert remove_stale_tmpdirs("cnnps-blender-", tmp_path) == [] and d.is_dir()  # alive: its lock is held
     finally:
         proc.kill()
         proc.wait()
-    assert _remove_stale_tmpdirs(tmp_path, min_age_s=7200) == [] and d.is_dir()  # too young
-    assert _remove_stale_tmpdirs(tmp_path) == [d] and not d.exists()
+    assert remove_stale_tmpdirs("cnnps-blender-", tmp_path, min_age_s=7200) == [] and d.is_dir()  # too young
+    assert remove_stale_tmpdirs("cnnps-blender-", tmp_path) == [d] and not d.exists()
 
 
 # --------------------------------------------------------------------------- Cycles

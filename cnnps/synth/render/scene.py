@@ -29,6 +29,10 @@ from cnnps.io.capture import (
 )
 from cnnps.synth.render.settings import RenderSettings, check_camera_and_lights
 
+# The camera's optical centre in the world frame (both cameras, :mod:`cnnps.synth.blender_renderer`):
+# world point (x, y, z) is capture-frame point (x, y, z) - CAMERA_ORIGIN, and its depth along the
+# optical axis is 5 - z.
+CAMERA_ORIGIN = (0.0, 0.0, 5.0)
 LIGHT_FILES = (FILENAMES_FILE, LIGHT_DIRECTIONS_FILE, LIGHT_INTENSITIES_FILE)  # suns (Scene.light_files)
 GEOMETRY_FILES = (MASK_FILE, NORMAL_GT_FILE)  # orthographic camera (Scene.geometry_files)
 
@@ -95,7 +99,6 @@ class Scene:
         optical centre: world - CAMERA_ORIGIN), or None for suns."""
         if not self.point_lights:
             return None
-        from cnnps.synth.blender_renderer import CAMERA_ORIGIN
 
         return self.lights * float(self.light_distance) - np.asarray(CAMERA_ORIGIN)
 
