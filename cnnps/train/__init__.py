@@ -10,6 +10,7 @@ The loop and what it keeps:
 - ``training_data``: the extract manifest and its shards opened and checked, or none;
 - ``init_weights``: the checkpoint a run starts from (``train.init``);
 - ``pixelwise_batches``: per-pixel batches from the train params, one a step;
+- ``data_streams``: this rank's stream of shards or patches, and the run's steps;
 - ``loop``: resume, the step loop, checkpoints, the model file and ``metrics.json``
   (:func:`~cnnps.train.loop.train`, :class:`~cnnps.train.loop.Trainer`);
 - ``run_outputs``: the params the model file records and the curves for ``dvc plots``;

@@ -39,12 +39,12 @@ from tqdm import tqdm
 from cnnps.infra.atomic import write_text
 from cnnps.infra.errors import ConfigError
 from cnnps.infra.progress import progress_bar
-from cnnps.io.shards import ShardStream
 from cnnps.models.checkpoint import save_checkpoint, write_sha256_file
 from cnnps.models.model_options import model_options, recorded_options
 from cnnps.models.train_layers import COUNTER_MASK_BITS
 from cnnps.train.averaging import WeightAverage
 from cnnps.train.batch_lookahead import Lookahead
+from cnnps.train.data_streams import rank_stream
 from cnnps.train.device_feed import fed
 from cnnps.train.distributed import (
     DistInfo,
@@ -52,16 +52,9 @@ from cnnps.train.distributed import (
     barrier,
     broadcast,
     mean_over_ranks,
-    rank_steps_per_epoch,
 )
 from cnnps.train.maps_ahead import made_ahead
-from cnnps.train.observation_data import (
-    PatchChannels,
-    load_patch_val,
-    sampling_of_manifest,
-    steps_per_epoch,
-    stream_rows,
-)
+from cnnps.train.observation_data import PatchChannels, load_patch_val, stream_rows
 from cnnps.train.optimiser import AdamSchedule, compile_model, make_model, train_step
 from cnnps.train.params import Params
 from cnnps.train.patch_dataset import PatchStream
@@ -162,53 +155,11 @@ class Trainer:
             torch.manual_seed(params.seed + 1_000_003 * info.rank)  # each rank its own dropout masks
 
     def _build_stream(self) -> None:
-        """This rank's share of the training shards, its steps per epoch and the run's total;
-        with ``pixelwise`` the share of each batch made per pixel (all of it: no stream)."""
-        params, info, data = self.params, self.info, self.data
-        rank_batch = params.data.batch_size // info.world_size
-        share = float(params.pixelwise.share)
-        self.generated = rank_batch if not data.train_files else min(rank_batch - 1, round(share * rank_batch))
-        if not data.train_files:
-            self.stream = None
-            self.steps_per_epoch = self.total_steps = int(params.max_steps)
-            return
-        if data.layout == OBSERVATIONS:
-            self._build_patch_stream(rank_batch - self.generated)
-            return
-        if params.model.patch > 1:
-            raise ConfigError(f"train.model.patch: {params.model.patch} needs patches of per-pixel observations "
-                              f"(extract.layout: observations); {data.manifest_url} holds observation maps")
-        self.stream = ShardStream(data.train_files, data.w, rank_batch - self.generated, seed=params.seed,
-                                  buffer_rows=params.data.shuffle_buffer, rank=info.rank, world_size=info.world_size,
-                                  prefetch=params.data.prefetch)
-        self.steps_per_epoch = rank_steps_per_epoch(self.stream)
-        if self.steps_per_epoch == 0:
-            if info.enabled and len(self.stream.units) < info.world_size:
-                raise ConfigError(
-                    f"train: {len(self.stream.units)} training row groups for {info.world_size} processes; "
-                    "use fewer processes or a smaller extract.rows_per_group"
-                )
-            raise ConfigError(f"train.data.batch_size {params.data.batch_size} is larger than the {self.stream.rows()} "
-                              "training rows" + (" of a rank's share" if info.enabled else ""))
-        self.total_steps = params.epochs * self.steps_per_epoch
-        if params.max_steps:
-            self.total_steps = min(self.total_steps, params.max_steps)
-
-    def _build_patch_stream(self, rows: int) -> None:
-        """This rank's patches of the training observation files (``rows`` a step) and
-        the steps of an epoch (:mod:`cnnps.train.observation_data`)."""
-        params, info = self.params, self.info
-        self.sampling = sampling_of_manifest(self.data.manifest, params.model.patch)
-        self.stream = PatchStream(self.data.train_files, self.sampling, rows, seed=params.seed, rank=info.rank,
-                                  world_size=info.world_size)
-        self.steps_per_epoch = steps_per_epoch(self.stream, params.epochs)
-        if self.steps_per_epoch == 0:
-            raise ConfigError(f"train.data.batch_size {params.data.batch_size} is more than an epoch's samples: "
-                              f"{stream_rows(self.stream)} training pixels"
-                              + (f" in {info.world_size} processes" if info.enabled else ""))
-        self.total_steps = params.epochs * self.steps_per_epoch
-        if params.max_steps:
-            self.total_steps = min(self.total_steps, params.max_steps)
+        """This rank's data stream, its steps per epoch and the run's total
+        (:func:`cnnps.train.data_streams.rank_stream`)."""
+        made = rank_stream(self.params, self.data, self.info)
+        self.stream, self.generated, self.sampling = made.stream, made.generated, made.sampling
+        self.steps_per_epoch, self.total_steps = made.steps_per_epoch, made.total_steps
 
     # -- resume ------------------------------------------------------------------------
 
