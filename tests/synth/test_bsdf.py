@@ -124,3 +124,20 @@ def test_narrow_samples_lie_in_their_ranges_and_map_to_blender():
     old = bsdf.sample_parameters(MaterialRanges().specular, 3, np.random.default_rng(0))
     np.testing.assert_array_equal(old["specular"], np.float32([3.429617166519165, 0.13434229791164398, 2.918621778488159]))
     np.testing.assert_array_equal(old["roughness"], np.float32([0.21687284111976624, 0.8631789088249207, 0.5643881559371948]))
+
+
+def test_categories_and_ranges_are_checked_once_with_the_section_named():
+    from cnnps.synth.bsdf import checked_categories, checked_ranges
+
+    assert checked_categories("eval", ["Specular", "metallic"]) == ("specular", "metallic")
+    for bad, message in ((["glass"], "eval.categories: unknown category 'glass'"), ([], "eval.categories is empty"),
+                         (["narrow", "narrow"], "eval.categories has duplicates"),
+                         ("diffuse", "eval.categories must be a list of category names")):
+        with pytest.raises(ConfigError, match=message):
+            checked_categories("eval", bad)
+    assert checked_ranges("materials", None) == MaterialRanges()
+    assert checked_ranges("eval", {"metallic": {"roughness": [0.1, 0.5]}}).metallic.roughness == (0.1, 0.5)
+    with pytest.raises(ConfigError, match=r"train.synthesis.ranges: unknown category 'glass'"):
+        checked_ranges("train.synthesis", {"glass": {}})
+    with pytest.raises(ConfigError, match=r"eval.ranges must be a mapping of categories"):
+        checked_ranges("eval", 3)
