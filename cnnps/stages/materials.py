@@ -19,10 +19,12 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 from cnnps.infra.errors import ConfigError, InputError
 from cnnps.infra.executor import ExecutorParams, stage_executor
 from cnnps.infra.hashing import entropy_seed, key_entropy, stable_hash
+from cnnps.infra.options import Count, Range, check_fields
 from cnnps.infra.stage_folders import prune_stale, read_json
 from cnnps.stages.meshes import list_views
 from cnnps.synth.bsdf import (
@@ -53,29 +55,20 @@ class Params:
     ``executor.workers`` when set (1 = in this process, 0 = one per core).
     """
 
-    size: int = 128
-    superpixels: int = 5000
+    size: Annotated[int, Range(ge=8, le=4096)] = 128
+    superpixels: Count = 5000
     categories: tuple[str, ...] = DEFAULT_CATEGORIES
     ranges: MaterialRanges = field(default_factory=MaterialRanges)
-    seed: int = 0
-    compactness: float = 0.1
+    seed: Annotated[int, Range(ge=0)] = 0
+    compactness: Annotated[float, Range(gt=0.0)] = 0.1
     executor: ExecutorParams | None = None
-    workers: int | None = None
+    workers: Annotated[int, Range(ge=0)] | None = None  # 0 = one per core
     prune: bool = True
 
     def __post_init__(self):
         object.__setattr__(self, "ranges", checked_ranges("materials", self.ranges))
         object.__setattr__(self, "categories", checked_categories("materials", self.categories))
-        if not isinstance(self.size, int) or not 8 <= self.size <= 4096:
-            raise ConfigError(f"materials.size must be an integer in [8, 4096], got {self.size!r}")
-        if not isinstance(self.superpixels, int) or self.superpixels < 1:
-            raise ConfigError(f"materials.superpixels must be an integer >= 1, got {self.superpixels!r}")
-        if not isinstance(self.seed, int) or self.seed < 0:
-            raise ConfigError(f"materials.seed must be an integer >= 0, got {self.seed!r}")
-        if not self.compactness > 0:
-            raise ConfigError(f"materials.compactness must be > 0, got {self.compactness}")
-        if self.workers is not None and (not isinstance(self.workers, int) or self.workers < 0):
-            raise ConfigError(f"materials.workers must be an integer >= 0 (0 = one per core), got {self.workers!r}")
+        check_fields(self, "materials.")  # the declared ranges: size, superpixels, seed, compactness, workers
 
 
 def scene_key(view_key: str, category: str, params: Params) -> str:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import trimesh
@@ -27,6 +28,7 @@ import trimesh
 from cnnps.infra.atomic import atomic_dir
 from cnnps.infra.errors import ConfigError
 from cnnps.infra.hashing import entropy_seed, file_sha256, key_entropy, stable_hash
+from cnnps.infra.options import Count, Range, check_fields
 from cnnps.infra.progress import progress_bar
 from cnnps.infra.stage_folders import prune_stale, read_json
 from cnnps.synth.meshes import (
@@ -60,33 +62,26 @@ class Params:
 
     mesh_dir: str | None = None
     extensions: tuple[str, ...] = MESH_EXTENSIONS
-    procedural: int = 0
+    procedural: Annotated[int, Range(ge=0)] = 0
     procedural_kinds: tuple[str, ...] = field(default_factory=lambda: tuple(_procedural_kinds()))
-    views_per_mesh: int = 1
-    seed: int = 0
-    radius: float = RADIUS
+    views_per_mesh: Count = 1
+    seed: Annotated[int, Range(ge=0)] = 0
+    radius: Annotated[float, Range(gt=0.0, le=1.0)] = RADIUS
     prune: bool = True
 
     def __post_init__(self):
         object.__setattr__(self, "extensions", tuple(e.lower() if e.startswith(".") else "." + e.lower() for e in self.extensions))
         object.__setattr__(self, "procedural_kinds", tuple(self.procedural_kinds))
+        check_fields(self, "meshes.")  # the declared ranges: procedural, views_per_mesh, seed, radius
         for e in self.extensions:
             if e not in MESH_EXTENSIONS:
                 raise ConfigError(f"meshes.extensions: unsupported {e!r} (choose from {', '.join(MESH_EXTENSIONS)})")
-        if not isinstance(self.procedural, int) or self.procedural < 0:
-            raise ConfigError(f"meshes.procedural must be an integer >= 0, got {self.procedural!r}")
         known = _procedural_kinds()
         for k in self.procedural_kinds:
             if k not in known:
                 raise ConfigError(f"meshes.procedural_kinds: unknown kind {k!r} (choose from {', '.join(known)})")
         if self.procedural > 0 and not self.procedural_kinds:
             raise ConfigError("meshes.procedural_kinds is empty but meshes.procedural > 0")
-        if not isinstance(self.views_per_mesh, int) or self.views_per_mesh < 1:
-            raise ConfigError(f"meshes.views_per_mesh must be an integer >= 1, got {self.views_per_mesh!r}")
-        if not isinstance(self.seed, int) or self.seed < 0:
-            raise ConfigError(f"meshes.seed must be an integer >= 0, got {self.seed!r}")
-        if not 0 < self.radius <= 1:
-            raise ConfigError(f"meshes.radius must be in (0, 1], got {self.radius}")
         if self.mesh_dir is None and self.procedural == 0:
             raise ConfigError("meshes: nothing to do (set meshes.mesh_dir or meshes.procedural > 0)")
 
