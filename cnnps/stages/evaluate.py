@@ -58,13 +58,13 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 
 from cnnps.infra.errors import ConfigError, InputError
 from cnnps.infra.machine import Device
-from cnnps.infra.options import UnitFraction, check_fields
+from cnnps.infra.options import Count, Range, UnitFraction, check_fields
 from cnnps.ps.sparse_fill import SparseFill
 from cnnps.stages.eval_report import (  # noqa: F401 (format_table: part of this stage's API)
     LAMBERTIAN,
@@ -148,29 +148,29 @@ class Params:
 
     synthetic: bool = True
     test_shapes: tuple[str, ...] = (SPHERE, "bowl", "holed")
-    superpixels: int = 100
+    superpixels: Count = 100
     categories: tuple[str, ...] = ("specular", "metallic")
     ranges: MaterialRanges = field(default_factory=MaterialRanges)  # the test set's BSDF ranges (not materials')
     light_sets: tuple[int, ...] = (17, 305)
-    size: int = 64
-    samples: int = 16
+    size: Annotated[int, Range(ge=8)] = 64  # pixels
+    samples: Count = 16
     rotations: tuple[int, ...] = (1, 10)
     real_captures: tuple[str, ...] = ()
     real_subsets: tuple[int, ...] = ()
     real_exclude_from_mean: tuple[str, ...] = ()
-    real_pixels: int = 0  # 0 = every mask pixel; N = a seeded sample of N (pixel_sample)
+    real_pixels: Annotated[int, Range(ge=0)] = 0  # 0 = every mask pixel; N = a seeded sample of N (pixel_sample)
     rig: Rig | None = None
     # point-light captures: "known" = the median depth a render records in scene.json, as a
     # measured --distance; "estimated" = found from the images, as without --distance
     rig_distance: Literal["known", "estimated"] = "known"
     model: str | None = None
     device: Device = "auto"
-    batch_size: int = 0  # maps per network call (0 = the inference default: 256 on a CPU, 4096 on CUDA)
+    batch_size: Annotated[int, Range(ge=0)] = 0  # maps per network call (0 = the inference default: 256 on a CPU, 4096 on CUDA)
     lambertian_shadow_threshold: UnitFraction | None = None
     sparse_fill: SparseFill = "auto"  # CNN, as `cnnps predict --sparse-fill` (cnnps.ps.sparse_fill)
     saturated: Literal["exclude", "keep"] = "exclude"  # as `cnnps predict --saturated`
     precision: Literal["auto", "fp32", "bf16"] = "fp32"  # the network's; auto as `cnnps predict --precision`
-    seed: int = 0
+    seed: Annotated[int, Range(ge=0)] = 0
 
     def __post_init__(self):
         for name in ("test_shapes", "categories", "light_sets", "rotations", "real_captures", "real_subsets",
@@ -206,21 +206,9 @@ class Params:
             if name not in names:
                 raise ConfigError(f"eval.real_exclude_from_mean: {name!r} is not the folder name of one of "
                                   f"eval.real_captures ({', '.join(names) or 'none'})")
-        if self.real_pixels < 0:
-            raise ConfigError(f"eval.real_pixels must be >= 0 (0 = every pixel), got {self.real_pixels}")
-        if self.superpixels < 1:
-            raise ConfigError(f"eval.superpixels must be >= 1, got {self.superpixels}")
-        if self.size < 8:
-            raise ConfigError(f"eval.size must be >= 8 pixels, got {self.size}")
-        if self.samples < 1:
-            raise ConfigError(f"eval.samples must be >= 1, got {self.samples}")
+        check_fields(self, "eval.")  # the declared ranges and choices (size, samples, device, ...)
         if not self.rotations or any(k < 1 for k in self.rotations):
             raise ConfigError(f"eval.rotations must be a non-empty list of integers >= 1, got {list(self.rotations)}")
-        if self.batch_size < 0:
-            raise ConfigError(f"eval.batch_size must be >= 0 (0 = default), got {self.batch_size}")
-        check_fields(self, "eval.")  # device, sparse_fill, lambertian_shadow_threshold: their declared types
-        if self.seed < 0:
-            raise ConfigError(f"eval.seed must be >= 0, got {self.seed}")
 
 
 def check_inputs(params: Params, data_dir: Path) -> None:
