@@ -2,7 +2,7 @@
 real objects: the cheap part of a model study (docs/models.md, "Model v7: the cheap study").
 
     .venv/bin/python tools/short_study.py averages v7-base-s1 [--swa-from 1750] [--ema-half-life 500]
-    .venv/bin/python tools/short_study.py score v7-base-s1 [--pixels 2000] [--rotations 10]
+    .venv/bin/python tools/short_study.py score v7-base-s1 [--pixels 2000] [--rotations 10] [--variants last swa]
     .venv/bin/python tools/short_study.py reference v7 [--pixels 2000]   # the shipped model, scored alike
     .venv/bin/python tools/short_study.py table v7 --arm base=v7-base-s1,v7-base-s2 --arm cone50=...
 
@@ -171,7 +171,7 @@ def score_weights(weights: Path, label: str, shared: Path, pixels: int, rotation
     return row
 
 
-def score_run(run: Run, shared: Path, pixels: int, rotations: int) -> dict:
+def score_run(run: Run, shared: Path, pixels: int, rotations: int, variants=VARIANTS) -> dict:
     variants = run.dir / "variants"
     if not (variants / "variants.json").is_file():
         raise SystemExit(f"{variants}: no weight variants yet (run `averages {run.name}` first)")
@@ -180,7 +180,7 @@ def score_run(run: Run, shared: Path, pixels: int, rotations: int) -> dict:
     options = {"pixels": pixels, "rotations": rotations}
     rows = old["rows"] if old.get("options") == options else {}
     commit = run.record()["commit"]
-    for name in VARIANTS:
+    for name in variants:
         if name in rows:
             continue
 
@@ -289,6 +289,7 @@ def main(argv=None) -> int:
     ap.add_argument("--pixels", type=int, default=2000)
     ap.add_argument("--rotations", type=int, default=10)
     ap.add_argument("--arm", action="append", default=[], metavar="NAME=RUN[,RUN...]")
+    ap.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS), help="score: these variants only")
     a = ap.parse_args(argv)
     if a.cmd in ("score", "reference") and not (a.shared / CAPTURES[0]).is_dir():
         raise SystemExit(f"{a.shared / CAPTURES[0]}: not a capture folder (--shared)")
@@ -297,7 +298,7 @@ def main(argv=None) -> int:
             make_averages(Run(name, a.root, a.carried), a.swa_from, a.ema_half_life)
     elif a.cmd == "score":
         for name in a.names:
-            score_run(Run(name, a.root, a.carried), a.shared, a.pixels, a.rotations)
+            score_run(Run(name, a.root, a.carried), a.shared, a.pixels, a.rotations, a.variants)
     elif a.cmd == "reference":
         print(score_reference(a.carried / a.names[0], a.shared, a.pixels, a.rotations))
     else:
