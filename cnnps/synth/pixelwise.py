@@ -47,13 +47,14 @@ import torch
 
 from cnnps.infra.errors import ConfigError
 from cnnps.synth.bsdf import DEFAULT_CATEGORIES, MaterialRanges
+from cnnps.synth.effect_settings import EFFECT_NAMES, Effects
 from cnnps.synth.light_subsets import RULE, light_subsets
 from cnnps.synth.lights import hemisphere_lights
 from cnnps.synth.obsmap_torch import DEFAULT_WIDTH, observation_maps_rgb_torch, observation_maps_torch
-from cnnps.synth.effect_settings import EFFECT_NAMES, Effects
 from cnnps.synth.pixel_effects import (
     apply_ambient,
     apply_noise,
+    camera_response,
     diffuse_colour,
     draw_camera_and_mix,
     draw_effects,
@@ -62,7 +63,6 @@ from cnnps.synth.pixel_effects import (
     interreflect,
     mix_boundaries,
     shared_level,
-    camera_response,
 )
 from cnnps.synth.principled_torch import shade
 from cnnps.synth.surface_samples import sample_materials, sample_normals
