@@ -172,9 +172,9 @@ def score_weights(weights: Path, label: str, shared: Path, pixels: int, rotation
 
 
 def score_run(run: Run, shared: Path, pixels: int, rotations: int, variants=VARIANTS) -> dict:
-    variants = run.dir / "variants"
-    if not (variants / "variants.json").is_file():
-        raise SystemExit(f"{variants}: no weight variants yet (run `averages {run.name}` first)")
+    folder = run.dir / "variants"
+    if not (folder / "variants.json").is_file():
+        raise SystemExit(f"{folder}: no weight variants yet (run `averages {run.name}` first)")
     record = run.carried / "short_scores.json"
     old = json.loads(record.read_text()) if record.is_file() else {"rows": {}}
     options = {"pixels": pixels, "rotations": rotations}
@@ -188,10 +188,10 @@ def score_run(run: Run, shared: Path, pixels: int, rotations: int, variants=VARI
             run._record_call(ledger_entry("study", commit, wall, cpu, rc, variant=name, **extra))
 
         print(f"{run.name}: scoring {name}", flush=True)
-        rows[name] = score_weights(variants / f"{name}.pt", name, shared, pixels, rotations, book)
+        rows[name] = score_weights(folder / f"{name}.pt", name, shared, pixels, rotations, book)
         print(f"{run.name} {name}: {rows[name]}", flush=True)
         _write_json(record, {"run": run.name, "options": options, "scorer_commit": _head(),
-                             "variants": json.loads((variants / "variants.json").read_text()), "rows": rows})
+                             "variants": json.loads((folder / "variants.json").read_text()), "rows": rows})
     return rows
 
 
