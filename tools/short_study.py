@@ -45,10 +45,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-try:
-    from tools.long_run import CARRIED, REPO, Run, _write_json
-except ImportError:  # run as a script: its own folder is on the path
-    from long_run import CARRIED, REPO, Run, _write_json
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the repository's root
+
+from tools.longrun.paths import CARRIED, REPO, write_json  # noqa: E402
+from tools.longrun.run import Run  # noqa: E402
 
 VARIANTS = ("last", "swa", "ema")
 CAPTURES = ("diligent/ballPNG", "diligent-crop8/cowPNG", "diligent-crop8/gobletPNG", "diligent-crop8/pot1PNG",
@@ -120,7 +121,7 @@ def make_averages(run: Run, swa_from: int | None, half_life: float) -> dict:
             run.export(src, out_dir / f"{name}.pt", meta=meta)
         made[name] = {"steps": sorted(by_step), "weights": [round(by_step[s], 6) for s in sorted(by_step)]}
         print(f"{run.name}: {name} <- steps {sorted(by_step)}", flush=True)
-    _write_json(out_dir / "variants.json", {"swa_from": swa_from, "ema_half_life": half_life, "variants": made})
+    write_json(out_dir / "variants.json", {"swa_from": swa_from, "ema_half_life": half_life, "variants": made})
     return made
 
 
@@ -190,7 +191,7 @@ def score_run(run: Run, shared: Path, pixels: int, rotations: int, variants=VARI
         print(f"{run.name}: scoring {name}", flush=True)
         rows[name] = score_weights(folder / f"{name}.pt", name, shared, pixels, rotations, book)
         print(f"{run.name} {name}: {rows[name]}", flush=True)
-        _write_json(record, {"run": run.name, "options": options, "scorer_commit": _head(),
+        write_json(record, {"run": run.name, "options": options, "scorer_commit": _head(),
                              "variants": json.loads((folder / "variants.json").read_text()), "rows": rows})
     return rows
 
@@ -204,10 +205,10 @@ def score_reference(study: Path, shared: Path, pixels: int, rotations: int) -> d
     def book(wall, cpu, rc, **extra):
         calls = json.loads(ledger.read_text())["calls"] if ledger.is_file() else []
         calls.append(ledger_entry("study", _head(), wall, cpu, rc, variant="reference", **extra))
-        _write_json(ledger, {"calls": calls})
+        write_json(ledger, {"calls": calls})
 
     row = score_weights(shipped_model_path(), "shipped", shared, pixels, rotations, book)
-    _write_json(study / "reference.json", {"options": {"pixels": pixels, "rotations": rotations},
+    write_json(study / "reference.json", {"options": {"pixels": pixels, "rotations": rotations},
                                            "scorer_commit": _head(), "row": row})
     return row
 
@@ -312,7 +313,7 @@ def main(argv=None) -> int:
         ref_file = a.carried / a.names[0] / "reference.json"
         reference = json.loads(ref_file.read_text())["row"] if ref_file.is_file() else None
         table["reference"] = reference
-        _write_json(a.carried / a.names[0] / "short.json", table)
+        write_json(a.carried / a.names[0] / "short.json", table)
         print_table(table, reference)
     return 0
 

@@ -142,7 +142,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=result_path(__spec__.name))
     args = ap.parse_args()
 
-    from cnnps.synth.blender_renderer import blender_version
+    from cnnps.synth.blender import blender_version
     from cnnps.synth.calibration_scenes import (
         CHROME_ENVIRONMENT,
         CHROME_ROUGHNESS,

@@ -97,7 +97,7 @@ def _material(mask: np.ndarray, category: str, seed: int) -> dict:
 
 def render_arm(V, F, size: int, lights: np.ndarray, material: dict, arm: dict) -> tuple[np.ndarray, dict]:
     """(m, S, S) grey images of one arm, and its timing (CPU and wall seconds per image)."""
-    from cnnps.synth.blender_renderer import BlenderRenderer
+    from cnnps.synth.blender import BlenderRenderer
 
     with BlenderRenderer(size, samples=arm["samples"], threads=arm.get("threads", 1), seed=arm.get("seed", 0),
                          max_bounces=arm["max_bounces"]) as r:
@@ -128,7 +128,7 @@ def network_error(images: np.ndarray, lights: np.ndarray, mask: np.ndarray, norm
 
 def bench(args) -> dict:
     from cnnps.models.network_solver import default_model_path, load_predictor
-    from cnnps.synth.blender_renderer import BlenderRenderer, blender_version
+    from cnnps.synth.blender import BlenderRenderer, blender_version
     from cnnps.synth.lights import hemisphere_lights
 
     predictor, _, _ = load_predictor(default_model_path(), "cpu", "fp32", None)

@@ -48,7 +48,7 @@ def _material(size: int) -> dict:
 
 
 def bench(args) -> dict:
-    from cnnps.synth.blender_renderer import BlenderRenderer, blender_version
+    from cnnps.synth.blender import BlenderRenderer, blender_version
     from cnnps.synth.lights import uniform_lights
 
     V, F = _scene(args.mesh)

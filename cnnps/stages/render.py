@@ -36,7 +36,7 @@ the stage with one line naming the file and the fix, before the scene's folder i
 Blender (bpy, the ``cnnps[render]`` extra) is needed only when a scene has images to
 render; without it the stage stops with one line (with the local executor before any
 job starts; on Ray the first job on a node without bpy fails with it). Only
-:mod:`cnnps.synth.blender_renderer` imports bpy.
+:mod:`cnnps.synth.blender` imports bpy.
 """
 
 from __future__ import annotations
@@ -287,7 +287,7 @@ def run(params: Params, data_dir: Path, executor=None) -> dict:
     todo = [j for j in jobs if not finished(Path(j["out"]), j["key"])]
     results = []
     if todo:
-        from cnnps.synth.blender_renderer import require_blender
+        from cnnps.synth.blender import require_blender
 
         with stage_executor(params, executor) as ex:
             # one clear line here rather than one per job (Ray workers may have the bpy this process lacks)

@@ -12,6 +12,6 @@
 - :mod:`cnnps.synth.render`: what the capture renderer needs no Blender for: settings,
   scene, content keys, materials, the mesh a user names, the resume and checksum state
   machine, and reading a rendered folder (what the extract stage imports);
-- :mod:`cnnps.synth.blender_renderer`: the in-process Cycles renderer, the only module
-  that imports bpy (an optional extra, ``cnnps[render]``).
+- :mod:`cnnps.synth.blender`: the in-process Cycles renderer (session, scene set-up,
+  shaders, renderer), the only package that imports bpy (an optional extra, ``cnnps[render]``).
 """

@@ -9,7 +9,7 @@ The interface (kubric-style: scene + settings -> renderer -> folder)::
     # a rig: pinhole camera of 40 degrees, point lights 3 object radii from its centre
     render_into("rig", Scene(vertices, faces, material, L, fov_deg=40.0, light_distance=3.0), settings, key="k2")
 
-This module drives Blender (:mod:`cnnps.synth.blender_renderer`) through one folder;
+This module drives Blender (:mod:`cnnps.synth.blender`) through one folder;
 what it renders from and into are the modules of :mod:`cnnps.synth.render`, none of
 which needs Blender:
 
@@ -60,10 +60,10 @@ in ``scene.json`` as ``environment_strength``; 0 = black world, the paper's set-
 environment is the ambient light a real capture has in its attached shadows; it is not in
 the lights files, so every image then holds the lamp's term *plus* the ambient term.
 
-Blender (bpy) is needed only to render: :mod:`cnnps.synth.blender_renderer`, the one
+Blender (bpy) is needed only to render: :mod:`cnnps.synth.blender`, the one
 module that imports it, is imported when a folder actually has images to render, and
 without bpy that is one clear :class:`cnnps.infra.errors.ConfigError`
-(:func:`cnnps.synth.blender_renderer.require_blender`). A complete folder is recognised
+(:func:`cnnps.synth.blender.require_blender`). A complete folder is recognised
 without Blender.
 """
 
@@ -133,7 +133,7 @@ def render_into(
         return {"rendered": 0, "skipped": True}
     check_not_foreign(out)  # before Blender starts
     _forget_inherited_blender_paths()
-    from cnnps.synth.blender_renderer import BlenderRenderer, require_blender
+    from cnnps.synth.blender import BlenderRenderer, require_blender
 
     require_blender()  # one clear line without bpy, before the folder is touched
 
@@ -226,7 +226,7 @@ def _scene_record(out: Path, meta: dict | None, *, key: str, names: list[str], s
     """The contents of ``scene.json`` (``meta`` first), without its checksum: the settings,
     the camera and lights, the renderer, the timings and the size and SHA-256 of every
     other file."""
-    from cnnps.synth.blender_renderer import blender_version
+    from cnnps.synth.blender import blender_version
     from cnnps.synth.render.scene import CAMERA_ORIGIN
 
     s = settings

@@ -1,4 +1,4 @@
-"""The Blender renderer (cnnps.synth.blender_renderer): physics on tiny Cycles scenes
+"""The Blender renderer (cnnps.synth.blender): physics on tiny Cycles scenes
 (32 x 32, few samples, 2 threads), seeds, texture alignment, temp folders, devices."""
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ def _pixel_grid(size):
 
 
 def test_cycles_seed_is_folded_into_range():
-    from cnnps.synth.blender_renderer import cycles_seed
+    from cnnps.synth.blender import cycles_seed
 
     assert cycles_seed(0) == 0 and cycles_seed(12345) == 12345 and cycles_seed(2**31 - 1) == 2**31 - 1
     assert cycles_seed(2**31) == 0 and cycles_seed(2**31 + 7) == 7
@@ -74,7 +74,7 @@ def test_killed_renderers_temp_folders_are_removed(tmp_path):
 
 @pytest.mark.blender
 def test_cast_shadows_and_interreflections(tmp_path):
-    from cnnps.synth.blender_renderer import BlenderRenderer
+    from cnnps.synth.blender import BlenderRenderer
 
     mesh = _two_spheres()
     l = np.array([1.0, 0.0, 0.35])
@@ -104,7 +104,7 @@ def test_cast_shadows_and_interreflections(tmp_path):
 @pytest.mark.blender
 def test_same_seed_same_images_other_seed_other_noise():
     """Cycles on the CPU is bitwise deterministic for a seed (measured); the seed moves the noise."""
-    from cnnps.synth.blender_renderer import BlenderRenderer
+    from cnnps.synth.blender import BlenderRenderer
 
     mesh = _two_spheres()
     out = []
@@ -119,7 +119,7 @@ def test_same_seed_same_images_other_seed_other_noise():
 @pytest.mark.blender
 def test_image_space_material_maps_line_up_with_pixels():
     """A per-pixel albedo map reaches exactly its pixel (Window coords, Closest, row 0 on top)."""
-    from cnnps.synth.blender_renderer import BlenderRenderer
+    from cnnps.synth.blender import BlenderRenderer
 
     rng = np.random.default_rng(0)
     albedo = rng.uniform(0.2, 1.0, (S, S)).astype(np.float32)
@@ -144,7 +144,7 @@ def test_image_space_material_maps_line_up_with_pixels():
 @pytest.mark.blender
 def test_renderer_accepts_a_large_seed():
     pytest.importorskip("bpy")
-    from cnnps.synth.blender_renderer import BlenderRenderer, cycles_seed
+    from cnnps.synth.blender import BlenderRenderer, cycles_seed
 
     with BlenderRenderer(8, samples=1, threads=THREADS, seed=2**40 + 3) as r:
         assert r.scene.cycles.seed == cycles_seed(2**40 + 3) == 3
@@ -153,7 +153,7 @@ def test_renderer_accepts_a_large_seed():
 @pytest.mark.blender
 def test_gpu_request_without_gpu_is_a_clear_error(tmp_path):
     pytest.importorskip("bpy")
-    from cnnps.synth.blender_renderer import BlenderRenderer
+    from cnnps.synth.blender import BlenderRenderer
 
     try:
         r = BlenderRenderer(8, samples=1, device="gpu")
@@ -170,7 +170,7 @@ def test_narrow_lobe_highlight_is_peakier_than_a_rough_one():
     """The narrow category's ends (roughness 0.02 and 0.15) against a specular surface of
     roughness 0.5, 32 px, the sun aimed so that one pixel centre sees the mirror direction:
     the narrow highlight is that pixel (or two) and far brighter; the rough one is broad."""
-    from cnnps.synth.blender_renderer import BlenderRenderer
+    from cnnps.synth.blender import BlenderRenderer
     from cnnps.synth.bsdf import MaterialRanges
     from cnnps.synth.render.materials import principled_material
 
@@ -204,7 +204,7 @@ def test_environment_light_reads_albedo_times_strength_in_attached_shadow():
     """A uniform white world of radiance E on a Lambertian sphere (convex: every point sees
     the whole sky above its tangent plane): irradiance pi*E, outgoing radiance albedo*E,
     added to the sun's albedo*max(0, n.l). Off: attached shadows read exactly 0."""
-    from cnnps.synth.blender_renderer import BlenderRenderer
+    from cnnps.synth.blender import BlenderRenderer
 
     albedo, E = 0.6, 0.05
     l = np.array([1.0, 0.0, 0.2])

@@ -1,4 +1,4 @@
-"""The Blender renderer's pinhole camera and point lights (cnnps.synth.blender_renderer),
+"""The Blender renderer's pinhole camera and point lights (cnnps.synth.blender),
 checked against analytic references on a unit sphere: silhouette, normals and depth from
 rays through the pixel centres of the camera's K, and Lambertian shading max(0, n.l) / r^2."""
 
@@ -56,7 +56,7 @@ def _boundary(mask):
 
 
 def test_camera_spec_is_checked_before_blender_is_needed():
-    from cnnps.synth.blender_renderer import BlenderRenderer
+    from cnnps.synth.blender import BlenderRenderer
 
     for bad in ({"fov_deg": 0}, {"fov_deg": 180.0}, {"fov_deg": "40"}, {"fov": 40}, {"fov_deg": 40, "shift": 1}):
         with pytest.raises(ConfigError, match="camera"):
@@ -65,7 +65,7 @@ def test_camera_spec_is_checked_before_blender_is_needed():
 
 @pytest.mark.blender
 def test_pinhole_sphere_geometry_depth_and_point_light_match_analytic():
-    from cnnps.synth.blender_renderer import POINT_POWER, BlenderRenderer
+    from cnnps.synth.blender import POINT_POWER, BlenderRenderer
 
     mesh = _sphere(1.0)
     light = np.array([1.5, 1.0, 3.0])  # world frame
@@ -124,7 +124,7 @@ def test_pinhole_sphere_geometry_depth_and_point_light_match_analytic():
 def test_orthographic_depth_is_five_minus_z():
     """The default camera: depth along the optical axis is 5 - z of the hemisphere that
     faces it, at the pixel centres x = -1 + (c + .5) 2/S, y = 1 - (r + .5) 2/S."""
-    from cnnps.synth.blender_renderer import BlenderRenderer
+    from cnnps.synth.blender import BlenderRenderer
 
     s, radius = 32, 0.9
     with BlenderRenderer(s, samples=1, threads=THREADS, seed=0) as r:

@@ -116,17 +116,17 @@ def test_settings_are_validated_before_anything_is_loaded(tmp_path):
 def test_without_blender_rendering_is_one_clear_line(tmp_path, monkeypatch):
     """bpy missing (the core install, without the ``render`` extra): one ConfigError line
     naming the extra, and nothing written."""
-    from cnnps.synth import blender_renderer
+    from cnnps.synth import blender
     from cnnps.synth.capture_render import render_capture
 
     monkeypatch.setitem(sys.modules, "bpy", None)  # `import bpy` now fails as if not installed
-    assert not blender_renderer.blender_available()
+    assert not blender.blender_available()
     with pytest.raises(ConfigError) as exc:
         render_capture(_sphere(), tmp_path / "out", lights=3, size=8, samples=1, progress=False)
     assert str(exc.value) == "the render stage needs Blender: pip install 'cnnps[render]' (bpy 5.0.1, Python 3.11)"
     assert not (tmp_path / "out").exists()
     with pytest.raises(ConfigError, match=r"needs Blender: pip install 'cnnps\[render\]'"):
-        blender_renderer.BlenderRenderer(8)
+        blender.BlenderRenderer(8)
 
 
 def test_cli_without_blender(tmp_path):

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
-RENDERER = ("bpy", "cnnps.synth.capture_render", "cnnps.synth.blender_renderer", "cnnps.synth.render.resume")
+RENDERER = ("bpy", "cnnps.synth.capture_render", "cnnps.synth.blender", "cnnps.synth.render.resume")
 
 READ = """
 import json, sys

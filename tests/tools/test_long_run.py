@@ -16,23 +16,27 @@ import time
 import pytest
 import yaml
 
-from tools import long_run, run_weights
-
-REPO = long_run.REPO
+from tools import run_weights
+from tools.longrun import cli
+from tools.longrun.paths import REPO
+from tools.longrun.process_time import tree_cpu_seconds
+from tools.longrun.run import Run, parse_data_from
+from tools.longrun.train_section import continue_schedule, train_value, with_train_values
+from tools.longrun.variant_study import format_study
 
 
 def test_continue_schedule_keeps_the_rest_of_the_plan():
     base = {"max_steps": 100, "optimiser": {"lr": 1e-3, "lr_milestones": [50, 80], "lr_gamma": 0.1},
             "data": {"batch_size": 128}}
-    out = long_run.continue_schedule(base, 60, "w.pt")
+    out = continue_schedule(base, 60, "w.pt")
     assert out == {**base, "max_steps": 40, "init": "w.pt",
                    "optimiser": {"lr": pytest.approx(1e-4), "lr_milestones": [20], "lr_gamma": 0.1}}
-    assert long_run.continue_schedule(base, 10, "w.pt")["optimiser"]["lr_milestones"] == [40, 70]
+    assert continue_schedule(base, 10, "w.pt")["optimiser"]["lr_milestones"] == [40, 70]
     with pytest.raises(ValueError):
-        long_run.continue_schedule(base, 100, "w.pt")
+        continue_schedule(base, 100, "w.pt")
     # a run of code from before the sections keeps its flat section: its code reads that
     flat = {"max_steps": 100, "lr": 1e-3, "lr_milestones": [50, 80], "lr_gamma": 0.1, "batch_size": 128}
-    out = long_run.continue_schedule(flat, 60, "w.pt")
+    out = continue_schedule(flat, 60, "w.pt")
     assert out == {**flat, "max_steps": 40, "lr": pytest.approx(1e-4), "lr_milestones": [20], "init": "w.pt"}
 
 
@@ -43,9 +47,9 @@ def test_tree_cpu_seconds_counts_the_children():
                             start_new_session=True)
     try:
         deadline = time.monotonic() + 60
-        while long_run.tree_cpu_seconds(proc.pid) < 0.6 and time.monotonic() < deadline:
+        while tree_cpu_seconds(proc.pid) < 0.6 and time.monotonic() < deadline:
             time.sleep(0.2)
-        assert long_run.tree_cpu_seconds(proc.pid) >= 0.6
+        assert tree_cpu_seconds(proc.pid) >= 0.6
     finally:
         os.killpg(proc.pid, signal.SIGKILL)  # the parent and its busy child
         proc.wait()
@@ -55,14 +59,14 @@ def test_tree_cpu_seconds_counts_the_children():
 def test_a_run_outside_the_work_tree(tmp_path):
     root, carried = tmp_path / "runs", tmp_path / "carried"
     args = ["--root", str(root), "--carried", str(carried)]
-    assert long_run.main(["start", "r", "--preset", "demo", "--commit", "HEAD", *args]) == 0
+    assert cli.main(["start", "r", "--preset", "demo", "--commit", "HEAD", *args]) == 0
     rec = json.loads((carried / "r" / "run.json").read_text())
     head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     assert rec["commit"] == head and rec["preset"] == "demo"
     params = yaml.safe_load((root / "r" / "params.yaml").read_text())
     assert params["data_dir"] == str(root / "r" / "data")
     # one stage, run by the clone's code (the command asserts where cnnps came from)
-    assert long_run.main(["resume", "r", "--stages", "meshes", "--poll", "0.5", *args]) == 0
+    assert cli.main(["resume", "r", "--stages", "meshes", "--poll", "0.5", *args]) == 0
     calls = json.loads((root / "r" / "ledger.json").read_text())["calls"]
     assert [c["stage"] for c in calls] == ["meshes"] and calls[0]["finished"] and calls[0]["cpu_s"] > 0
     assert any((root / "r" / "data" / "meshes").iterdir())
@@ -79,7 +83,7 @@ def test_a_run_outside_the_work_tree(tmp_path):
     ck.mkdir(parents=True)
     torch.save({"model": net.state_dict(), "step": 10}, ck / "step-00000010.pt")
     (root / "r" / "data" / "train" / "metrics.json").write_text('{"val_mean_deg": 4.5}')
-    assert long_run.main(["save", "r", *args]) == 0
+    assert cli.main(["save", "r", *args]) == 0
     assert json.loads((carried / "r" / "train_metrics.json").read_text()) == {"val_mean_deg": 4.5}
     assert not (carried / "r" / "eval_metrics.json").exists()  # no eval stage yet
     saved, _, meta = load_checkpoint(carried / "r" / "intermediate.pt")
@@ -99,43 +103,43 @@ def test_a_run_outside_the_work_tree(tmp_path):
     save_checkpoint(weights, CNNPS(w=32), meta={"steps": 60})
     run_weights.carry(carried / "r", weights, steps=60, planned=100, finished=False)
     # (in the layout of the clone's preset: HEAD's code reads that one)
-    rec["params"]["train"] = long_run.with_train_values(rec["params"]["train"], max_steps=100, lr=1e-3,
+    rec["params"]["train"] = with_train_values(rec["params"]["train"], max_steps=100, lr=1e-3,
                                                         lr_milestones=[50, 80], lr_gamma=0.1)
     (carried / "r" / "run.json").write_text(json.dumps(rec))
     # weights that are not the recorded ones (replaced by hand) are refused, naming the file
     good = weights.read_bytes()
     save_checkpoint(weights, CNNPS(w=32, dropout=0.1), meta={"steps": 60})
     with pytest.raises(SystemExit, match=re.escape(f"{weights}: not the weights intermediate.json records")):
-        long_run.Run("r", root, carried).ensure()
+        Run("r", root, carried).ensure()
     weights.write_bytes(good)
-    notes = long_run.Run("r", root, carried).ensure()
+    notes = Run("r", root, carried).ensure()
     assert len(notes) == 1 and (root / "r" / "code" / ".git").is_dir()  # cloned by the refused call
     train = yaml.safe_load((root / "r" / "params.yaml").read_text())["train"]
     assert train["init"] == str(carried / "r" / "intermediate.pt") and train["max_steps"] == 40
-    assert long_run.train_value(train, "lr_milestones") == [20]
-    assert long_run.train_value(train, "lr") == pytest.approx(1e-4)
+    assert train_value(train, "lr_milestones") == [20]
+    assert train_value(train, "lr") == pytest.approx(1e-4)
 
     # the run ends at step 80 of 100 (save --final): git keeps the weights' record, not the weights
     ck.mkdir(parents=True)
     torch.save({"model": net.state_dict(), "step": 20}, ck / "step-00000020.pt")
-    assert long_run.main(["save", "r", "--final", *args]) == 0
+    assert cli.main(["save", "r", "--final", *args]) == 0
     record = json.loads((carried / "r" / "intermediate.json").read_text())
     assert not weights.exists() and record["finished"] and record["steps"] == 80
     kept = root / "r" / "intermediate.pt"
     assert record["kept"] == str(kept) and load_checkpoint(kept)[2]["steps"] == 80
-    assert long_run.main(["save", "r", *args]) == 0  # (a later save of the same step: still ended)
+    assert cli.main(["save", "r", *args]) == 0  # (a later save of the same step: still ended)
     assert not weights.exists() and json.loads((carried / "r" / "intermediate.json").read_text())["finished"]
     # resuming it on a bare machine needs the weights: one line naming the file and where they are
     shutil.rmtree(ck)
     with pytest.raises(SystemExit, match=re.escape(f"{weights}: not here; ") + ".*intermediate.json keeps only its SHA-256 .*"
                                          + re.escape(f"step 80): it was written to {kept}")):
-        long_run.Run("r", root, carried).ensure()
+        Run("r", root, carried).ensure()
     shutil.copy(kept, weights)  # put back: checked against the record, then the run goes on from step 80
-    assert long_run.Run("r", root, carried).ensure() == ["no checkpoint: training continues from intermediate.pt (step 80)"]
+    assert Run("r", root, carried).ensure() == ["no checkpoint: training continues from intermediate.pt (step 80)"]
     # a run whose plan is spent keeps the record alone without --final
     ck.mkdir(parents=True)
     torch.save({"model": net.state_dict(), "step": 20}, ck / "step-00000020.pt")  # 80 + 20 = the plan's 100
-    assert long_run.main(["save", "r", *args]) == 0
+    assert cli.main(["save", "r", *args]) == 0
     record = json.loads((carried / "r" / "intermediate.json").read_text())
     assert not weights.exists() and record["finished"] and record["steps"] == record["planned_steps"] == 100
 
@@ -145,13 +149,13 @@ def test_a_variant_study_runs_dvc_experiments_on_the_runs_data(tmp_path):
     pytest.importorskip("dvc")
     root, carried = tmp_path / "runs", tmp_path / "carried"
     args = ["--root", str(root), "--carried", str(carried)]
-    assert long_run.main(["start", "r", "--preset", "demo", "--commit", "HEAD", *args]) == 0
+    assert cli.main(["start", "r", "--preset", "demo", "--commit", "HEAD", *args]) == 0
     # dvc.yaml tracks the mesh folder: the run names one (an empty one: procedural shapes only)
     params = yaml.safe_load((root / "r" / "params.yaml").read_text())
     params["meshes"]["mesh_dir"] = str(tmp_path / "meshes")
     (tmp_path / "meshes").mkdir()
     (root / "r" / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    assert long_run.main(["study", "r", *args]) == 0
+    assert cli.main(["study", "r", *args]) == 0
     study, data = root / "r" / "study", root / "r" / "data"
     # the data phase is the run's; train and eval outputs would be the study's own
     for stage in ("meshes", "materials", "render", "extract"):
@@ -160,11 +164,11 @@ def test_a_variant_study_runs_dvc_experiments_on_the_runs_data(tmp_path):
     log = subprocess.run(["git", "-C", str(study), "log", "--format=%s", "-2"], capture_output=True, text=True).stdout
     assert log.splitlines()[0] == "the study's baseline: the parameters of run r"
     # a second `study` keeps the clone (and its experiments)
-    assert long_run.main(["study", "r", *args]) == 0
+    assert cli.main(["study", "r", *args]) == 0
     assert (study / "data" / "meshes").is_symlink()
 
     # one variant of the first stage: an experiment in the study's git, its time in the ledger
-    assert long_run.main(["exp", "r", "--poll", "0.5", *args, "--", "-n", "two-shapes", "-S", "meshes.procedural=2",
+    assert cli.main(["exp", "r", "--poll", "0.5", *args, "--", "-n", "two-shapes", "-S", "meshes.procedural=2",
                           "meshes"]) == 0
     call = json.loads((root / "r" / "ledger.json").read_text())["calls"][-1]
     assert call["stage"] == "study" and call["finished"] and call["cpu_s"] > 0
@@ -174,7 +178,7 @@ def test_a_variant_study_runs_dvc_experiments_on_the_runs_data(tmp_path):
     assert [r for r in refs.split() if r.endswith("/two-shapes")]
     assert len([p for p in (data / "meshes").iterdir() if p.is_dir()]) == 2 * 2  # 2 shapes x 2 views, in the run's folder
     # the next variant starts from the baseline, not from the last experiment's params
-    assert long_run.main(["exp", "r", "--poll", "0.5", *args, "--", "-n", "three-views", "-S", "meshes.views_per_mesh=3",
+    assert cli.main(["exp", "r", "--poll", "0.5", *args, "--", "-n", "three-views", "-S", "meshes.views_per_mesh=3",
                           "meshes"]) == 0
     params = yaml.safe_load((study / "params.yaml").read_text())
     assert params["meshes"]["views_per_mesh"] == 3 and params["meshes"]["procedural"] != 2
@@ -184,7 +188,7 @@ def test_the_study_table_shows_each_variants_measures():
     row = {"name": "ft", "changes": ["train.optimiser.lr=1e-4", "train.pixelwise.share=0.25"], "cpu_hours": 0.41,
            "val_mean_deg": 5.1234, "nonconvex_10_vs_ls": 0.6632, "nonconvex_17_vs_ls": 0.4916,
            "nonconvex_305_vs_ls": 0.1784, "ballPNG_deg": 2.061, "ballPNG-20_deg": 2.733, "ballPNG-10_deg": 4.598}
-    table = long_run.format_study([row]).splitlines()
+    table = format_study([row]).splitlines()
     assert len(table) == 3 and table[0].startswith("| variant |")
     assert table[2] == ("| ft | `train.optimiser.lr=1e-4` `train.pixelwise.share=0.25` | 0.41 | 5.12 | 0.663 / 0.492 / 0.178 "
                         "| 2.06 / 2.73 / 4.60 /  |")
@@ -199,14 +203,14 @@ def test_a_probe_scores_the_newest_checkpoint_and_keeps_a_row(tmp_path):
 
     root, carried = tmp_path / "runs", tmp_path / "carried"
     args = ["--root", str(root), "--carried", str(carried)]
-    assert long_run.main(["start", "r", "--preset", "demo", "--commit", "HEAD", *args]) == 0
+    assert cli.main(["start", "r", "--preset", "demo", "--commit", "HEAD", *args]) == 0
     cap = make_capture(tmp_path / "caps" / "ball")
     params = yaml.safe_load((root / "r" / "params.yaml").read_text())
     params["eval"] = {"synthetic": False, "real_captures": [str(cap)], "real_subsets": [6], "rotations": [1],
                       "device": "cpu"}
     (root / "r" / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     with pytest.raises(SystemExit, match="no checkpoint to probe"):
-        long_run.main(["probe", "r", *args])
+        cli.main(["probe", "r", *args])
     ck = root / "r" / "data" / "train" / "checkpoints"
     ck.mkdir(parents=True)
     torch.manual_seed(0)
@@ -215,7 +219,7 @@ def test_a_probe_scores_the_newest_checkpoint_and_keeps_a_row(tmp_path):
     (root / "r" / "data" / "train" / "plots" / "val.csv").write_text("step,val_mean_deg,val_median_deg\n10,9.5,8\n20,7.25,6\n")
     own = root / "r" / "data" / "eval" / "testset"  # the run's test set (no study): the probe reuses it
     own.mkdir(parents=True)
-    assert long_run.main(["probe", "r", "--poll", "0.5", *args]) == 0
+    assert cli.main(["probe", "r", "--poll", "0.5", *args]) == 0
     assert (root / "r" / "probe" / "eval" / "testset").resolve() == own.resolve()
     rows = json.loads((carried / "r" / "probes.json").read_text())["rows"]
     assert [r["step"] for r in rows] == [20] and rows[0]["val_mean_deg"] == 7.25
@@ -224,9 +228,9 @@ def test_a_probe_scores_the_newest_checkpoint_and_keeps_a_row(tmp_path):
     assert call["stage"] == "probe" and call["step"] == 20 and call["finished"]
     # a candidate weights file, scored the same way under its own name, beside the steps
     with pytest.raises(SystemExit, match="go together"):
-        long_run.main(["probe", "r", "--model", str(carried / "r" / "intermediate.pt"), *args])
+        cli.main(["probe", "r", "--model", str(carried / "r" / "intermediate.pt"), *args])
     saved = carried / "r" / "intermediate.pt"  # what the probe saved of step 20
-    assert long_run.main(["probe", "r", "--poll", "0.5", "--model", str(saved), "--name", "same", *args]) == 0
+    assert cli.main(["probe", "r", "--poll", "0.5", "--model", str(saved), "--name", "same", *args]) == 0
     rows = json.loads((carried / "r" / "probes.json").read_text())["rows"]
     assert [r["name"] for r in rows] == ["step 20", "same"] and rows[1]["step"] is None
     assert rows[1]["ball-6_deg"] == pytest.approx(rows[0]["ball-6_deg"], abs=0.05)  # the same weights (in float16)
@@ -236,7 +240,7 @@ def test_a_probe_scores_the_newest_checkpoint_and_keeps_a_row(tmp_path):
 
 
 def test_calls_that_run_side_by_side_keep_each_others_ledger_entries(tmp_path):
-    run = long_run.Run("r", tmp_path / "runs", tmp_path / "carried")
+    run = Run("r", tmp_path / "runs", tmp_path / "carried")
     train = {"id": "1-1", "stage": "train", "cpu_s": 10.0}
     probe = {"id": "2-2", "stage": "probe", "cpu_s": 3.0}
     run._record_call(train)
@@ -256,7 +260,7 @@ def _fake_run(tmp_path, steps):
     root, carried = tmp_path / "runs", tmp_path / "carried"
     (carried / "r").mkdir(parents=True)
     (carried / "r" / "run.json").write_text(json.dumps({"commit": "0" * 40, "params": {"train": {"max_steps": 40}}}))
-    run = long_run.Run("r", root, carried)
+    run = Run("r", root, carried)
     run.params.parent.mkdir(parents=True)
     run.params.write_text(yaml.safe_dump({"train": {"max_steps": 40}}))
     ck = run.data / "train" / "checkpoints"
@@ -326,7 +330,7 @@ def test_a_variant_run_changes_its_preset_and_shares_a_test_set(tmp_path):
     args = ["--root", str(root), "--carried", str(carried)]
     sets = ["--set", "train.max_steps=1500", "--set", "train.optimiser.lr_milestones=[1200]",
             "--set", "train.pixelwise.effects.saturation=0"]
-    assert long_run.main(["start", "fx", "--preset", "cpu-train-v5-continue", *sets, *args]) == 0
+    assert cli.main(["start", "fx", "--preset", "cpu-train-v5-continue", *sets, *args]) == 0
     rec = json.loads((carried / "fx" / "run.json").read_text())
     assert rec["overrides"] == ["train.max_steps=1500", "train.optimiser.lr_milestones=[1200]",
                                 "train.pixelwise.effects.saturation=0"]
@@ -339,12 +343,12 @@ def test_a_variant_run_changes_its_preset_and_shares_a_test_set(tmp_path):
     assert t["pixelwise"]["effects"]["saturation"] == 0 and t["pixelwise"]["effects"]["quantisation"] == 0.3
     # a bare machine: the clone is made again with the same changes
     shutil.rmtree(root / "fx")
-    long_run.Run("fx", root, carried).ensure()
+    Run("fx", root, carried).ensure()
     assert train() == t
     with pytest.raises(SystemExit, match="expected KEY.PATH=VALUE"):
-        long_run.main(["start", "bad", "--preset", "demo", "--set", "train.max_steps", *args])
+        cli.main(["start", "bad", "--preset", "demo", "--set", "train.max_steps", *args])
     # the eval stage's test set, rendered once: a link to another run's
-    run, other = long_run.Run("fx", root, carried), long_run.Run("v", root, carried)
+    run, other = Run("fx", root, carried), Run("v", root, carried)
     assert "->" in run.link_testset(other)
     (other.data / "eval" / "testset" / "cap").mkdir()
     assert (run.data / "eval" / "testset" / "cap").is_dir()
@@ -354,14 +358,14 @@ def test_a_variant_run_changes_its_preset_and_shares_a_test_set(tmp_path):
 def test_arms_of_a_study_read_another_runs_renders(tmp_path):
     root, carried = tmp_path / "runs", tmp_path / "carried"
     args = ["--root", str(root), "--carried", str(carried)]
-    assert long_run.main(["start", "data", "--preset", "demo", *args]) == 0
+    assert cli.main(["start", "data", "--preset", "demo", *args]) == 0
     renders = root / "data" / "data" / "render"
     (renders / "scene-0").mkdir(parents=True)
     for stage in ("meshes", "materials", "extract"):
         (root / "data" / "data" / stage).mkdir()
-    assert long_run.main(["start", "arm", "--preset", "demo", "--data-from", "data",
+    assert cli.main(["start", "arm", "--preset", "demo", "--data-from", "data",
                           "--data-from", "data:extract", "--set", "seed=1", *args]) == 0
-    arm = long_run.Run("arm", root, carried)
+    arm = Run("arm", root, carried)
     assert (arm.data / "render" / "scene-0").is_dir() and (arm.data / "extract").is_symlink()
     assert not (arm.data / "train").exists()  # what the arm makes is its own
     assert arm.record()["data_from"] == [{"run": "data", "stages": ["meshes", "materials", "render"]},
@@ -371,9 +375,9 @@ def test_arms_of_a_study_read_another_runs_renders(tmp_path):
     arm.ensure()
     assert (arm.data / "render" / "scene-0").is_dir()
     with pytest.raises(SystemExit, match="expected RUN"):
-        long_run.parse_data_from("data:train")
+        parse_data_from("data:train")
     with pytest.raises(SystemExit, match="run 'gone' under .* has no meshes folder"):
-        long_run.main(["start", "arm2", "--preset", "demo", "--data-from", "gone", *args])
+        cli.main(["start", "arm2", "--preset", "demo", "--data-from", "gone", *args])
     assert not (root / "arm2").exists() and not (carried / "arm2").exists()
 
 
@@ -388,7 +392,7 @@ def _scored_run(root, carried, name, crops, ball, crops_10, ratios, seed, train_
     ratios at 10 / 17 / 305 lights; a ledger of ``train_h`` + ``eval_h`` CPU-hours and a
     quarter-hour probe (in the run's total, not in its train and eval hours). ``crops``
     None: trained, not scored yet."""
-    run = long_run.Run(name, root, carried)
+    run = Run(name, root, carried)
     run.params.parent.mkdir(parents=True)
     run.params.write_text(yaml.safe_dump({"seed": 0, "train": {"seed": seed}, "eval": {**_ARM_EVAL, **ev}}))
     for i, (stage, hours) in enumerate([("train", train_h), ("eval", eval_h), ("probe", 0.25)]):
@@ -428,7 +432,7 @@ def test_arms_are_judged_by_the_selection_rule(tmp_path, capsys):
     # the reference: v4's model scored by the same eval section
     run("v4", (6.0, 7.0, 5.5, 5.5), 2.5, 9.0, (0.67, 0.482, 0.173), seed=0, train_h=0.0, eval_h=0.1, model="/w/v4.pt")
     arms = ["--arm", "hm=hm1,hm2", "--arm", "re=re1,re2", "--arm", "pt=pt1,pt2", "--arm", "one=one1,one2"]
-    assert long_run.main(["arms", "st", *arms, "--reference", "v4", *args]) == 0
+    assert cli.main(["arms", "st", *arms, "--reference", "v4", *args]) == 0
     out = json.loads((carried / "st" / "arms.json").read_text())
     hm, re_, pt, one = out["arms"]
     cols = hm["columns"]
@@ -472,12 +476,12 @@ def test_arms_stop_with_one_line_on_a_missing_run(tmp_path):
     _scored_run(root, carried, "a1", (5.0, 6.0, 4.0, 5.0), 1.8, 7.5, (0.64, 0.47, 0.17), seed=1)
     _scored_run(root, carried, "ref", None, None, None, None, seed=0)
     with pytest.raises(SystemExit, match=re.escape(f"{root / 'a2' / 'params.yaml'}: no such file: 'a2' is not a run")):
-        long_run.main(["arms", "st", "--arm", "a=a1,a2", *args])
+        cli.main(["arms", "st", "--arm", "a=a1,a2", *args])
     with pytest.raises(SystemExit, match=re.escape(f"{root / 'ref' / 'data' / 'eval' / 'metrics.json'}: no such file: "
                                                    "the reference run 'ref' is not scored yet")):
-        long_run.main(["arms", "st", "--arm", "a=a1", "--reference", "ref", *args])
+        cli.main(["arms", "st", "--arm", "a=a1", "--reference", "ref", *args])
     with pytest.raises(SystemExit, match="--arm 'a': expected NAME=RUN"):
-        long_run.main(["arms", "st", "--arm", "a", *args])
+        cli.main(["arms", "st", "--arm", "a", *args])
     assert not (carried / "st").exists()
     # as a command: one line on stderr, a non-zero exit
     proc = subprocess.run([sys.executable, str(REPO / "tools" / "long_run.py"), "arms", "st", "--arm", "a=a1,a2", *args],

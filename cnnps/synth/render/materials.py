@@ -1,4 +1,4 @@
-"""Renderer materials: the dicts :class:`cnnps.synth.blender_renderer.BlenderRenderer`
+"""Renderer materials: the dicts :class:`cnnps.synth.blender.BlenderRenderer`
 builds its BSDF from (white Lambertian, or Blender Principled inputs from the paper's
 parameter maps) and a capture's material drawn on superpixels of Blender's mask.
 

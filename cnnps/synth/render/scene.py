@@ -29,7 +29,7 @@ from cnnps.io.capture import (
 )
 from cnnps.synth.render.settings import RenderSettings, check_camera_and_lights
 
-# The camera's optical centre in the world frame (both cameras, :mod:`cnnps.synth.blender_renderer`):
+# The camera's optical centre in the world frame (both cameras, :mod:`cnnps.synth.blender`):
 # world point (x, y, z) is capture-frame point (x, y, z) - CAMERA_ORIGIN, and its depth along the
 # optical axis is 5 - z.
 CAMERA_ORIGIN = (0.0, 0.0, 5.0)
@@ -40,7 +40,7 @@ GEOMETRY_FILES = (MASK_FILE, NORMAL_GT_FILE)  # orthographic camera (Scene.geome
 @dataclass(frozen=True, eq=False)
 class Scene:
     """What one capture shows: the renderer's scene description, in the world frame of
-    :mod:`cnnps.synth.blender_renderer` (x right, y up, z toward the camera; the object
+    :mod:`cnnps.synth.blender` (x right, y up, z toward the camera; the object
     in the unit sphere at the origin, the camera at (0, 0, 5) looking down -z).
 
     vertices (V, 3), faces (F, 3): a smooth-shaded triangle mesh.
