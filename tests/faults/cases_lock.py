@@ -393,7 +393,7 @@ def install_enospc(fail_at: int, root: str | Path) -> dict:
     (nothing is restored)."""
     root = Path(root).resolve()
     import cnnps.infra.atomic as atomic
-    import cnnps.io.shards as shards
+    import cnnps.io.shards.writer as shard_writer
 
     real = atomic.publish_mode
     state = {"calls": 0, "failed": None}
@@ -413,7 +413,7 @@ def install_enospc(fail_at: int, root: str | Path) -> dict:
         return real(tmp, is_dir)
 
     atomic.publish_mode = publish_mode
-    shards.publish_mode = publish_mode
+    shard_writer.publish_mode = publish_mode
     try:
         import cnnps.synth.render.resume as resume
 

@@ -46,7 +46,7 @@ def _module_file(name: str) -> Path | None:
 
 def _imported_modules(path: Path) -> set[str]:
     """Every cnnps module ``path`` imports, at the top or inside functions (lazy imports)."""
-    # the package holding the module (cnnps/io/shards.py and cnnps/io/__init__.py: cnnps.io)
+    # the package holding the module (cnnps/io/observation_store.py and cnnps/io/__init__.py: cnnps.io)
     package = ".".join(path.relative_to(REPO).with_suffix("").parts).rpartition(".")[0]
     found: set[str] = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
