@@ -343,11 +343,11 @@ class NetworkSolver(Solver):
     def finish(self, n_pixels: int, seconds: float) -> None:
         """Tell the precision probe how fast this run went (maps per second), so a cached
         choice far slower than its probe is measured again next time
-        (:func:`cnnps.models.precision_probe.report_rate`); only for ``precision="auto"``."""
+        (:func:`cnnps.models.precision_cache.report_rate`); only for ``precision="auto"``."""
         how = self.precision_how or {}
         if how.get("requested") != "auto" or not how.get("key") or seconds < RATE_MIN_SECONDS:
             return
-        from cnnps.models.precision_probe import report_rate
+        from cnnps.models.precision_cache import report_rate
 
         rate = n_pixels * self.rotations / seconds
         how["run_maps_per_second"] = round(rate, 1)

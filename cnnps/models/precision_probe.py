@@ -53,16 +53,17 @@ measured, once per machine:
    container, other tenants' CPUs too), lags by a minute and counts this process's own
    threads; the CPU share measures what the timed calls themselves got. It cannot see a
    job on a hyperthread sibling (the threads keep their CPU time but run slower): a run
-   that is then far slower than the probe is the second guard (:func:`report_rate`).
+   that is then far slower than the probe is the second guard (:func:`cnnps.models.precision_cache.report_rate`).
 
 Its answer is cached per (CPU model and flags, logical
 CPUs, torch version, device, model SHA-256) in ``$CNNPS_CACHE_DIR`` or
 ``$XDG_CACHE_HOME/cnnps`` (default ``~/.cache/cnnps``), file ``precision.json``, written
 atomically; a cache that cannot be read or written is ignored (the probe just runs
-again). A cached answer is used for :data:`CACHE_MAX_AGE_S` (30 days) after its probe,
-then probed again (a machine's load, firmware and neighbours change); :func:`report_rate`,
+again). A cached answer is used for ``CACHE_MAX_AGE_S`` (30 days) after its probe,
+then probed again (a machine's load, firmware and neighbours change); ``report_rate``,
 called after a run with the rate the run reached, drops the answer when that rate is
-under :data:`SLOW_RUN_FACTOR` (half) of the probe's, so the next run probes again.
+under ``SLOW_RUN_FACTOR`` (half) of the probe's, so the next run probes again
+(:mod:`cnnps.models.precision_cache` keeps the answers).
 ``--precision fp32|bf16`` never probes. :class:`Choice` says which path runs and why (and,
 when cached, how old it is); ``cnnps predict -v`` prints it and ``prediction.json``
 records it.
@@ -70,19 +71,23 @@ records it.
 
 from __future__ import annotations
 
-import json
-import math
-import os
 import time
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
-from cnnps.infra.atomic import write_text
-from cnnps.infra.machine import cpu_model_and_flags, logical_cpus
+from cnnps.infra.machine import logical_cpus
+from cnnps.models.precision_cache import (
+    CACHE_FILE,
+    CACHE_MAX_AGE_S,
+    CACHE_VERSION,
+    cache_dir,
+    cache_key,
+    read_cache,
+    write_cache,
+)
 from cnnps.ps.metrics import angular_error_deg
 from cnnps.ps.obsmap import observation_maps
 
@@ -94,15 +99,8 @@ BATCH_SIZES = (64, 256)  # CPU batch sizes each candidate is timed at; its best 
 TIMED_CALLS = 3  # timed calls per batch size, after its warm-up call; the median decides
 PROBE_BUDGET_S = 0.5  # a candidate whose warm-up call alone takes longer is stopped
 PROBE_SEED = 20261123
-CACHE_FILE = "precision.json"
-# 3: bf16 timed at its own best batch size after warm-ups of every timed shape, entries carry
-# ``batch_size``; earlier entries (bf16 judged on its kernel creation) are probed again
-CACHE_VERSION = 3
 LOAD_SHARE = 0.75  # threads that got less of their CPUs' time than this during the timed passes ran under load
 PASS_SPREAD = 1.3  # two timed calls of the same candidate and shape farther apart than this: load changed
-CACHE_MAX_AGE_S = 30 * 24 * 3600.0  # a cached answer is probed again after 30 days
-SLOW_RUN_FACTOR = 0.5  # a run under half the probe's rate drops the cached answer (report_rate)
-
 # clocks, read through the module so that tests can drive them
 wall_clock = time.perf_counter
 cpu_clock = time.process_time  # CPU seconds of every thread of this process
@@ -174,26 +172,6 @@ class Choice:
 
     def as_dict(self) -> dict:
         return asdict(self)
-
-
-def cache_dir() -> Path:
-    """Where the probe's answers are kept (see the module docstring)."""
-    if os.environ.get("CNNPS_CACHE_DIR"):
-        return Path(os.environ["CNNPS_CACHE_DIR"])
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "cnnps"
-
-
-def cpu_signature() -> str:
-    """The CPU model, the instruction-set flags that decide the kernels, and the CPUs this
-    process may use."""
-    model, flags = cpu_model_and_flags()
-    return f"{model} [{' '.join(flags) or 'no avx2'}] x{logical_cpus()}"
-
-
-def cache_key(device: torch.device, model_sha256: str) -> str:
-    where = cpu_signature() if device.type == "cpu" else torch.cuda.get_device_name(device)
-    return f"{where} | torch {torch.__version__} | {device.type} | model {model_sha256[:16]}"
 
 
 def thread_candidates() -> list[int]:
@@ -425,33 +403,6 @@ def _choose_threads(model, device, precision, batch_size, maps, rate_all, thread
     return pick, rates
 
 
-def read_cache(path: Path, version: int = CACHE_VERSION) -> dict:
-    """The cache file ``path`` (``{"version": version, "choices": {key: answer}}``), or {}
-    when it is missing, unreadable or of another version."""
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    if not isinstance(data, dict) or data.get("version") != version or not isinstance(data.get("choices"), dict):
-        return {}
-    return data
-
-
-def _pick_rate(entry: dict) -> float | None:
-    """The maps/s the probe measured for its pick at its thread count."""
-    rate = (entry.get("thread_rates") or {}).get(str(entry.get("threads")))
-    if rate is None:
-        rate = (entry.get("rates") or {}).get(entry.get("precision"))
-    return float(rate) if isinstance(rate, (int, float)) and rate > 0 else None
-
-
-def _write_cache(path: Path, data: dict) -> None:
-    try:
-        write_text(path, json.dumps(data, indent=1) + "\n")
-    except OSError:
-        pass  # a read-only home: probe again next time
-
-
 def choose_precision(model: nn.Module, device: torch.device, model_sha256: str,
                      batch_size: int | None = None, use_cache: bool = True) -> Choice:
     """The precision ``--precision auto`` runs with on ``device`` for this model: the cached
@@ -481,32 +432,5 @@ def choose_precision(model: nn.Module, device: torch.device, model_sha256: str,
         data = read_cache(path) or {"version": CACHE_VERSION, "choices": {}}
         entry = {k: v for k, v in choice.as_dict().items() if k not in ("cached", "key", "age_seconds", "under_load")}
         data["choices"][key] = {**entry, "device": device.type}
-        _write_cache(path, data)
+        write_cache(path, data)
     return choice
-
-
-def report_rate(key: str, maps_per_second: float) -> bool:
-    """After a run with an ``--precision auto`` answer (``key``: :attr:`Choice.key`): the
-    rate the run's network reached, in observation maps per second. When it is under
-    :data:`SLOW_RUN_FACTOR` of the rate the probe measured for its pick, the cached answer
-    is dropped (the machine is no longer the one probed, or the probe was misled) and the
-    next run probes again; True when it was dropped. Answers for a GPU are kept (384 maps do
-    not fill a GPU, so the probe's rate is no yardstick for a run); so are rates that are
-    not positive numbers. Only meaningful for runs of many maps (a few seconds of work)."""
-    try:
-        rate = float(maps_per_second)
-    except (TypeError, ValueError):
-        return False
-    if not math.isfinite(rate) or rate <= 0:
-        return False
-    path = cache_dir() / CACHE_FILE
-    data = read_cache(path)
-    entry = data.get("choices", {}).get(key) if data else None
-    if not isinstance(entry, dict) or entry.get("device", "cpu") != "cpu":
-        return False
-    probed = _pick_rate(entry)
-    if probed is None or rate >= SLOW_RUN_FACTOR * probed:
-        return False
-    del data["choices"][key]
-    _write_cache(path, data)
-    return True

@@ -181,7 +181,7 @@ def demo_cmd(
     if not metrics_path.is_file():
         raise CnnpsError(f"{metrics_path}: the eval stage wrote no metrics")
     from cnnps.stages.eval_report import format_table
-    from cnnps.stages.evaluate import score_shipped
+    from cnnps.stages.eval_scoring import score_shipped
 
     metrics = json.loads(metrics_path.read_text())
     typer.echo("cnnps: scoring the shipped model on the same test captures ...", err=True)

@@ -55,176 +55,44 @@ Example::
 from __future__ import annotations
 
 import json
-import time
-from dataclasses import asdict, dataclass, replace
-from typing import Annotated, Literal, get_args
+from dataclasses import replace
 from fnmatch import fnmatch, fnmatchcase
 from pathlib import Path
 
-import numpy as np
-
 from cnnps.infra import storage
 from cnnps.infra.errors import ConfigError, InputError
-from cnnps.infra.executor import ExecutorParams, runs_in_process, stage_executor
+from cnnps.infra.executor import runs_in_process, stage_executor
 from cnnps.infra.hashing import (
     add_json_checksum,
     bytes_sha256,
-    derive_seed64,
     json_checksum_ok,
     stable_hash,
 )
-from cnnps.infra.options import Count, Range, check_fields
-from cnnps.infra.progress import progress_bar
 from cnnps.io.capture import SCENE_FILE, SCENE_INDENT
-from cnnps.io.observation_store import OBSERVATION_FORMAT, write_capture_observations
 from cnnps.io.observation_store import SUFFIX as OBSERVATION_SUFFIX
 from cnnps.io.shards import (
     MANIFEST,
     MANIFEST_INDENT,
-    SceneShardWriter,
     file_size,
-    make_batch,
     shard_path,
     shard_problem,
-    shard_schema,
 )
-from cnnps.ps.rotation import rotation_angles
-from cnnps.synth.light_subsets import RULE, check_light_subsets, sample_light_masks
-from cnnps.synth.render.rendered_folder import SCENE_TIMINGS, folder_problems
-from cnnps.synth.training_samples import (
-    STREAM_SPARSE,
-    apply_capture_effects,
-    build_rows,
-    draw_capture_effects,
-    stream,
+from cnnps.stages.extract_params import FORMAT_VERSION, Params
+from cnnps.stages.extract_scene import (
+    FIX_RENDER,
+    MARKER_INDENT,
+    MARKER_TIMINGS,
+    SceneJob,
+    check_render_folder,
+    extract_scene,
 )
-
-FORMAT_VERSION = 1  # bump when the rows written for the same inputs change
-MARKER_INDENT = 1  # scene-<id>.json is json.dumps(..., indent=1): its checksum hashes that form
-MARKER_TIMINGS = ("seconds",)  # not in the marker's checksum: it varies between runs
-FIX_RENDER = "rerun `cnnps run-stage render` (it re-renders exactly the damaged part), then this stage"
-
-
-Fraction = Annotated[float, Range(ge=0.0, le=1.0)]  # a share or strength in [0, 1]
-Layout = Literal["maps", "observations"]  # what a scene becomes: shards of maps, or per-pixel observations
-LAYOUTS = get_args(Layout)
-
-
-@dataclass(frozen=True)
-class Params:
-    """``extract:`` in params.yaml. A field declared with a type (a range, a choice) is
-    checked from its declaration (:func:`cnnps.infra.options.check_fields`); the light-subset
-    settings by :func:`cnnps.synth.light_subsets.check_light_subsets`; the rest below."""
-
-    w: Annotated[int, Range(ge=4, le=256)] = 32
-    # the light-subset rule (module docstring, steps 1 and 2): cnnps.synth.light_subsets declares it
-    min_lights: int = RULE.min_lights
-    max_lights: int = RULE.max_lights
-    cone_min_deg: float = RULE.cone_min_deg
-    cone_max_deg: float = RULE.cone_max_deg
-    rotations: Annotated[int, Range(ge=1, le=127)] = 10
-    ambient_max: Fraction = 0.0  # per-pixel ambient offset a ~ U(0, ambient_max), times the pixel's brightest light
-    # sensor and capture realism (module docstring, step 4; each 0 / empty = off)
-    intensity_error: Fraction = 0.0  # per scene and light: intensity factor 1 + e, e ~ N(0, intensity_error)
-    direction_error_deg: Annotated[float, Range(ge=0.0, le=90.0)] = 0.0  # per scene and light: written direction turned by |N(0, this)| degrees
-    black_level_max: Fraction = 0.0  # per scene: offset b * E, b ~ U(0, black_level_max), E the scene's full scale
-    noise_max: Fraction = 0.0  # per pixel: read and shot noise levels ~ U(0, noise_max) x the pixel's brightest value
-    saturated_fraction_max: Fraction = 0.0  # per scene: clip at the (1 - f) quantile of pixel peaks, f ~ U(0, this)
-    quantize_bits: tuple[int, ...] = ()  # per scene: a bit depth drawn from these, grid E / (2^bits - 1)
-    # sparse light subsets (module docstring, step 2): a pixel is sparse with this probability
-    sparse_fraction: Fraction = 0.0
-    sparse_min_lights: int = RULE.sparse_min_lights  # sparse k is log-uniform in [sparse_min_lights, min_lights)
-    pixels_per_scene: Annotated[int, Range(ge=0)] = 0  # 0 = every foreground pixel
-    val_fraction: Annotated[float, Range(ge=0.0, lt=1.0)] = 0.1
-    val_scenes: tuple[str, ...] = ()  # explicit validation scenes (or view ids); overrides val_fraction
-    seed: int = 0
-    rows_per_group: Count = 8192
-    rows_per_shard: Count = 262144
-    chunk_pixels: Count = 2048
-    # how scenes are run: params.yaml's shared ``executor`` section (None = in this process);
-    # ``workers`` overrides executor.workers when set (1 = in this process, 0 = one per core)
-    executor: ExecutorParams | None = None
-    workers: Annotated[int, Range(ge=0)] | None = None
-    # where shards + manifest go: a path or an fsspec URL (s3://, gs://, file://, memory://);
-    # None = data_dir/extract. The train stage reads the same place (train.data.shards).
-    output: str | None = None
-    # what a scene becomes: "maps" (the shards) or "observations" (one file of per-pixel
-    # observations, cnnps.io.observation_store; pixels_per_scene and the map params unused)
-    layout: Layout = "maps"
-    # which rendered scenes the stage reads: fnmatch patterns of scene ids
-    # (``<source>-<view>-<hash>``, e.g. ["*-0-*", "*-1-*"] = views 0 and 1); empty = every scene
-    scenes: tuple[str, ...] = ()
-
-    def __post_init__(self):
-        check_fields(self, "extract.")
-        check_light_subsets("extract", self, self.sparse_fraction)
-        bits = tuple(self.quantize_bits)
-        if not all(isinstance(b, (int, np.integer)) and not isinstance(b, bool) and 1 <= b <= 16 for b in bits):
-            raise ConfigError(f"extract.quantize_bits must be bit depths in [1, 16], got {list(bits)}")
-        object.__setattr__(self, "quantize_bits", tuple(sorted({int(b) for b in bits})))
-        if self.output is not None and (not isinstance(self.output, str) or not self.output.strip()):
-            raise ConfigError(f"extract.output must be a folder path or URL, got {self.output!r}")
-        object.__setattr__(self, "val_scenes", tuple(self.val_scenes))
-        patterns = [self.scenes] if isinstance(self.scenes, str) else list(self.scenes)
-        bad = [p for p in patterns if not isinstance(p, str) or not p.strip()]
-        if bad:
-            raise ConfigError(f"extract.scenes must be a list of scene-id patterns, got {bad[0]!r}")
-        object.__setattr__(self, "scenes", tuple(sorted(set(patterns))))
-
-    def row_key(self) -> dict:
-        """The params that change the rows of a scene (not the split, not parallelism)."""
-        if self.layout == "observations":  # the rows' params are the loader's
-            return {"layout": self.layout, "format": FORMAT_VERSION, "observation_format": OBSERVATION_FORMAT}
-        d = self.manifest_params()
-        for k in ("val_fraction", "val_scenes", "scenes"):  # which scenes, not their rows
-            d.pop(k, None)
-        d["format"] = FORMAT_VERSION
-        return d
-
-    def manifest_params(self) -> dict:
-        """The params recorded in the manifest: not where or how the stage ran."""
-        d = asdict(self)
-        for k in ("executor", "workers", "output"):
-            d.pop(k)
-        for k, default in OMITTED_AT_DEFAULT.items():  # absent = default: the keys of format 1
-            if d[k] == default:
-                d.pop(k)
-        if not self.sparse_fraction:  # no sparse pixels: their size has no effect on the rows
-            d.pop("sparse_min_lights", None)
-        return d
-
-
-# Params outside format 1's keys: left out of manifest_params() and row_key() at these
-# (their "off") values, so a Params that leaves them alone has format 1's cache keys and
-# manifest.
-OMITTED_AT_DEFAULT = {
-    "ambient_max": 0.0,
-    "intensity_error": 0.0,
-    "direction_error_deg": 0.0,
-    "black_level_max": 0.0,
-    "noise_max": 0.0,
-    "saturated_fraction_max": 0.0,
-    "quantize_bits": (),
-    "sparse_fraction": 0.0,
-    "sparse_min_lights": RULE.sparse_min_lights,
-    "layout": "maps",
-    "scenes": (),
-}
-# layout observations: at most this share of a render's values may lie above float16's range
-# and be clipped to it (Cycles fireflies); more stops the stage naming the scene
-FIREFLY_FRACTION = 1e-4
+from cnnps.synth.render.rendered_folder import SCENE_TIMINGS
 
 
 def scene_cache_key(scene_key: str, params: Params) -> str:
     """Cache key of a scene's rows: its render key and the row params (json's default
     spacing, 32 hex digits: the keys of format 1)."""
     return stable_hash({"scene": scene_key, "params": params.row_key()}, compact=False)[:32]
-
-
-# -- sampling (vectorised over pixels) ------------------------------------------------
-
-
-# -- one scene --------------------------------------------------------------------------
 
 
 def list_scenes(render_dir: Path) -> list[tuple[str, Path, dict]]:
@@ -248,145 +116,6 @@ def list_scenes(render_dir: Path) -> list[tuple[str, Path, dict]]:
     if not scenes:
         raise InputError(render_dir, f"no rendered scenes with a {SCENE_FILE}")
     return scenes
-
-
-@dataclass
-class SceneJob:
-    scene_id: str
-    folder: Path
-    key: str  # cache key (scene key + row params)
-    scene_key: str
-    out_dir: str | Path  # local folder or fsspec URL
-    params: Params
-    threads: int = 0
-    progress: bool = True
-    checksummed: bool = True  # its scene.json records the folder's checksums (checked before the job)
-
-
-def check_render_folder(folder: Path, meta: dict) -> None:
-    """InputError naming the first file of a rendered scene that does not match the
-    checksums its ``scene.json`` records (nothing to check when it records none)."""
-    problems = folder_problems(folder, meta)
-    if problems:
-        path, problem = problems[0]
-        more = f" (and {len(problems) - 1} more file(s) of this scene)" if len(problems) > 1 else ""
-        raise InputError(path, f"{problem}{more}; {FIX_RENDER}")
-
-
-def _load_render(folder: Path, checksummed: bool):
-    """The rendered capture, every image decoded and checked finite; a damaged file ->
-    InputError naming it and the fix. The render stage finds a damaged file by itself
-    only in a folder whose ``scene.json`` records checksums; in an older folder the file
-    must be deleted first."""
-    from cnnps.io.capture import load_capture
-
-    try:
-        return load_capture(folder)
-    except InputError as exc:
-        fix = FIX_RENDER if checksummed else f"delete it and {FIX_RENDER}"
-        raise InputError(exc.path, f"{exc.problem}; {fix}") from None
-
-
-def _scene_pixels(valid: np.ndarray, scene_seed: int, limit: int | None) -> np.ndarray:
-    """The indices of the ``valid`` mask pixels to extract, in the scene's seeded random
-    order, the first ``limit`` of them (None or 0: all)."""
-    rng = np.random.default_rng([scene_seed, 0])
-    pix = np.flatnonzero(valid)
-    pix = pix[rng.permutation(len(pix))]
-    return pix[:limit] if limit else pix
-
-
-def extract_scene(job: SceneJob) -> dict:
-    """Extract one scene into its shards and marker; returns the marker's contents."""
-    if job.threads:
-        _limit_threads(job.threads)
-    p = job.params
-    t0 = time.perf_counter()
-    cap = _load_render(job.folder, job.checksummed)
-    if cap.normal_gt is None:
-        raise InputError(job.folder, f"rendered scene has no ground-truth normals (normal_gt.npy); {FIX_RENDER}")
-    if p.layout == "observations":
-        info = write_capture_observations(job.out_dir, job.scene_id, cap, scene_key=job.scene_key,
-                                          clip_fraction=FIREFLY_FRACTION)
-        return _write_marker(job, t0, info["lights"], info["rows"], 0, info["rows"], [info])
-    rr, cc = np.nonzero(cap.mask)
-    normals = cap.normal_gt[rr, cc].astype(np.float64)
-    norm = np.linalg.norm(normals, axis=1)
-    valid = np.isfinite(norm) & (norm > 0.5)
-    I_all = cap.pixel_intensities()  # (P, m), mask pixels row-major, like rr, cc
-    scene_seed = derive_seed64(p.seed, job.scene_key)
-    pix = _scene_pixels(valid, scene_seed, p.pixels_per_scene)
-    angles = rotation_angles(p.rotations)
-    angles_deg = np.degrees(angles).astype(np.float32)
-    schema = shard_schema(p.w)
-    m = cap.lights.shape[0]
-    fx = draw_capture_effects(
-        scene_seed, I_all, np.flatnonzero(valid), cap.lights,
-        ambient_max=p.ambient_max, noise_max=p.noise_max, intensity_error=p.intensity_error,
-        direction_error_deg=p.direction_error_deg, black_level_max=p.black_level_max,
-        saturated_fraction_max=p.saturated_fraction_max, quantize_bits=p.quantize_bits,
-    )
-    map_lights = cap.lights if fx.lights is None else fx.lights  # the directions written into the maps
-    dropped_dark = 0
-    rows_written = 0
-    bar = progress_bar(total=len(pix), desc=f"extract {job.scene_id}", unit="px", disable=not job.progress, leave=False)
-    with bar, SceneShardWriter(job.out_dir, f"shard-{job.scene_id}", schema, p.rows_per_group, p.rows_per_shard) as wr:
-        for c, start in enumerate(range(0, len(pix), p.chunk_pixels)):
-            sel = pix[start : start + p.chunk_pixels]
-            crng = np.random.default_rng([scene_seed, 1, c])
-            mask, cone_deg, k = sample_light_masks(
-                crng, cap.lights, len(sel), p.min_lights, p.max_lights, p.cone_min_deg, p.cone_max_deg,
-                sparse_fraction=p.sparse_fraction, sparse_min_lights=p.sparse_min_lights,
-                sparse_rng=stream(scene_seed, STREAM_SPARSE, c) if p.sparse_fraction else None,
-            )
-            I = I_all[sel]
-            lit = (np.where(mask, I, 0.0) > 0).any(axis=1)
-            dropped_dark += int((~lit).sum())
-            sel, mask, cone_deg, k, I = sel[lit], mask[lit], cone_deg[lit], k[lit], I[lit]
-            I = apply_capture_effects(I, mask, fx, scene_seed, c)
-            n = normals[sel] / norm[sel, None]
-            maps, rot_n = build_rows(I, n, map_lights, mask, angles, p.w)
-            if not (np.isfinite(maps).all() and np.isfinite(rot_n).all()):  # never write NaN maps
-                raise InputError(job.folder, "non-finite observation maps (NaN or infinite rendered values?); "
-                                 f"{FIX_RENDER}")
-            R, P = len(angles), len(sel)
-            order = crng.permutation(R * P)  # interleave rotations and pixels inside the chunk
-            r_idx, p_idx = np.divmod(order, P)
-            wr.write(
-                make_batch(
-                    schema,
-                    maps.reshape(R * P, p.w, p.w)[order],
-                    rot_n.reshape(R * P, 3)[order],
-                    job.scene_id,
-                    rr[sel][p_idx],
-                    cc[sel][p_idx],
-                    k[p_idx],
-                    cone_deg[p_idx],
-                    r_idx,
-                    angles_deg[r_idx],
-                )
-            )
-            rows_written += R * P
-            bar.update(len(sel) + int((~lit).sum()))
-    return _write_marker(job, t0, m, len(pix) - dropped_dark, dropped_dark, rows_written, [asdict(s) for s in wr.infos])
-
-
-def _write_marker(job: SceneJob, t0: float, m: int, pixels: int, dropped_dark: int, rows: int, shards: list) -> dict:
-    record = {"scene": job.scene_id, "key": job.key, "scene_key": job.scene_key, "lights": int(m),
-              "pixels": int(pixels), "dropped_dark_pixels": dropped_dark, "rows": rows,
-              "seconds": round(time.perf_counter() - t0, 3), "shards": shards}
-    record = add_json_checksum(record, indent=MARKER_INDENT, skip=MARKER_TIMINGS)
-    storage.write_text(shard_path(job.out_dir, f"scene-{job.scene_id}.json"), json.dumps(record, indent=MARKER_INDENT))
-    return record
-
-
-def _limit_threads(n: int) -> None:
-    try:
-        import threadpoolctl  # type: ignore
-
-        threadpoolctl.threadpool_limits(n)
-    except ImportError:
-        pass
 
 
 def _cached(out_dir: str | Path, scene_id: str, key: str) -> dict | None:

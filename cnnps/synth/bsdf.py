@@ -47,13 +47,13 @@ Example::
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields, make_dataclass, replace
+from functools import partial
 
 import numpy as np
 
 from cnnps.infra.errors import ConfigError
 
-CATEGORIES = ("diffuse", "specular", "metallic", "narrow")  # every category known
 DEFAULT_CATEGORIES = ("diffuse", "specular", "metallic")  # the paper's: drawn unless told otherwise
 PARAM_NAMES = ("base_color", "metallic", "specular", "roughness", "sheen", "sheen_tint")
 RANGE_NAMES = PARAM_NAMES
@@ -137,29 +137,29 @@ class CategoryRanges:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
 
+# Every category known and its default ranges, declared once: the keyword arguments of its
+# CategoryRanges (the rest at the class defaults). CATEGORIES, MaterialRanges' fields, the
+# checks of every section that names a category and `cnnps render`'s materials follow from it.
+CATEGORY_DEFAULTS: dict[str, dict] = {
+    "diffuse": {},
+    "specular": {"specular": (0.0, 4.0)},
+    "metallic": {"metallic": (1.0, 1.0), "roughness": (0.3, 0.7)},
+    "narrow": {"specular": (0.5, 2.0), "roughness": (0.02, 0.15), "sheen": (0.0, 0.0), "sheen_tint": (0.0, 0.0),
+               "high_specular_min_roughness": 0.02},
+}
+CATEGORIES = tuple(CATEGORY_DEFAULTS)  # every category known
+
+
 def _default(category: str) -> CategoryRanges:
-    if category == "diffuse":
-        return CategoryRanges(name="diffuse")
-    if category == "specular":
-        return CategoryRanges(specular=(0.0, 4.0), name="specular")
-    if category == "metallic":
-        return CategoryRanges(metallic=(1.0, 1.0), roughness=(0.3, 0.7), name="metallic")
-    if category == "narrow":
-        return CategoryRanges(
-            specular=(0.5, 2.0), roughness=(0.02, 0.15), sheen=(0.0, 0.0), sheen_tint=(0.0, 0.0),
-            high_specular_min_roughness=0.02, name="narrow",
-        )
-    raise ConfigError(f"unknown material category {category!r} (choose from {', '.join(CATEGORIES)})")
+    if category not in CATEGORY_DEFAULTS:
+        raise ConfigError(f"unknown material category {category!r} (choose from {', '.join(CATEGORIES)})")
+    return CategoryRanges(**CATEGORY_DEFAULTS[category], name=category)
 
 
-@dataclass(frozen=True)
-class MaterialRanges:
-    """Ranges of all categories (the ``materials.ranges`` section of params.yaml)."""
-
-    diffuse: CategoryRanges = field(default_factory=lambda: _default("diffuse"))
-    specular: CategoryRanges = field(default_factory=lambda: _default("specular"))
-    metallic: CategoryRanges = field(default_factory=lambda: _default("metallic"))
-    narrow: CategoryRanges = field(default_factory=lambda: _default("narrow"))
+class _MaterialRangesMethods:
+    """Ranges of all categories (the ``materials.ranges`` section of params.yaml): a frozen
+    dataclass with one :class:`CategoryRanges` field per category of
+    :data:`CATEGORY_DEFAULTS`, in its order, each at its defaults unless given."""
 
     @classmethod
     def from_dict(cls, d: dict | None, where: str = "materials") -> "MaterialRanges":
@@ -185,6 +185,12 @@ class MaterialRanges:
 
     def to_dict(self) -> dict:
         return {c: self.get(c).to_dict() for c in CATEGORIES}
+
+
+MaterialRanges = make_dataclass(
+    "MaterialRanges", [(c, CategoryRanges, field(default_factory=partial(_default, c))) for c in CATEGORIES],
+    bases=(_MaterialRangesMethods,), frozen=True, namespace={"__doc__": _MaterialRangesMethods.__doc__})
+MaterialRanges.__module__ = __name__
 
 
 def sample_parameters(ranges: CategoryRanges, n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:

@@ -14,6 +14,9 @@ DDP, the rank's shard or patch stream), :meth:`~Trainer.resume` (newest checkpoi
 resolved once: :mod:`cnnps.train.precision`),
 :meth:`~Trainer.load_validation`, :meth:`~Trainer.run_steps` (the step loop: logging,
 validation, checkpoints), :meth:`~Trainer.finish` (last validation, model file, metrics).
+The trainer's parts outside the step loop are its bases: :class:`~cnnps.train.run_state.RunState`
+(resume, precision, validation, checkpoints) and :class:`~cnnps.train.run_outputs.RunOutputs`
+(the end: ``model.pt``, ``metrics.json``).
 
 ``params`` is the train section's typed tree, :class:`cnnps.train.params.Params` (top-level
 keys and the sections ``optimiser``, ``data``, ``pixelwise``, ``cpu``, ``synthesis``, ``model``), the
@@ -24,57 +27,36 @@ processes, outputs.
 
 from __future__ import annotations
 
-import copy
 import itertools
-import json
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import torch
 from tqdm import tqdm
 
-from cnnps.infra.atomic import write_text
 from cnnps.infra.errors import ConfigError
 from cnnps.infra.progress import progress_bar
-from cnnps.models.checkpoint import save_checkpoint, write_sha256_file
-from cnnps.models.model_options import model_options, recorded_options
 from cnnps.models.train_layers import COUNTER_MASK_BITS
 from cnnps.train.averaging import WeightAverage
 from cnnps.train.batch_lookahead import Lookahead
 from cnnps.train.data_streams import rank_stream
 from cnnps.train.device_feed import fed
-from cnnps.train.distributed import (
-    DistInfo,
-    all_gather,
-    barrier,
-    broadcast,
-    mean_over_ranks,
-)
+from cnnps.train.distributed import DistInfo, mean_over_ranks
 from cnnps.train.maps_ahead import made_ahead
-from cnnps.train.observation_data import PatchChannels, load_patch_val, stream_rows
+from cnnps.train.observation_data import PatchChannels
 from cnnps.train.optimiser import AdamSchedule, compile_model, make_model, train_step
 from cnnps.train.params import Params
 from cnnps.train.patch_dataset import PatchStream
-from cnnps.train.pixelwise_batches import GeneratedBatches, input_channels, pixelwise_fewest_lights, pixelwise_maker
-from cnnps.train.precision import PRECISIONS
-from cnnps.train.resume import (
-    CKPT_FORMAT,
-    checkpoint_path,
-    list_checkpoints,
-    load_training_state,
-    read_training_state,
-    rng_states,
-    save_training_state,
-    set_rng_states,
-)
-from cnnps.train.run_outputs import recorded_params, write_plots
+from cnnps.train.pixelwise_batches import GeneratedBatches, input_channels, pixelwise_maker
+from cnnps.train.resume import rng_states, set_rng_states
+from cnnps.train.run_outputs import RunOutputs
+from cnnps.train.run_state import RunState
 from cnnps.train.shard_dataset import ShardDataset
 from cnnps.train.step_clock import StepClock
-from cnnps.train.training_data import OBSERVATIONS, PIXELWISE_VAL_ROWS, TrainingData, fewest_lights
-from cnnps.train.validation import load_val, no_val, val_errors
+from cnnps.train.training_data import TrainingData
+from cnnps.train.validation import no_val
 
 
 def train(params: Params, data: TrainingData, out_dir: Path, key_for: Callable[[str], str], info: DistInfo,
@@ -100,14 +82,7 @@ def train(params: Params, data: TrainingData, out_dir: Path, key_for: Callable[[
     return trainer.finish()
 
 
-def _plain(record: dict | None) -> dict | None:
-    """``record`` as JSON reads it back: the same bytes in a checkpoint whether the record
-    was measured now, read from a cache or from a checkpoint (pickle writes a string that
-    two places share once, two equal strings twice)."""
-    return None if record is None else json.loads(json.dumps(record))
-
-
-class Trainer:
+class Trainer(RunState, RunOutputs):
     """One training run of this process: model, optimiser, data stream, step and history."""
 
     def __init__(self, params: Params, data: TrainingData, out_dir: Path, key_for: Callable[[str], str], info: DistInfo,
@@ -160,120 +135,6 @@ class Trainer:
         made = rank_stream(self.params, self.data, self.info)
         self.stream, self.generated, self.sampling = made.stream, made.generated, made.sampling
         self.steps_per_epoch, self.total_steps = made.steps_per_epoch, made.total_steps
-
-    # -- resume ------------------------------------------------------------------------
-
-    def resume(self) -> None:
-        """Continue from the newest checkpoint of this run key, if any: weights, optimiser,
-        RNG states (this rank's), step and history. Under torchrun rank 0 chooses (and
-        keeps) the checkpoint and the others read the same file."""
-        info, params = self.info, self.params
-        keys = {prec: self.key_for(prec) for prec in (PRECISIONS if params.precision == "auto" else (params.precision,))}
-        state = None
-        if self.main:
-            state = load_training_state(self.ckpt_dir, keys.values()) if self.ckpt_dir.is_dir() else None
-        if info.enabled:
-            resume_step = broadcast(None if state is None else int(state["step"]), info)
-            if not self.main and resume_step is not None:
-                state = read_training_state(checkpoint_path(self.ckpt_dir, resume_step))
-        if state is not None:
-            self.raw.load_state_dict(state["model"])
-            self.opt.load_state_dict(state["optim"])
-            rngs = state.get("rank_rng")
-            if info.enabled and rngs is not None and len(rngs) == info.world_size:
-                cpu_rng, cuda_rng = rngs[info.rank]
-            elif info.enabled:  # saved by another number of processes: fresh per-rank streams
-                cpu_rng, cuda_rng = None, None
-                torch.manual_seed(params.seed + 1_000_003 * info.rank + 7919 * int(state["step"]))
-            else:
-                cpu_rng, cuda_rng = state["torch_rng"], state.get("cuda_rng")
-            set_rng_states(cpu_rng, cuda_rng, self.device)
-            self.step, self.history = int(state["step"]), state["history"]
-            self.average.load_state_dict(state.get("average"))
-            # the run's precision is its key's: every segment of it steps alike
-            self.run_key = state["run_key"]
-            self.precision = next(prec for prec, key in keys.items() if key == self.run_key)
-            self.precision_choice = _plain(state.get("precision_choice"))
-            if info.enabled and self.main and state.get("world_size", 1) != info.world_size:
-                tqdm.write(f"train: resuming a checkpoint of {state.get('world_size', 1)} process(es) with "
-                           f"{info.world_size}: the data order differs from here on")
-        self.model.train()
-
-    def choose_precision(self) -> None:
-        """The precision of every step of the run, settled once: a resumed run keeps its
-        checkpoint's (:meth:`resume`); a new one takes
-        :func:`cnnps.train.precision.resolve` (``train.precision``, or with ``auto`` this
-        machine's cached answer or a probe; rank 0 resolves, every rank takes its answer)."""
-        p = self.params
-        if self.run_key is None:
-            choice = None
-            if self.main:
-                from cnnps.train.precision import resolve
-
-                made = resolve(self.raw, p, self.device, p.data.batch_size // self.info.world_size)
-                choice = (made.record(), made.source)
-            choice, self.precision_source = broadcast(choice, self.info)
-            self.precision_choice = _plain(choice)
-            self.precision = self.precision_choice["precision"]
-            self.run_key = self.key_for(self.precision)
-        if self.main and p.progress and p.precision == "auto":
-            how = self.precision_choice or {}
-            said = f"the checkpoint's, step {self.step}" if self.step else f"{self.precision_source}: {how.get('reason', '')}"
-            tqdm.write(f"train: precision {self.precision} ({said})", file=sys.stderr)
-
-    # -- validation and checkpoints ----------------------------------------------------
-
-    def load_validation(self) -> None:
-        """The validation sample (rank 0 only: it alone validates)."""
-        if not self.main:
-            return
-        if self.data.layout == OBSERVATIONS:
-            self.val_maps, self.val_normals = load_patch_val(self.data.val_files, self.sampling,
-                                                             self.params.val_max_rows, self.params.seed)
-        elif self.data.val_files or not self.generated:
-            self.val_maps, self.val_normals = load_val(self.data.val_files, self.data.w, self.params.val_max_rows,
-                                                       self.params.seed)
-        else:  # per-pixel maps only: a fixed per-pixel set of this seed
-            n = min(self.params.val_max_rows, PIXELWISE_VAL_ROWS)
-            maps, normals = self._pixelwise(n, ("val",), torch.device("cpu"))
-            maps = maps[:, 0] if self.in_channels == 1 else maps  # (n, w, w) grey, or (n, 4, w, w)
-            self.val_maps, self.val_normals = maps.numpy().astype(np.float16), normals.numpy()
-
-    def validate(self) -> dict:
-        # in fp32 whatever the steps ran in: one yardstick for every segment and every run
-        return val_errors(self.raw, self.val_maps, self.val_normals, self.device, "fp32")
-
-    def checkpoint(self) -> None:
-        """Save the training state (rank 0 writes; every rank's RNG state is in it, so
-        under torchrun this is a collective: every rank checkpoints at the same steps)."""
-        rank_rng = all_gather(rng_states(self.device), self.info)
-        if not self.main:
-            return
-        if self.average.wants(self.step):
-            self.average.add(self.step, self.raw.state_dict())
-        cpu_rng, cuda_rng = rng_states(self.device)
-        save_training_state(
-            self.ckpt_dir,
-            {
-                "format": CKPT_FORMAT,
-                "run_key": self.run_key,
-                "step": self.step,
-                "model": self.raw.state_dict(),
-                "optim": self.opt.state_dict(),
-                "torch_rng": cpu_rng,
-                "cuda_rng": cuda_rng,
-                "world_size": self.info.world_size,
-                "rank_rng": rank_rng,
-                "history": self.history,
-                "precision": self.precision,
-                "precision_choice": self.precision_choice,
-                "average": self.average.state_dict(),
-                # the model options off the paper's network (cnnps.models.model_options.recorded_options)
-                **({"model_options": opts} if (opts := recorded_options(self.raw)) else {}),
-            },
-            self.params.keep_checkpoints,
-        )
-        write_plots(self.out_dir, self.history)
 
     # -- the step loop -----------------------------------------------------------------
 
@@ -469,89 +330,3 @@ class Trainer:
         bar.close()
         clock.sync()
         self.seconds = time.perf_counter() - t0
-
-    # -- the end -----------------------------------------------------------------------
-
-    def _fewest_lights(self) -> int | None:
-        """The fewest lights of any training map (shards' and per-pixel ones)."""
-        fewest = [fewest_lights(self.data.manifest)] if self.stream is not None else []
-        if self.generated:
-            fewest.append(pixelwise_fewest_lights(self.params))
-        fewest = [f for f in fewest if f is not None]
-        return min(fewest) if fewest else None
-
-    def _final_model(self, last_val: dict) -> tuple[torch.nn.Module, dict | None]:
-        """What ``model.pt`` holds: the network, or with ``optimiser.average_from`` a copy
-        holding the mean of the averaged checkpoints' weights, and then a record (rank 0):
-        from_step, checkpoints, the last weights' validation and the mean's (``val``)."""
-        if not (self.main and self.average.n):
-            return self.raw, None
-        final = copy.deepcopy(self.raw)
-        final.load_state_dict(self.average.mean(like=self.raw.state_dict()))
-        record = {"from_step": self.average.from_step, "checkpoints": self.average.n,
-                  "last_step_val_mean_deg": last_val.get("val_mean_deg"),
-                  "val": val_errors(final, self.val_maps, self.val_normals, self.device, "fp32")}
-        return final, record
-
-    def _train_rows(self) -> int:
-        """The training rows (shards) or centre pixels (observations) of all ranks."""
-        if self.stream is None:
-            return 0
-        if isinstance(self.stream, PatchStream):
-            return stream_rows(self.stream)
-        return int(sum(u[2] for u in self.stream.units))
-
-    def finish(self) -> dict:
-        """Last validation, a checkpoint if none was written, plots, ``model.pt`` and
-        ``metrics.json`` (rank 0); the metrics (rank 0's, on every rank)."""
-        p, info, step = self.params, self.info, self.step
-        v = self.validate() if self.main else {}
-        if v and (not self.history["val"] or self.history["val"][-1][0] != step):
-            self.history["val"].append([step, v["val_mean_deg"], v["val_median_deg"]])
-        if broadcast(step > 0 and self.main and not list_checkpoints(self.ckpt_dir), info):
-            self.checkpoint()
-        if self.main:
-            write_plots(self.out_dir, self.history)
-        final, averaged = self._final_model(v)
-        if averaged:
-            v = {**averaged.pop("val"), "average": averaged}
-        ran = step - self.step0
-        metrics = {
-            "steps": step,
-            "epochs": round(step / self.steps_per_epoch, 3),
-            "samples": step * p.data.batch_size,
-            "train_loss": self.history["loss"][-1][1] if self.history["loss"] else None,
-            **v,
-            "val_rows": len(self.val_maps),
-            "train_rows": self._train_rows(),  # all ranks
-            "pixelwise_share": round(self.generated / max(1, p.data.batch_size // info.world_size), 4),
-            "samples_per_s": round(ran * p.data.batch_size / self.seconds, 1) if ran > 0 and self.seconds > 0 else None,
-            "seconds": self.clock.summary(self.seconds) if self.clock is not None else None,
-            "device": str(self.device),
-            "precision": self.precision,  # what every step of the run ran in
-            "precision_requested": p.precision,
-            "precision_choice": self.precision_choice,  # the run's choice and what was timed for it
-            "precision_source": self.precision_source,  # how this call got it: probe, cache, params, checkpoint
-            "processes": info.world_size,
-            "step_processes": self.step_processes,  # this run's processes sharing each step (1: none)
-            "step_process_seconds": self.step_process_seconds,  # with helpers: own rows / waiting for theirs
-        }
-        if self.main:
-            save_checkpoint(
-                self.out_dir / "model.pt",
-                final.cpu().to(memory_format=torch.contiguous_format),  # the file holds plain NCHW weights
-                # a U-Net has no dropout: 0
-                config={"w": self.data.w, "dropout": p.dropout if model_options(final)["arch"] == "cnnps" else 0.0},
-                meta={"steps": step, "val_mean_deg": v.get("val_mean_deg"), "val_median_deg": v.get("val_median_deg"),
-                      "precision": self.precision,
-                      "data_manifest_sha256": self.data.manifest_sha256, "params": recorded_params(p),
-                      "min_lights": self._fewest_lights(),
-                      **({"average": v["average"]} if "average" in v else {}),
-                      **({"init_weights_sha256": self.init_sha} if self.init_sha else {})},
-            )
-            write_sha256_file(self.out_dir / "model.pt")  # model.pt.sha256: load_checkpoint verifies it
-            write_text(self.out_dir / "metrics.json", json.dumps(metrics, indent=1))
-        if info.enabled:
-            metrics = broadcast(metrics, info)  # rank 0's (with validation) everywhere
-            barrier(info)  # every rank returns once rank 0's files are written
-        return metrics

@@ -27,16 +27,13 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Annotated, ClassVar, Literal
 
 from cnnps.infra.errors import ConfigError
-from cnnps.infra.options import Range, check_fields
+from cnnps.infra.options import Count, Positive, Range, UnitFraction, check_fields
 from cnnps.synth.bsdf import DEFAULT_CATEGORIES, MaterialRanges, checked_categories, checked_ranges
 from cnnps.synth.effect_settings import EFFECT_NAMES
 from cnnps.synth.light_subsets import RULE, SETTINGS, check_light_subsets
 
 
-def _at_least(section: object, prefix: str, names: tuple[str, ...], low: int) -> None:
-    for name in names:
-        if getattr(section, name) < low:
-            raise ConfigError(f"{prefix}{name} must be >= {low}, got {getattr(section, name)}")
+Steps = Annotated[int, Range(ge=0)]  # a count where 0 means none (or no limit)
 
 
 @dataclass(frozen=True)
@@ -44,28 +41,23 @@ class OptimiserParams:
     """``train.optimiser``: Adam and its step schedule. The learning rate of step k + 1 is
     ``lr * lr_gamma ** (milestones <= k)`` (:func:`cnnps.train.optimiser.lr_at`)."""
 
-    lr: float = 1e-3
+    lr: Positive = 1e-3
     lr_milestones: tuple[int, ...] = ()  # steps at which the learning rate is multiplied by lr_gamma
-    lr_gamma: float = 0.1
-    weight_decay: float = 0.0
+    lr_gamma: Annotated[float, Range(gt=0.0, le=1.0)] = 0.1
+    weight_decay: Annotated[float, Range(ge=0.0)] = 0.0
     fused_adam: bool = True  # torch's fused Adam kernel (same algorithm, one pass per tensor)
     # N >= 1: model.pt is the mean of the weights at every checkpoint from step N on (each
     # checkpoint_every steps and the last; cnnps.train.averaging); 0: the last step's weights
-    average_from: int = 0
+    average_from: Annotated[int, Range(ge=0)] = 0
 
     def __post_init__(self):
-        if not self.lr > 0:
-            raise ConfigError(f"train.optimiser.lr must be > 0, got {self.lr}")
+        check_fields(self, "train.optimiser.")
         object.__setattr__(self, "lr_milestones", tuple(self.lr_milestones or ()))
         if any(not isinstance(m, int) or m < 1 for m in self.lr_milestones) or list(self.lr_milestones) != sorted(
             set(self.lr_milestones)
         ):
             raise ConfigError(f"train.optimiser.lr_milestones must be increasing steps >= 1, "
                               f"got {list(self.lr_milestones)}")
-        if not 0 < self.lr_gamma <= 1:
-            raise ConfigError(f"train.optimiser.lr_gamma must be in (0, 1], got {self.lr_gamma}")
-        if not isinstance(self.average_from, int) or isinstance(self.average_from, bool) or self.average_from < 0:
-            raise ConfigError(f"train.optimiser.average_from must be a step >= 0 (0 = off), got {self.average_from!r}")
 
 
 @dataclass(frozen=True)
@@ -73,14 +65,13 @@ class DataParams:
     """``train.data``: where the training rows come from and how they are batched."""
 
     shards: str | None = None  # where extract wrote (its `output`: path or fsspec URL); None = data_dir/extract
-    batch_size: int = 128  # rows a step (the global batch under torchrun)
-    shuffle_buffer: int = 65536  # rows
-    prefetch: int = 2  # row groups decoded ahead in a background thread (0 = none); batches do not change
-    num_workers: int = 0  # DataLoader worker processes; 0 = load in the main process
+    batch_size: Count = 128  # rows a step (the global batch under torchrun)
+    shuffle_buffer: Count = 65536  # rows
+    prefetch: Steps = 2  # row groups decoded ahead in a background thread (0 = none); batches do not change
+    num_workers: Steps = 0  # DataLoader worker processes; 0 = load in the main process
 
     def __post_init__(self):
-        _at_least(self, "train.data.", ("batch_size", "shuffle_buffer"), 1)
-        _at_least(self, "train.data.", ("prefetch", "num_workers"), 0)
+        check_fields(self, "train.data.")
         if self.shards is not None and (not isinstance(self.shards, str) or not self.shards.strip()):
             raise ConfigError(f"train.data.shards must be a folder path or URL, got {self.shards!r}")
 
@@ -165,7 +156,7 @@ class SynthesisParams:
 class CpuParams:
     """``train.cpu``: how a step runs on a CPU. None of these changes the model or the loss."""
 
-    threads: int = 0  # torch CPU threads; 0 = one per core
+    threads: Steps = 0  # torch CPU threads; 0 = one per core
     # processes that share each CPU step, the batch split between them by rows, each with
     # threads / step_processes torch threads (cnnps.train.step_processes): eager steps (fp32 or bf16) with
     # counter masks in one training process (not under torchrun, not on CUDA). 0 = auto: one
@@ -186,7 +177,6 @@ class CpuParams:
     keep_freed_memory: bool = True
 
     def __post_init__(self):
-        _at_least(self, "train.cpu.", ("threads",), 0)
         check_fields(self, "train.cpu.")
 
 
@@ -301,17 +291,17 @@ class Params:
     # section -> {stage: keys} the config layer fills it from (cnnps.pipeline.config.build_params)
     FROM_SECTIONS: ClassVar[dict[str, dict[str, tuple[str, ...]]]] = FROM_SECTIONS
 
-    epochs: int = 10
-    max_steps: int = 0  # 0 = no limit; otherwise stop after this many optimiser steps
+    epochs: Count = 10
+    max_steps: Steps = 0  # 0 = no limit; otherwise stop after this many optimiser steps
     init: str | None = None  # start from these weights (a cnnps checkpoint) instead of a random init
-    dropout: float = 0.2
+    dropout: UnitFraction = 0.2
     seed: int = 0
-    val_every: int = 2000  # steps; 0 = only at the end
-    val_max_rows: int = 50000
-    checkpoint_every: int = 1000  # steps
-    keep_checkpoints: int = 2
-    log_every: int = 50  # steps between loss points in plots/loss.csv
-    device: str = "auto"  # auto | cpu | cuda
+    val_every: Steps = 2000  # steps; 0 = only at the end
+    val_max_rows: Count = 50000
+    checkpoint_every: Count = 1000  # steps
+    keep_checkpoints: Count = 2
+    log_every: Count = 50  # steps between loss points in plots/loss.csv
+    device: Literal["auto", "cpu", "cuda"] = "auto"
     # auto = the faster of fp32 and bf16 on this machine, timed at the run's start
     # (cnnps.train.precision; bf16 only where the CPU or GPU has bf16 units); fp32 | bf16 (autocast)
     precision: Literal["auto", "fp32", "bf16"] = "auto"
@@ -328,15 +318,9 @@ class Params:
     def __post_init__(self):
         for name, cls in SECTIONS.items():
             object.__setattr__(self, name, _section(cls, getattr(self, name), name))
-        _at_least(self, "train.", ("epochs", "val_max_rows", "checkpoint_every", "keep_checkpoints", "log_every"), 1)
-        _at_least(self, "train.", ("max_steps", "val_every"), 0)
+        check_fields(self, "train.")  # every declared field: counts, steps, dropout, device, precision
         if self.init is not None and (not isinstance(self.init, str) or not self.init.strip()):
             raise ConfigError(f"train.init must be a checkpoint path, got {self.init!r}")
-        if not 0 <= self.dropout < 1:
-            raise ConfigError(f"train.dropout must be in [0, 1), got {self.dropout}")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise ConfigError(f"train.device must be auto, cpu or cuda, got {self.device!r}")
-        check_fields(self, "train.")  # the declared choices (precision)
         if self.cpu.step_processes > 1 and (self.compile or self.cpu.dropout_masks == "torch"):
             raise ConfigError("train.cpu.step_processes > 1 needs eager steps with counter dropout masks "
                               "(compile: false, cpu.dropout_masks: counter16 or counter)")

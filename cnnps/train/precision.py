@@ -198,7 +198,7 @@ def cache_key(model, params: Params, device: torch.device, batch_rows: int) -> s
     """What the cached answer is for: this machine (CPU model and flags and the CPUs this
     process may use, or the GPU's name), torch, the network and its input, the batch rows
     and the settings that change how a step runs on a CPU."""
-    from cnnps.models.precision_probe import cpu_signature
+    from cnnps.models.precision_cache import cpu_signature
 
     where = cpu_signature() if device.type == "cpu" else torch.cuda.get_device_name(device)
     net = f"{type(model).__name__} w{getattr(model, 'w', '?')} c{getattr(model, 'in_channels', 1)}"
@@ -221,7 +221,7 @@ def resolve(model, params: Params, device: torch.device, batch_rows: int) -> Tra
     if params.precision != "auto":
         return TrainChoice(params.precision, f"train.precision: {params.precision}", source="params")
     from cnnps.infra.atomic import write_text
-    from cnnps.models.precision_probe import cache_dir, read_cache
+    from cnnps.models.precision_cache import cache_dir, read_cache
 
     key = cache_key(model, params, device, batch_rows)
     path = cache_dir() / CACHE_FILE

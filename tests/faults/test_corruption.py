@@ -50,7 +50,7 @@ def test_every_file_a_stage_hands_on_carries_a_matching_checksum(baseline):
     from cnnps.infra.hashing import check_file_record, file_sha256, json_checksum_ok
     from cnnps.io.shards import MANIFEST_INDENT, load_manifest, shard_problem
     from cnnps.models.checkpoint import read_checkpoint
-    from cnnps.stages.extract import MARKER_INDENT, MARKER_TIMINGS
+    from cnnps.stages.extract_scene import MARKER_INDENT, MARKER_TIMINGS
     from cnnps.io.capture import SCENE_INDENT
     from cnnps.synth.render.rendered_folder import SCENE_TIMINGS, folder_problems
 

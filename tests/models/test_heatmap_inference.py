@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from cnnps.infra.errors import ConfigError
-from cnnps.models.inference import MapPredictor, patch_maps, predict_normals, rotated_normals
+from cnnps.models.inference import MapPredictor, predict_normals, rotated_normals
+from cnnps.models.map_inputs import patch_maps
 from cnnps.models.model_options import build_model
 from cnnps.models.patch import PatchConv
 from cnnps.ps.metrics import angular_error_deg

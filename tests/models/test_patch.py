@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from cnnps.models.inference import patch_maps, turn_patch_grids
+from cnnps.models.map_inputs import patch_maps, turn_patch_grids
 from cnnps.models.model_options import build_model
 from cnnps.models.network import CNNPS, FastCNNPS, fold_for_inference
 from cnnps.models.patch import PatchConv

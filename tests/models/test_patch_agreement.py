@@ -7,7 +7,7 @@ training reads store them, so every builder sees the same numbers):
 - training: :class:`cnnps.train.patch_dataset.PatchStream` over the capture's
   observation file (every light, angles of ``rotation_angles(4)``);
 - ``cnnps predict``: :func:`cnnps.ps.patches.capture_patches` (the network solver's call);
-- ``predict_normals``: :func:`cnnps.models.inference.patch_maps` on each pixel's unturned
+- ``predict_normals``: :func:`cnnps.models.map_inputs.patch_maps` on each pixel's unturned
   b x b neighbourhood gathered here from the image stack (zero outside the mask).
 
 They must agree bit for bit at K = 1, 2 and 4, at the mask's edge too. The independent
@@ -30,7 +30,8 @@ import torch
 import cnnps
 from cnnps.io.observation_store import observation_path, write_observations
 from cnnps.models.checkpoint import save_checkpoint
-from cnnps.models.inference import patch_maps, predict_normals
+from cnnps.models.inference import predict_normals
+from cnnps.models.map_inputs import patch_maps
 from cnnps.models.model_options import build_model
 from cnnps.ps.obsmap import observation_maps
 from cnnps.ps.patches import capture_patches

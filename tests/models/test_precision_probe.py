@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from cnnps.models import precision_cache as pc
 from cnnps.models import precision_probe as pp
 from cnnps.models.network import CNNPS
 
@@ -21,7 +22,7 @@ def net():
 @pytest.fixture
 def cache(tmp_path, monkeypatch):
     monkeypatch.setenv("CNNPS_CACHE_DIR", str(tmp_path / "cache"))
-    return tmp_path / "cache" / pp.CACHE_FILE
+    return tmp_path / "cache" / pc.CACHE_FILE
 
 
 def test_probe_maps_are_seeded_observation_maps_with_known_normals():
@@ -120,10 +121,10 @@ def test_choice_is_cached_per_machine_torch_and_model(net, cache, monkeypatch):
     pp.choose_precision(net, torch.device("cpu"), "b" * 64)  # another model: probed again
     assert len(calls) == 2
     keys = json.loads(cache.read_text())["choices"]
-    assert len(keys) == 2 and all(pp.cpu_signature() in k and torch.__version__ in k for k in keys)
+    assert len(keys) == 2 and all(pc.cpu_signature() in k and torch.__version__ in k for k in keys)
     cache.write_text("{not json")  # a damaged cache is ignored and rewritten
     assert not pp.choose_precision(net, torch.device("cpu"), "a" * 64).cached and len(calls) == 3
-    assert json.loads(cache.read_text())["version"] == pp.CACHE_VERSION
+    assert json.loads(cache.read_text())["version"] == pc.CACHE_VERSION
 
 
 @pytest.mark.parametrize("rate_by_threads, pick", [({2: 3000.0, 1: 2250.0}, 2),  # the AVX2 EPYC: 2 threads win
@@ -244,7 +245,7 @@ def test_a_cached_answer_has_an_age_and_expires(net, cache, monkeypatch):
     clock["now"] += 3 * 86400
     again = pp.choose_precision(net, torch.device("cpu"), "f" * 64)
     assert again.cached and again.age_seconds == pytest.approx(3 * 86400) and again.probed_at == first.probed_at
-    clock["now"] = first.probed_at + pp.CACHE_MAX_AGE_S + 1
+    clock["now"] = first.probed_at + pc.CACHE_MAX_AGE_S + 1
     later = pp.choose_precision(net, torch.device("cpu"), "f" * 64)
     assert not later.cached and later.age_seconds is None and "30.0 days old" in later.reason
     assert json.loads(cache.read_text())["choices"][later.key]["probed_at"] == clock["now"]
@@ -254,12 +255,12 @@ def test_a_cached_answer_has_an_age_and_expires(net, cache, monkeypatch):
 
 def test_a_cache_of_the_previous_format_is_probed_again(net, cache, monkeypatch):
     _fake_timings(monkeypatch, {"fp32": 3806.0, "bf16": 7711.0}, {"fp32": 2.0, "bf16": 2.0})
-    key = pp.cache_key(torch.device("cpu"), "g" * 64)
+    key = pc.cache_key(torch.device("cpu"), "g" * 64)
     cache.parent.mkdir(parents=True)
     cache.write_text(json.dumps({"version": 1, "choices": {key: {"precision": "fp32", "reason": "old", "threads": 1}}}))
     choice = pp.choose_precision(net, torch.device("cpu"), "g" * 64)
     assert not choice.cached and choice.precision == "bf16"
-    assert json.loads(cache.read_text())["version"] == pp.CACHE_VERSION
+    assert json.loads(cache.read_text())["version"] == pc.CACHE_VERSION
 
 
 def test_a_run_far_slower_than_the_probe_drops_the_cached_answer(net, cache, monkeypatch, two_threads):
@@ -269,15 +270,15 @@ def test_a_run_far_slower_than_the_probe_drops_the_cached_answer(net, cache, mon
     _fake_timings(monkeypatch, {"fp32": 3000.0, "bf16": 300.0}, {"fp32": 2.0, "bf16": 2.0})
     choice = pp.choose_precision(net, torch.device("cpu"), "h" * 64)
     assert choice.threads == 2 and choice.thread_rates["2"] == 3000.0 and len(calls) == 1
-    assert not pp.report_rate(choice.key, 1500.0)  # half the probe's rate: kept
-    assert not pp.report_rate(choice.key, 3500.0)
+    assert not pc.report_rate(choice.key, 1500.0)  # half the probe's rate: kept
+    assert not pc.report_rate(choice.key, 3500.0)
     for nonsense in (0.0, -1.0, float("nan"), float("inf"), None, "fast"):
-        assert not pp.report_rate(choice.key, nonsense)
-    assert not pp.report_rate("another machine", 1.0)
+        assert not pc.report_rate(choice.key, nonsense)
+    assert not pc.report_rate("another machine", 1.0)
     assert pp.choose_precision(net, torch.device("cpu"), "h" * 64).cached and len(calls) == 1
-    assert pp.report_rate(choice.key, 1499.0)  # under half: dropped, the next run probes again
+    assert pc.report_rate(choice.key, 1499.0)  # under half: dropped, the next run probes again
     assert choice.key not in json.loads(cache.read_text())["choices"]
-    assert not pp.report_rate(choice.key, 1.0)  # nothing left to drop
+    assert not pc.report_rate(choice.key, 1.0)  # nothing left to drop
     assert not pp.choose_precision(net, torch.device("cpu"), "h" * 64).cached and len(calls) == 2
 
 
@@ -286,12 +287,12 @@ def test_the_rate_of_a_gpu_run_does_not_drop_its_answer(cache):
     cache.parent.mkdir(parents=True)
     entry = {"precision": "bf16", "reason": "probe", "rates": {"fp32": 9e4, "bf16": 2e5}, "threads": None,
              "probed_at": 1.9e9, "device": "cuda"}
-    cache.write_text(json.dumps({"version": pp.CACHE_VERSION, "choices": {key: entry}}))
-    assert not pp.report_rate(key, 10.0)
+    cache.write_text(json.dumps({"version": pc.CACHE_VERSION, "choices": {key: entry}}))
+    assert not pc.report_rate(key, 10.0)
     assert key in json.loads(cache.read_text())["choices"]
     cpu_key = "some CPU | torch x | cpu | model 0123"
-    cache.write_text(json.dumps({"version": pp.CACHE_VERSION, "choices": {cpu_key: {**entry, "device": "cpu"}}}))
-    assert pp.report_rate(cpu_key, 0.4 * 2e5)  # no thread rates: the pick's rate is the yardstick
+    cache.write_text(json.dumps({"version": pc.CACHE_VERSION, "choices": {cpu_key: {**entry, "device": "cpu"}}}))
+    assert pc.report_rate(cpu_key, 0.4 * 2e5)  # no thread rates: the pick's rate is the yardstick
 
 
 # -- a fair trial: kernel creation is not judged, each precision at its own best batch --------

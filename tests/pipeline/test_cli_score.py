@@ -195,7 +195,7 @@ def test_the_real_crop_against_its_measured_least_squares(shared_dir, capsys, tm
 def test_pixel_sample_scores_the_same_seeded_pixels(tmp_path, capsys, tiny_model):
     """--pixels N: each capture and its subsets on the same N mask pixels, drawn by the seed;
     the numbers are the full prediction's errors on exactly those pixels."""
-    from cnnps.stages.evaluate import pixel_sample
+    from cnnps.stages.eval_scoring import pixel_sample
 
     cap = tmp_path / "caps" / "sphere"
     truth = write_capture(cap, fmt="png16", size=24, m=16, seed=3, max_tilt_deg=45)

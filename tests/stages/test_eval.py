@@ -12,6 +12,7 @@ import pytest
 from cnnps.infra.errors import ConfigError
 from cnnps.ps.solver import Solved, Solver
 from cnnps.io.images import read_image, write_exr, write_png
+from cnnps.stages import eval_report, eval_scoring, eval_testset
 from cnnps.stages import evaluate as ev
 
 S = 32
@@ -82,7 +83,7 @@ def fake_columns(params, predict=fake_predict) -> dict:
     """The eval stage's columns with ``predict`` in the network's place."""
     from cnnps.ps.least_squares import LeastSquaresSolver
 
-    return {**{ev.method_name(k): FakeNetwork(predict, k) for k in params.rotations},
+    return {**{eval_report.method_name(k): FakeNetwork(predict, k) for k in params.rotations},
             "lambertian": LeastSquaresSolver(params.lambertian_shadow_threshold)}
 
 
@@ -93,7 +94,7 @@ def test_evaluate_all_numbers_report_and_pictures(tmp_path):
     ]
     params = ev.Params(real_captures=(str(tmp_path / "caps" / "nogt"),))
     out = tmp_path / "eval"
-    metrics = ev.evaluate_all(caps, fake_columns(params, fake_predict), params, out, "fake-model")
+    metrics = eval_scoring.evaluate_all(caps, fake_columns(params, fake_predict), params, out, "fake-model")
 
     assert metrics["methods"] == ["cnn_k1", "cnn_k10", "lambertian"]
     ball = metrics["captures"]["ball"]
@@ -114,7 +115,7 @@ def test_evaluate_all_numbers_report_and_pictures(tmp_path):
     on_disk = json.loads((out / "metrics.json").read_text())
     assert on_disk["captures"]["ball"]["methods"]["cnn_k1"]["mean_deg"] == pytest.approx(10.0, abs=1e-3)
 
-    table = ev.format_table(on_disk)
+    table = eval_report.format_table(on_disk)
     assert re.search(r"ball\s+12\s+10\.00 /\s+10\.00\s+0\.0\d /\s+0\.0\d", table), table
     assert "no GT" in table
 
@@ -125,7 +126,7 @@ def test_evaluate_all_numbers_report_and_pictures(tmp_path):
         assert (out / p).is_file(), p
     # the ground-truth picture is the (n + 1) / 2 colouring of the ground truth
     gt_pic = read_image(out / "pictures" / "ball_normal_gt.png")
-    f = ev.PICTURE_MIN_SIZE // S  # small captures are enlarged by a whole factor
+    f = eval_report.PICTURE_MIN_SIZE // S  # small captures are enlarged by a whole factor
     assert gt_pic.shape == (S * f, S * f, 3)
     gt_pic = gt_pic[::f, ::f]
     expected = np.round((n[mask] + 1) * 127.5) / 255
@@ -152,7 +153,7 @@ def test_image_subsets_are_scored_from_the_kept_images_only(tmp_path):
         seen.append(L.shape[0])
         return fake_predict(I, L, k)
 
-    metrics = ev.evaluate_all([("ball-6", cap, "real", drop)], fake_columns(params, predict), params, tmp_path / "e", "m")
+    metrics = eval_scoring.evaluate_all([("ball-6", cap, "real", drop)], fake_columns(params, predict), params, tmp_path / "e", "m")
     assert seen == [6, 6]  # K=1 and K=10, each from the 6 kept images
     assert metrics["captures"]["ball-6"]["n_images"] == 6
     # a subset is averaged with the other captures' subsets of its size, not with whole captures
@@ -190,7 +191,7 @@ def test_real_bear_is_scored_under_the_diligent_rule_and_only_real_ones(tmp_path
         seen.append(L.shape[0])
         return fake_predict(I, L, k)
 
-    metrics = ev.evaluate_all(captures + [("synthetic-bear", bear, "synthetic")], fake_columns(params, predict), params, tmp_path / "e", "m")
+    metrics = eval_scoring.evaluate_all(captures + [("synthetic-bear", bear, "synthetic")], fake_columns(params, predict), params, tmp_path / "e", "m")
     assert [metrics["captures"][n]["n_images"] for n in ("bearPNG", "bearPNG-4", "synthetic-bear")] == [6, 4, 26]
     assert seen == [6, 6, 4, 4, 26, 26]
     assert metrics["summary_real"] and not metrics["captures"]["bearPNG"].get("subset_of")
@@ -235,9 +236,9 @@ def test_summary_by_light_count_and_ratio_to_least_squares():
 def test_rerun_replaces_pictures(tmp_path):
     cap = make_capture(tmp_path / "c" / "a")
     params = ev.Params()
-    ev.evaluate_all([("a", cap, "synthetic")], fake_columns(params, fake_predict), params, tmp_path / "e", "m")
+    eval_scoring.evaluate_all([("a", cap, "synthetic")], fake_columns(params, fake_predict), params, tmp_path / "e", "m")
     (tmp_path / "e" / "pictures" / "stale.png").write_bytes(b"x")
-    ev.evaluate_all([("a", cap, "synthetic")], fake_columns(params, fake_predict), params, tmp_path / "e", "m")
+    eval_scoring.evaluate_all([("a", cap, "synthetic")], fake_columns(params, fake_predict), params, tmp_path / "e", "m")
     assert not (tmp_path / "e" / "pictures" / "stale.png").exists()
 
 
@@ -348,7 +349,7 @@ def test_a_registered_solver_is_a_column_of_the_eval_table(tmp_path, tiny_model,
     stats = metrics["captures"]["ball"]["methods"]["facing"]
     assert stats["mean_deg"] == pytest.approx(tilt.mean(), abs=1e-3)  # float32 normals: 1e-3 deg
     assert stats["median_deg"] == pytest.approx(np.median(tilt), abs=1e-3)
-    head = ev.format_table(metrics).splitlines()[1]
+    head = eval_report.format_table(metrics).splitlines()[1]
     assert head.index("CNN-PS K=1") < head.index("facing") < head.index("Lambertian LS")
 
 
@@ -432,7 +433,7 @@ def test_a_rig_capture_is_scored_with_its_lens_point_lights_and_depth(tmp_path):
         return least_squares_per_pixel(I, L, shadow_threshold=0.0)[0]
 
     params = ev.Params(rotations=(1, 3), lambertian_shadow_threshold=0.0)
-    metrics = ev.evaluate_all([("rig", cap, "real")], fake_columns(params, predict), params, tmp_path / "e", "m")
+    metrics = eval_scoring.evaluate_all([("rig", cap, "real")], fake_columns(params, predict), params, tmp_path / "e", "m")
     P = int(mask.sum())
     assert all(c[0] == (P, 24, 3) and c[1] == (P, 3) for c in calls)  # per-pixel lights, per-pixel views
     assert {c[2] for c in calls} == {1, 3} and calls[-1][2] == 3  # rounds at K=1, the final pass at K=3
@@ -444,10 +445,10 @@ def test_a_rig_capture_is_scored_with_its_lens_point_lights_and_depth(tmp_path):
     # a render's scene.json records the median depth: the rounds start there ("known"), and a
     # wrong one is a wrong scale; "estimated" ignores it
     (cap / "scene.json").write_text(json.dumps({"median_depth": 2 * float(np.nanmedian(depth))}))
-    wrong = ev.evaluate_all([("rig", cap, "real")], fake_columns(params, predict), params, tmp_path / "e1", "m")
+    wrong = eval_scoring.evaluate_all([("rig", cap, "real")], fake_columns(params, predict), params, tmp_path / "e1", "m")
     assert wrong["captures"]["rig"]["methods"]["lambertian"]["depth_median_rel_error"] > 0.5
     est = ev.Params(rotations=(1,), lambertian_shadow_threshold=0.0, rig_distance="estimated")
-    again = ev.evaluate_all([("rig", cap, "real")], fake_columns(est, predict), est, tmp_path / "e1", "m")
+    again = eval_scoring.evaluate_all([("rig", cap, "real")], fake_columns(est, predict), est, tmp_path / "e1", "m")
     assert again["captures"]["rig"]["methods"]["lambertian"]["depth_median_rel_error"] < 0.01
     (cap / "scene.json").unlink()
 
@@ -457,7 +458,7 @@ def test_a_rig_capture_is_scored_with_its_lens_point_lights_and_depth(tmp_path):
 
     np.savetxt(cap / "light_directions.txt", directions_from_positions(pos))
     calls.clear()
-    far = ev.evaluate_all([("rig", cap, "real")], fake_columns(params, predict), params, tmp_path / "e2", "m")
+    far = eval_scoring.evaluate_all([("rig", cap, "real")], fake_columns(params, predict), params, tmp_path / "e2", "m")
     assert [c[:2] for c in calls] == [((24, 3), (P, 3))] * 2  # distant lights, still each pixel's view
     assert far["captures"]["rig"]["methods"]["lambertian"]["mean_deg"] > 5
     assert "depth_median_rel_error" not in far["captures"]["rig"]["methods"]["lambertian"]
@@ -470,8 +471,8 @@ def test_rig_params_and_what_the_rig_costs():
         ev.Rig(fov_deg=130)
     with pytest.raises(ConfigError, match="light_distance must be in"):
         ev.Rig(light_distance=0.5)
-    assert ev.rig_name("bowl-metallic-17", ev.Rig()) == "bowl-metallic-17-fov40-point3"
-    assert ev.rig_name("bowl-metallic-17", ev.Rig(fov_deg=70, light_distance=None)) == "bowl-metallic-17-fov70"
+    assert eval_testset.rig_name("bowl-metallic-17", ev.Rig()) == "bowl-metallic-17-fov40-point3"
+    assert eval_testset.rig_name("bowl-metallic-17", ev.Rig(fov_deg=70, light_distance=None)) == "bowl-metallic-17-fov70"
 
     def r(kind, **means):
         return {"kind": kind, "methods": {m: {"mean_deg": v} for m, v in means.items()}}
@@ -501,13 +502,12 @@ def test_rig_twins_are_rendered_through_the_rig_at_the_size_of_their_capture(tmp
         return Path(out_dir)
 
     monkeypatch.setattr(capture_render, "render_capture", fake_render)
-    from cnnps.stages import eval_testset
 
     monkeypatch.setattr(eval_testset, "test_mesh", lambda shape, seed: shape)
     params = ev.Params(test_shapes=("bowl",), categories=("specular",), light_sets=(10, 17), rig=ev.Rig())
-    twins = ev.build_rig_twins(params, tmp_path)
+    twins = eval_testset.build_rig_twins(params, tmp_path)
     assert [p.name for p in twins] == ["bowl-specular-10-fov40-point3", "bowl-specular-17-fov40-point3"]
-    seeds = {c["lights"]: c["seed"] for c in ev.testset_plan(params)}  # the orthographic captures' seeds
+    seeds = {c["lights"]: c["seed"] for c in eval_testset.testset_plan(params)}  # the orthographic captures' seeds
     # the object spans as many pixels as in the 64-pixel orthographic capture (2 radii across):
     # 5 radii away, a 40-degree frame is 2 x 5 tan(20 deg) = 3.64 radii across
     assert round(64 * 5 * np.tan(np.radians(20))) == 116
@@ -516,12 +516,12 @@ def test_rig_twins_are_rendered_through_the_rig_at_the_size_of_their_capture(tmp
     made.clear()
     wide = ev.Params(test_shapes=("bowl",), categories=("specular",), light_sets=(10, 17),
                      rig=ev.Rig(fov_deg=70.0, light_distance=None))
-    assert [p.name for p in ev.build_rig_twins(wide, tmp_path)] == ["bowl-specular-10-fov70", "bowl-specular-17-fov70"]
+    assert [p.name for p in eval_testset.build_rig_twins(wide, tmp_path)] == ["bowl-specular-10-fov70", "bowl-specular-17-fov70"]
     assert [m[1:3] for m in made] == [(70.0, None)] * 2 and made[-1][4] == round(64 * 5 * np.tan(np.radians(35)))
     made.clear()
     fixed = ev.Params(test_shapes=("bowl",), categories=("specular",), light_sets=(10,),
                       rig=ev.Rig(fov_deg=70.0, light_distance=None, size=64))
-    ev.build_rig_twins(fixed, tmp_path)
+    eval_testset.build_rig_twins(fixed, tmp_path)
     assert [m[4] for m in made] == [64]
 
 
@@ -532,7 +532,6 @@ def test_the_test_set_draws_its_materials_from_its_own_ranges(tmp_path, monkeypa
     import yaml
 
     from cnnps.pipeline import config as cfg
-    from cnnps.stages import eval_testset
     from cnnps.synth import capture_render
     from cnnps.synth.bsdf import MaterialRanges
     from cnnps.synth.render.keys import changed_ranges
@@ -553,8 +552,8 @@ def test_the_test_set_draws_its_materials_from_its_own_ranges(tmp_path, monkeypa
 
     monkeypatch.setattr(capture_render, "render_capture", fake_render)
     monkeypatch.setattr(eval_testset, "test_mesh", lambda shape, seed: shape)
-    ev.build_testset(params, tmp_path)
-    ev.build_rig_twins(ev.Params(**{**params.__dict__, "rig": ev.Rig()}), tmp_path)
+    eval_testset.build_testset(params, tmp_path)
+    eval_testset.build_rig_twins(ev.Params(**{**params.__dict__, "rig": ev.Rig()}), tmp_path)
     assert [r.roughness for r in got] == [(0.4, 0.45)] * 2
 
     # the renderer's material draws from them; the key holds them only where they are not the defaults

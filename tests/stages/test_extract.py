@@ -11,7 +11,7 @@ import pytest
 from cnnps.io.shards import decode_maps, decode_normals, load_manifest
 from cnnps.ps.obsmap import observation_maps
 from cnnps.ps.rotation import rotate_z, rotation_angles
-from cnnps.stages import extract
+from cnnps.stages import extract, extract_scene
 from cnnps.stages.extract import Params
 from cnnps.synth.light_subsets import sample_light_masks
 from cnnps.synth.training_samples import add_ambient, build_rows
@@ -428,7 +428,7 @@ def test_split_groups_views():
 def test_failure_mid_write_leaves_no_shard(tmp_path, monkeypatch):
     make_render_dir(tmp_path, n_scenes=2)
     calls = {"n": 0}
-    real = extract.build_rows
+    real = extract_scene.build_rows
 
     def failing(*a, **k):
         calls["n"] += 1
@@ -436,7 +436,7 @@ def test_failure_mid_write_leaves_no_shard(tmp_path, monkeypatch):
             raise RuntimeError("simulated crash")
         return real(*a, **k)
 
-    monkeypatch.setattr(extract, "build_rows", failing)
+    monkeypatch.setattr(extract_scene, "build_rows", failing)
     with pytest.raises(RuntimeError, match="simulated"):
         extract.run(Params(**SMALL), tmp_path)
     out = tmp_path / "extract"
@@ -444,7 +444,7 @@ def test_failure_mid_write_leaves_no_shard(tmp_path, monkeypatch):
     assert not list(out.glob("scene-*.json"))
     assert not [p for p in out.iterdir() if p.name.endswith(".tmp")]
     # rerun completes
-    monkeypatch.setattr(extract, "build_rows", real)
+    monkeypatch.setattr(extract_scene, "build_rows", real)
     extract.run(Params(**SMALL), tmp_path)
     assert load_manifest(out)["total_rows"] > 0
 

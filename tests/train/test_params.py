@@ -42,7 +42,7 @@ def test_the_fields_the_loop_reads_carry_their_defaults():
     # lr 2e-3 halved at steps 4 and 8: 2e-3, 1e-3, 5e-4
     o = OptimiserParams(lr=2e-3, lr_milestones=(4, 8), lr_gamma=0.5)
     assert [optimiser.lr_at(o, k) for k in (3, 4, 7, 8)] == pytest.approx([2e-3, 1e-3, 1e-3, 5e-4])
-    with pytest.raises(ConfigError, match="train.optimiser.lr must be > 0"):
+    with pytest.raises(ConfigError, match=r"train.optimiser.lr must be a number > 0, got 0.0"):
         OptimiserParams(lr=0.0)
 
 

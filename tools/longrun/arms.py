@@ -13,7 +13,6 @@ from tools.longrun.real_scores import BALL
 from tools.longrun.run import Run
 from tools.longrun.variant_study import metric_columns
 
-
 ARM_CROPS = ("cowPNG", "gobletPNG", "pot1PNG", "pot2PNG")  # dev-real: their mean at all images
 ARM_LIGHTS = ("10", "17", "305")
 ARM_COLUMNS = ("dev_real", *ARM_CROPS, BALL, "crops_10", *(f"nonconvex_{n}" for n in ARM_LIGHTS), "cpu_hours")

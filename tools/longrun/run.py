@@ -21,6 +21,7 @@ from tools.longrun.real_scores import RealScores
 from tools.longrun.train_section import continue_schedule, set_value
 from tools.longrun.variant_study import VariantStudy
 
+
 def parse_data_from(item: str) -> dict:
     """``RUN[:STAGE,STAGE...]`` (``start --data-from``) as ``{"run": RUN, "stages": [...]}``;
     the stages default to the data phase's first three, whose outputs arms of a study share.

@@ -17,9 +17,11 @@ from typing import Literal, get_args
 import numpy as np
 
 from cnnps.infra.errors import ConfigError
+from cnnps.synth.bsdf import CATEGORIES
 
 # what a capture is covered with: white Lambertian, or a materials-stage category on superpixels
-Material = Literal["lambertian", "diffuse", "specular", "metallic", "narrow"]
+# (cnnps.synth.bsdf.CATEGORIES: a category added there is a material here)
+Material = Literal[("lambertian", *CATEGORIES)]
 MATERIAL_KINDS = get_args(Material)
 # the settings that change the pictures (part of the content key); not device or threads
 PICTURE_FIELDS = ("size", "samples", "lights", "jitter_deg", "min_elevation_deg", "light_intensity", "max_bounces", "seed")
