@@ -7,11 +7,7 @@ docstring is the manual).
     .venv/bin/python tools/long_run.py save v4      # then commit tools/runs/v4/
 """
 
-import sys
-from pathlib import Path
-
 if __name__ == "__main__":
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the repository's root
-    from tools.longrun.cli import main
+    from longrun.cli import main  # this folder is on the path when the script runs
 
     raise SystemExit(main())

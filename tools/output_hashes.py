@@ -76,18 +76,16 @@ def cnnps(*args, cwd: Path) -> None:
 
 
 def tiny_pipeline(work: Path) -> Path:
-    """The tiny params of the pipeline tests in ``work``; returns the params file."""
-    sys.path.insert(0, str(REPO))
-    from tests.pipeline.conftest import tiny_params
-    from tests.support.meshes import write_tiny_mesh
-
-    write_tiny_mesh(work / "meshes_in" / "ball.obj")
-    params = tiny_params(work / "meshes_in")
-    params["data_dir"] = str(work / "data")
-    params["eval"]["model"] = str(work / "data" / "train" / "model.pt")
-    file = work / "params.yaml"
-    file.write_text(yaml.safe_dump(params, sort_keys=False))
-    return file
+    """The tiny params of the pipeline tests (tests/pipeline/conftest.py) and their mesh in
+    ``work``, written by this repository's tests package in a process of its own (this
+    one's ``cnnps`` is the checkout under test); returns the params file."""
+    code = ("import sys, yaml; from pathlib import Path; from tests.pipeline.conftest import tiny_params; "
+            "from tests.support.meshes import write_tiny_mesh; w = Path(sys.argv[1]); "
+            "write_tiny_mesh(w / 'meshes_in' / 'ball.obj'); p = tiny_params(w / 'meshes_in'); "
+            "p['data_dir'] = str(w / 'data'); p['eval']['model'] = str(w / 'data' / 'train' / 'model.pt'); "
+            "(w / 'params.yaml').write_text(yaml.safe_dump(p, sort_keys=False))")
+    subprocess.run([sys.executable, "-c", code, str(work)], check=True, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    return work / "params.yaml"
 
 
 def shards(work: Path) -> dict:
@@ -182,7 +180,8 @@ def evaluation(work: Path) -> dict:
             return [strip(v) for v in x]
         return x
 
-    return {"metrics": sha(json.dumps(strip(metrics), sort_keys=True).encode())}
+    text = json.dumps(strip(metrics), sort_keys=True).replace(str(work), "WORK")  # paths name the work folder
+    return {"metrics": sha(text.encode())}
 
 
 def flat(tree: dict, prefix: str = "") -> dict:

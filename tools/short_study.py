@@ -45,11 +45,12 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-if __name__ == "__main__":
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the repository's root
-
-from tools.longrun.paths import CARRIED, REPO, write_json  # noqa: E402
-from tools.longrun.run import Run  # noqa: E402
+try:
+    from tools.longrun.paths import CARRIED, REPO, write_json
+    from tools.longrun.run import Run
+except ImportError:  # run as a script: its own folder is on the path
+    from longrun.paths import CARRIED, REPO, write_json
+    from longrun.run import Run
 
 VARIANTS = ("last", "swa", "ema")
 CAPTURES = ("diligent/ballPNG", "diligent-crop8/cowPNG", "diligent-crop8/gobletPNG", "diligent-crop8/pot1PNG",

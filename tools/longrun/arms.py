@@ -8,10 +8,10 @@ from pathlib import Path
 
 import yaml
 
-from tools.longrun.paths import CARRIED, write_json
-from tools.longrun.real_scores import BALL
-from tools.longrun.run import Run
-from tools.longrun.variant_study import metric_columns
+from .paths import CARRIED, write_json
+from .real_scores import BALL
+from .run import Run
+from .variant_study import metric_columns
 
 ARM_CROPS = ("cowPNG", "gobletPNG", "pot1PNG", "pot2PNG")  # dev-real: their mean at all images
 ARM_LIGHTS = ("10", "17", "305")

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import yaml
 
-from tools import run_weights, tree_size
-from tools.longrun.paths import REPO
-from tools.longrun.train_section import train_value
+from .paths import REPO
+from .sibling_tools import run_weights, tree_size
+from .train_section import train_value
 
 
 class CarriedWeights:

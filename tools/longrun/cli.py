@@ -8,16 +8,17 @@ import sys
 import time
 from pathlib import Path
 
-from tools import longrun, run_weights, tree_size
-from tools.longrun.arms import format_arms, parse_arm, study_arms
-from tools.longrun.paths import CARRIED, REPO, STAGES, write_json
-from tools.longrun.real_scores import real_objects
-from tools.longrun.run import Run, check_linked, parse_data_from
-from tools.longrun.variant_study import format_study
+from . import __doc__ as MANUAL
+from .arms import format_arms, parse_arm, study_arms
+from .paths import CARRIED, REPO, STAGES, write_json
+from .real_scores import real_objects
+from .run import Run, check_linked, parse_data_from
+from .sibling_tools import run_weights, tree_size
+from .variant_study import format_study
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=longrun.__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=MANUAL.splitlines()[0])
     ap.add_argument("cmd", choices=["start", "resume", "save", "status", "study", "exp", "table", "probe",
                                        "curve", "stop", "arms"])
     ap.add_argument("name")

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import yaml
 
-from tools.longrun.paths import REPO, git_head, write_json
-from tools.longrun.variant_study import metric_columns
+from .paths import REPO, git_head, write_json
+from .variant_study import metric_columns
 
 BALL = "ballPNG"  # reported beside dev-real, never in its mean
 

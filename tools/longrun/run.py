@@ -13,13 +13,13 @@ from pathlib import Path
 
 import yaml
 
-from tools import run_weights
-from tools.longrun.carried_weights import CarriedWeights
-from tools.longrun.paths import CARRIED, REPO, STAGES, write_json
-from tools.longrun.process_time import children_cpu, pids_of, process_tree, run_timed
-from tools.longrun.real_scores import RealScores
-from tools.longrun.train_section import continue_schedule, set_value
-from tools.longrun.variant_study import VariantStudy
+from .carried_weights import CarriedWeights
+from .paths import CARRIED, REPO, STAGES, write_json
+from .process_time import children_cpu, pids_of, process_tree, run_timed
+from .real_scores import RealScores
+from .sibling_tools import run_weights
+from .train_section import continue_schedule, set_value
+from .variant_study import VariantStudy
 
 
 def parse_data_from(item: str) -> dict:

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import yaml
 
-from tools.longrun.paths import REPO
-from tools.longrun.train_section import train_value
+from .paths import REPO
+from .train_section import train_value
 
 
 class VariantStudy:
