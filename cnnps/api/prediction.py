@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from cnnps.api import prediction_outputs as outputs
+from cnnps.api.capture_estimates import Source
 from cnnps.api.cameras import make_camera
 from cnnps.api.light_models import make_light_model
 from cnnps.api.normals import capture_normals
@@ -60,6 +61,7 @@ from cnnps.api.prediction_options import (  # noqa: F401 (Method, Saturated, Pre
 from cnnps.api.prediction_steps import capture_lighting, capture_stack, saturation_level
 from cnnps.api.solvers import check_solver, prepare_solver
 from cnnps.infra.errors import InputError
+from cnnps.infra.options import check_arguments
 from cnnps.infra.output_folder import OutputFolder
 from cnnps.ps.near_lights import directions_from_positions
 
@@ -194,6 +196,8 @@ def predict_folder(
     out_dir,
     *,
     drop=None,
+    mask: Source = "auto",
+    intensities: Source = "auto",
     depth: bool = False,
     report: bool = True,
     scratch_dir=None,
@@ -210,6 +214,9 @@ def predict_folder(
     ``saturated``, ``sparse_fill``, ``tile_pixels``, ...), with its defaults.
     drop: image indices to leave out (None: none; DiLiGenT's rule for bearPNG is
     ``benchmark_drop(capture_dir, DILIGENT_RULES)`` of :mod:`cnnps.io.capture`);
+    mask, intensities: ``auto`` (the folder's mask.png / light_intensities.txt, made from the
+    photos when it has none), ``file`` (the file, required) or ``estimate`` (made from the
+    photos: :mod:`cnnps.api.capture_estimates`; a made mask is written to OUT_DIR as mask.png);
     depth: also integrate the normals into depth.npy, depth.png and surface.ply; report:
     write report.html (:mod:`cnnps.io.report`); scratch_dir: where the pixel stack's temporary file goes
     when it does not fit in ``memory_limit`` bytes (default: OUT_DIR's parent folder;
@@ -223,10 +230,12 @@ def predict_folder(
     capture has ground truth, the error statistics (``mean_deg``, ``median_deg``, ...).
     Every argument and the whole capture are checked before any heavy work.
     """
+    from cnnps.api.capture_estimates import fill_estimates, missing_ok
     from cnnps.io.capture import scan_capture
 
     t0 = time.perf_counter()
     capture_dir, out_dir = Path(capture_dir), Path(out_dir)
+    sources = check_arguments(predict_folder, {"mask": mask, "intensities": intensities})
     opts = check_options(with_defaults(options))
     check_solver(opts)  # a model file, a device: before the capture is read
     if not capture_dir.is_dir():
@@ -234,7 +243,9 @@ def predict_folder(
     outputs.check_out_dir(out_dir, capture_dir)
     write_surface = outputs.surface_writer() if depth else None
     with OutputFolder(out_dir, command) as out:  # FolderBusy at once while another writes OUT_DIR
-        capture = scan_capture(capture_dir, drop=drop, grey=opts["grey"], linearize=opts["linearize"])
+        capture = scan_capture(capture_dir, drop=drop, grey=opts["grey"], linearize=opts["linearize"],
+                               missing_ok=missing_ok(sources))
+        capture, estimated, made_notes = fill_estimates(capture, sources)
         camera, lighting = capture_lighting(capture, opts)
         solver = prepare_solver(opts)
         warnings = solver.warnings(capture.n_images)
@@ -245,9 +256,10 @@ def predict_folder(
                                     progress=progress)
             record = {"capture": str(capture_dir),
                       **outputs.make_record(solver, camera, found, stack, n_images=capture.n_images,
-                                            image_size=capture.shape, options=opts, dropped=capture.dropped)}
+                                            image_size=capture.shape, options=opts, dropped=capture.dropped),
+                      **({"estimated": estimated} if estimated else {})}
         warnings += outputs.scale_warning(found.lights)
-        notes = capture.notes + found.notes
+        notes = capture.notes + made_notes + found.notes
         scored = (None if capture.normal_gt is None
                   else outputs.score(found.normal, capture.normal_gt, capture.mask, capture_dir, notes))
         if write_surface is not None and camera.intrinsics is not None:  # depth along the optical axis
@@ -256,7 +268,7 @@ def predict_folder(
         finish = functools.partial(outputs.finish_record, t0=t0, t_load=t_load, notes=notes,
                                    linearize=opts["linearize"], warnings=warnings)
         outputs.write_outputs(out, found.normal, capture.mask, record, scored, write_surface, finish,
-                              found.counts.confidence, report)
+                              found.counts.confidence, report, write_mask="mask" in estimated)
     result = dict(record)
     if scored is not None:
         result.update(scored.stats)

@@ -31,36 +31,27 @@ from cnnps.ps.near_lights import DEFAULT_ROUNDS, DEFAULT_TOLERANCE
 Method = str  # a solver's registry name (cnnps.api.solvers.SOLVERS): "cnn", "lambertian", ...
 Saturated = Literal["exclude", "keep"]  # saturated observations left out (missing), or used as stored
 
+# the groups of `cnnps predict --help` (docs/predict.md#options has each option's details)
+CAPTURE, METHOD, RIG, OUTPUT = "Capture", "Method and network", "Camera and lights", "Output"
+PANELS = (CAPTURE, METHOD, RIG, OUTPUT)
+
 
 @dataclass(frozen=True)
 class PredictOptions:
     """Prediction's own options (the solvers declare theirs), each declared once: what
     :func:`predict` takes besides the arrays, and ``cnnps predict``'s flags."""
 
-    method: Method = option("cnn", "The normal solver, by its name in cnnps/api/solvers.py: cnn (the network), "
-                                   "lambertian (least squares, the baseline) or another registered there.")
-    grey: Grey = option("mean", "How RGB becomes grey.")
-    linearize: Linearize | None = option(
-        None, "How 8/16-bit images become linear: srgb = decode the sRGB curve (camera JPEG/PNG), none = already "
-              "linear (DiLiGenT, raw converters). Unset: taken as linear, with a note when images are 8-bit. Camera "
-              "RAW photos are always read linearly.")
-    saturated: Saturated = option("exclude", "exclude: observations with a channel >= 0.99 of the format's maximum "
-                                             "are left out (missing); keep: use them as stored.")
-    tile_pixels: Count = option(DEFAULT_TILE_PIXELS, "Mask pixels processed at a time (memory ~ N x images x 8 bytes).",
-                                metavar="N")
-    camera_model: str | None = option(None, "The camera, by its name in cnnps/api/cameras.py. (default: pinhole when "
-                                            "the capture has intrinsics.txt, else orthographic)")
-    light_model: str | None = option(None, "The lights, by their model's name in cnnps/api/light_models.py. (default: "
-                                           "point when the capture has light_positions.txt, else directional)")
-    distance: Positive | None = option(
-        None, "Point lights (light_positions.txt): the object's median depth along the optical axis, in the "
-              "positions' unit; starts the rounds and sets depth.npy's scale. (default: the lights' median distance "
-              "from the camera)", metavar="D")
-    rounds: Count = option(DEFAULT_ROUNDS, "Point lights: the most rounds of normals -> depth -> per-pixel lights.",
-                           metavar="N")
-    depth_tolerance: Positive = option(DEFAULT_TOLERANCE, "Point lights: stop once a round changes the depth by less "
-                                                          "than this (median relative change).", metavar="T")
-
+    method: Method = option("cnn", "cnn: the network; lambertian: least squares.", panel=METHOD)
+    grey: Grey = option("mean", "How RGB becomes grey.", panel=CAPTURE)
+    linearize: Linearize | None = option(None, "srgb: decode camera JPEG/PNG.", panel=CAPTURE)
+    saturated: Saturated = option("exclude", "Clipped observations left out, or kept.", panel=CAPTURE)
+    tile_pixels: Count = option(DEFAULT_TILE_PIXELS, "Pixels processed at a time (memory).", metavar="N", panel=OUTPUT)
+    camera_model: str | None = option(None, "Default: pinhole with intrinsics.txt.", panel=RIG)
+    light_model: str | None = option(None, "Default: point with light_positions.txt.", panel=RIG)
+    distance: Positive | None = option(None, "Point lights: the object's depth.", metavar="D", panel=RIG)
+    rounds: Count = option(DEFAULT_ROUNDS, "Point lights: most normal/depth rounds.", metavar="N", panel=RIG)
+    depth_tolerance: Positive = option(DEFAULT_TOLERANCE, "Point lights: stop below this change.", metavar="T",
+                                       panel=RIG)
 
 def declared_options() -> dict[str, Declared]:
     """{name: :class:`cnnps.infra.options.Declared`}: every option of :func:`predict`,

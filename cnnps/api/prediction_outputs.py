@@ -71,7 +71,7 @@ class Prediction:
 DEPTH_FILES = ("depth.npy", "depth.png", "surface.ply")
 CONFIDENCE_FILES = ("confidence.npy", "confidence.png")
 OUTPUT_FILES = ("normal.npy", "normal.png", "prediction.json", "error.png", "metrics.json") + CONFIDENCE_FILES + DEPTH_FILES + (
-    "report.html",)
+    "report.html", "mask.png")  # mask.png: made from the photos (cnnps.api.capture_estimates)
 
 
 def check_out_dir(out_dir: Path, capture_dir: Path) -> None:
@@ -209,15 +209,20 @@ def normal_picture(normal: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 
 def write_outputs(out: OutputFolder, normal, mask, record: dict, scored, write_surface, finish,
-                  confidence: np.ndarray | None = None, report: bool = True) -> None:
+                  confidence: np.ndarray | None = None, report: bool = True, write_mask: bool = False) -> None:
     """normal.npy, normal.png, confidence.npy + .png with a ``confidence`` map, error.png +
-    metrics.json with a score, the surface files with ``write_surface``, prediction.json
+    metrics.json with a score, the surface files with ``write_surface``, mask.png with
+    ``write_mask`` (a mask made from the photos, in a capture's own format), prediction.json
     (``finish(record)`` completes it first), then report.html with ``report``; all at
     once (:meth:`OutputFolder.replace`: ``out`` must be held)."""
     from cnnps.io.images import write_png
     from cnnps.io.visualize import confidence_picture, score_picture
 
     with out.replace() as tmp:
+        if write_mask:
+            from cnnps.io.capture import write_mask as write_mask_file
+
+            write_mask_file(tmp, mask)
         np.save(tmp / "normal.npy", normal)
         write_png(tmp / "normal.png", normal_picture(normal, mask))
         if confidence is not None:

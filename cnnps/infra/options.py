@@ -206,10 +206,11 @@ def check_fields(obj: Any, prefix: str = "") -> None:
 
 @dataclass(frozen=True)
 class Declared:
-    """One declared option: ``name``, ``type`` (its hint), ``default``, ``help`` (one
-    sentence or two, for ``--help``), ``metavar`` (the command line's placeholder, None:
-    the choices of a ``Literal``, or the type's) and ``only`` (True: no other solver takes
-    it, so setting it for another method is an error)."""
+    """One declared option: ``name``, ``type`` (its hint), ``default``, ``help`` (one short
+    line for ``--help``; the details live in the docs), ``metavar`` (the command line's
+    placeholder, None: the choices of a ``Literal``, or the type's), ``only`` (True: no
+    other solver takes it, so setting it for another method is an error) and ``panel``
+    (the group of ``--help`` it is listed in; None: its front end's default)."""
 
     name: str
     type: Any
@@ -217,6 +218,7 @@ class Declared:
     help: str = ""
     metavar: str | None = None
     only: bool = False
+    panel: str | None = None
 
     @property
     def flag(self) -> str:
@@ -224,7 +226,7 @@ class Declared:
         return "--" + self.name.replace("_", "-")
 
 
-def option(default: Any, help: str, *, metavar: str | None = None, only: bool = False) -> Any:
+def option(default: Any, help: str, *, metavar: str | None = None, only: bool = False, panel: str | None = None) -> Any:
     """A dataclass field declaring one option (its name and type are the field's).
 
     Example:
@@ -235,14 +237,14 @@ def option(default: Any, help: str, *, metavar: str | None = None, only: bool = 
         >>> [(d.name, d.default, d.flag) for d in declared(Opts)]
         [('rotations', 10, '--rotations')]
     """
-    return field(default=default, metadata={"help": help, "metavar": metavar, "only": only})
+    return field(default=default, metadata={"help": help, "metavar": metavar, "only": only, "panel": panel})
 
 
 def declared(cls: type) -> tuple[Declared, ...]:
     """The options a dataclass of :func:`option` fields declares, in field order."""
     hints = typing.get_type_hints(cls, include_extras=True)
     return tuple(Declared(f.name, hints[f.name], f.default, f.metadata.get("help", ""), f.metadata.get("metavar"),
-                          bool(f.metadata.get("only", False)))
+                          bool(f.metadata.get("only", False)), f.metadata.get("panel"))
                  for f in fields(cls))
 
 

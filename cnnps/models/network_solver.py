@@ -50,21 +50,13 @@ HeatmapDecoding = Literal["window", "parabola"]  # cnnps.models.heatmap.DECODING
 class NetworkOptions:
     """The options of :class:`NetworkSolver` (``method="cnn"``), each declared once."""
 
-    model: Path | None = option(None, "CNN-PS checkpoint (default: the shipped cnnps/models/weights/cnnps_default.pt).")
-    rotations: Count = option(10, "Test-time rotations averaged (cnn; 10 = the paper).", metavar="K")
-    device: Device = option("auto", "Where the network runs; auto = CUDA when available.")
-    precision: Precision = option("auto", "auto: the fastest path within 0.05 deg of fp32 on this machine, measured "
-                                          "once (about 1 s) and cached.")
-    batch_size: Count | None = option(None, "Observation maps per network batch (default 256 on a CPU, 4096 on CUDA).",
-                                      metavar="N")
-    sparse_fill: SparseFill = option("auto", "cnn: add virtual Lambertian observations to sparse maps, per pixel only "
-                                             "where a Lambertian fit explains its observations; auto = with fewer "
-                                             "than 50 images.")
-    heatmap_decoding: HeatmapDecoding = option("window", "Heat-map models only (a regression model ignores it): "
-                                                         "window = the centre of mass of the 5x5 cells around the "
-                                                         "maximum; parabola = the log-parabola vertex per axis, "
-                                                         "exact on Gaussian targets.")
-
+    model: Path | None = option(None, "Weights (default: the shipped model).")
+    rotations: Count = option(10, "Test-time rotations averaged.", metavar="K")
+    device: Device = option("auto", "Where the network runs.")
+    precision: Precision = option("auto", "auto: the fastest exact one here.")
+    batch_size: Count | None = option(None, "Maps per network batch.", metavar="N")
+    sparse_fill: SparseFill = option("auto", "Lambertian fill of sparse maps.")
+    heatmap_decoding: HeatmapDecoding = option("window", "Heat-map models: how maps decode.")
 
 def default_model_path() -> Path:
     """Where the shipped model lives: ``cnnps/models/weights/cnnps_default.pt``."""

@@ -18,6 +18,7 @@ import typer
 
 from cnnps.api.cameras import CAMERAS
 from cnnps.api.light_models import LIGHT_MODELS
+from cnnps.api.prediction_options import CAPTURE, METHOD, OUTPUT, PANELS
 from cnnps.api.solvers import SOLVERS
 from cnnps.infra.errors import ConfigError
 from cnnps.infra.options import Declared, choices
@@ -54,14 +55,20 @@ def parse_drop(text: Optional[str]) -> Optional[list[int]]:
 
 
 def _command(
-    capture_dir: Path = typer.Argument(..., help="Capture folder (DiLiGenT layout: filenames.txt, light_directions.txt, light_intensities.txt, mask.png, images)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder, written whole, by one run at a time (a second run into it stops at once): normal.npy, normal.png, and error.png + metrics.json when ground truth exists."),
-    drop: Optional[str] = typer.Option(None, "--drop", metavar="INDICES", help="Image indices to leave out, 0-based, e.g. '0,1,2' or '0-19' (default: none). DiLiGenT's bearPNG: '0-19' scores it as the benchmark does."),
-    depth: bool = typer.Option(False, "--depth", help="Also integrate the normals into depth.npy, depth.png and surface.ply."),
-    report: bool = typer.Option(True, "--report/--no-report", help="Write report.html: the normals relit by a light you drag, the confidence, the errors, the surface and the record, in one page that opens from disk (`cnnps report OUT_DIR` makes it again)."),
-    scratch: Optional[Path] = typer.Option(None, "--scratch", metavar="DIR", help="Folder for the temporary pixel stack of large captures (default: next to --out; about pixels x images x 4 bytes)."),
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars (one line per bar when the output is not a terminal)."),
-    verbose: bool = typer.Option(False, "--verbose", "-v", help="Say which inference path ran and why."),
+    capture_dir: Path = typer.Argument(..., help="Capture folder (docs/capture.md)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder, written whole.", rich_help_panel=OUTPUT),
+    drop: Optional[str] = typer.Option(None, "--drop", metavar="INDICES", help="Images to leave out: 0,1 or 0-19.",
+                                       rich_help_panel=CAPTURE),
+    mask: str = typer.Option("auto", "--mask", metavar="auto|file|estimate", help="mask.png, or made from the photos.",
+                             rich_help_panel=CAPTURE),
+    intensities: str = typer.Option("auto", "--intensities", metavar="auto|file|estimate",
+                                    help="light_intensities.txt, or fitted.", rich_help_panel=CAPTURE),
+    depth: bool = typer.Option(False, "--depth", help="Also integrate a surface.", rich_help_panel=OUTPUT),
+    report: bool = typer.Option(True, "--report/--no-report", help="Write report.html.", rich_help_panel=OUTPUT),
+    scratch: Optional[Path] = typer.Option(None, "--scratch", metavar="DIR", help="Folder for the pixel stack.",
+                                           rich_help_panel=OUTPUT),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bars.", rich_help_panel=OUTPUT),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Say which path ran and why.", rich_help_panel=OUTPUT),
 ) -> None:
     """The command's own parameters (not options of :func:`cnnps.predict`): their flags."""
 
@@ -79,7 +86,8 @@ def _flag_of(d: Declared) -> inspect.Parameter:
     help_text = d.help if d.default is None or "(default" in d.help else f"{d.help} (default: {d.default})"
     path = Path in typing.get_args(d.type) or d.type is Path
     return inspect.Parameter(d.name, inspect.Parameter.KEYWORD_ONLY, annotation=Optional[Path] if path else Optional[str],
-                             default=typer.Option(None, d.flag, metavar=metavar, help=help_text))
+                             default=typer.Option(None, d.flag, metavar=metavar, help=help_text,
+                                                  rich_help_panel=d.panel or METHOD))
 
 
 class _PredictCommand:
@@ -94,9 +102,11 @@ class _PredictCommand:
         command: a solver, camera or light model registered by then is listed."""
         from cnnps.api.prediction_options import declared_options
 
-        capture_dir, out, *rest = inspect.signature(_command, eval_str=True).parameters.values()
-        rest = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in rest]
-        return inspect.Signature([capture_dir, out] + [_flag_of(d) for d in declared_options().values()] + rest)
+        capture_dir, *own = inspect.signature(_command, eval_str=True).parameters.values()
+        flags = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in own]
+        flags += [_flag_of(d) for d in declared_options().values()]
+        flags.sort(key=lambda p: PANELS.index(p.default.rich_help_panel))  # --help's groups in this order
+        return inspect.Signature([capture_dir] + flags)
 
     @property
     def __annotations__(self) -> dict:
@@ -118,16 +128,20 @@ def parse_options(texts: dict) -> dict:
             if text is not None}
 
 
-def predict(capture_dir: Path, out: Path, drop: Optional[str], depth: bool, report: bool, scratch: Optional[Path],
-            progress: bool, verbose: bool, **options) -> None:
+def predict(capture_dir: Path, out: Path, drop: Optional[str], mask: str, intensities: str, depth: bool, report: bool,
+            scratch: Optional[Path], progress: bool, verbose: bool, **options) -> None:
     """``cnnps predict``: the command's own values (:func:`_command`'s flags), and
     ``options``, :func:`cnnps.predict`'s as the command line gives them (text, or None when
     unset); the set ones are parsed (:func:`parse_options`) and
     passed on to :func:`cnnps.predict_folder`, the others left to their declared defaults."""
     from cnnps.api.prediction import predict_folder
 
-    result = predict_folder(capture_dir, out, drop=parse_drop(drop), depth=depth, report=report, scratch_dir=scratch,
-                            progress=progress, command="cnnps predict", **parse_options(options))
+    from cnnps.api.capture_estimates import Source
+    from cnnps.infra.options import parse
+
+    result = predict_folder(capture_dir, out, drop=parse_drop(drop), mask=parse("--mask", mask, Source),
+                            intensities=parse("--intensities", intensities, Source), depth=depth, report=report,
+                            scratch_dir=scratch, progress=progress, command="cnnps predict", **parse_options(options))
     _report(result, capture_dir, out, verbose)
 
 

@@ -229,9 +229,8 @@ def least_squares_per_pixel(
 class LeastSquaresOptions:
     """The options of :class:`LeastSquaresSolver` (``method="lambertian"``)."""
 
-    shadow_threshold: UnitFraction | None = option(
-        None, "lambertian: per pixel, use only lights brighter than this fraction of its brightest, in [0, 1).",
-        metavar="T", only=True)
+    shadow_threshold: UnitFraction | None = option(None, "lambertian: drop lights < T x max.",
+                                                   metavar="T", only=True)
 
 
 class LeastSquaresSolver(Solver):

@@ -262,3 +262,15 @@ def test_help_shows_each_options_default(capsys):
     for option, name in (("--rotations", "rotations"), ("--precision", "precision"), ("--saturated", "saturated")):
         default = inspect.signature(predict).parameters[name].default
         assert re.search(rf"{option} .*?\(default: {default}\)", text), (option, default)
+
+
+def test_help_fits_a_screen_in_groups(capsys, monkeypatch):
+    """`cnnps predict --help` at 80 columns: at most 80 lines, the flags in the groups of
+    docs/predict.md (capture, method and network, camera and lights, output)."""
+    monkeypatch.setenv("COLUMNS", "80")
+    code, out, err = run_cli(["predict", "--help"], capsys)
+    lines = (out + err).rstrip("\n").splitlines()
+    assert code == 0 and len(lines) <= 80, len(lines)
+    titles = [t for t in ("Capture", "Method and network", "Camera and lights", "Output") if f"─ {t} ─" in out + err]
+    assert titles == ["Capture", "Method and network", "Camera and lights", "Output"]
+    assert max(len(line) for line in lines) <= 80

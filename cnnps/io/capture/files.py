@@ -166,10 +166,13 @@ def read_light_directions(root: Path, m: int | None = None, unit: bool = True) -
     return dirs / norms[:, None] if unit else dirs
 
 
-def read_light_intensities(root: Path, m: int) -> np.ndarray:
+def read_light_intensities(root: Path, m: int, required: bool = True) -> np.ndarray | None:
     """(m, 3) float64 RGB intensities of ``root/light_intensities.txt``, all > 0; an
-    InputError naming the file otherwise."""
+    InputError naming the file otherwise. Without the file: None when not ``required``
+    (the caller estimates them: :mod:`cnnps.ps.intensity_estimate`)."""
     path = Path(root) / LIGHT_INTENSITIES_FILE
+    if not required and not path.is_file():
+        return None
     ints, lines = read_vectors(path, "r g b")
     if len(ints) != m:
         raise InputError(path, f"has {len(ints)} light intensities but {FILENAMES_FILE} lists {m} images")
@@ -179,16 +182,18 @@ def read_light_intensities(root: Path, m: int) -> np.ndarray:
     return ints
 
 
-def read_lights(root: Path, m: int, positions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def read_lights(root: Path, m: int, positions: np.ndarray | None = None,
+                intensities_required: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """((m, 3) unit directions, (m, 3) intensities) of a capture folder. With point-light
     ``positions`` the directions are those seen from the optical axis at their median
     distance (:func:`cnnps.ps.near_lights.directions_from_positions`) and no directions
-    file is read."""
+    file is read. Intensities None: no file, and not ``intensities_required``."""
+    ints = read_light_intensities(root, m, intensities_required)
     if positions is not None:
         from cnnps.ps.near_lights import directions_from_positions
 
-        return directions_from_positions(positions), read_light_intensities(root, m)
-    return read_light_directions(root, m), read_light_intensities(root, m)
+        return directions_from_positions(positions), ints
+    return read_light_directions(root, m), ints
 
 
 # ----------------------------------------------------------------------------- mask, ground truth, record

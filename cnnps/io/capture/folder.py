@@ -110,6 +110,7 @@ class Capture:
     grey: str = "mean"
     linearize: str | None = None  # "srgb" | "none" | None (not chosen: integer images taken as linear)
     first_kind: str | None = None
+    frame: tuple[int, int] | None = None  # (H, W) of the files' images (scan_capture): the size without a mask
 
     def __post_init__(self):
         self.filenames = list(self.filenames)
@@ -131,7 +132,12 @@ class Capture:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.mask.shape
+        """(H, W): the mask's, else the images' (a capture still without a mask)."""
+        if self.mask is not None:
+            return self.mask.shape
+        if self.images is not None:
+            return tuple(self.images.shape[1:3])
+        return self.frame
 
     @property
     def n_images(self) -> int:
@@ -309,6 +315,7 @@ def scan_capture(
     drop=None,
     grey: Grey = "mean",
     linearize: Linearize | None = None,
+    missing_ok: tuple[str, ...] = (),
 ) -> Capture:
     """Validate a capture folder and read everything but the image stack.
 
@@ -323,6 +330,10 @@ def scan_capture(
     grey: "mean" or "luminance" (see :mod:`cnnps.io.capture.pixels`).
     linearize: "srgb" | "none" | None for integer images ("srgb" with a RAW photo is an
         InputError naming it).
+    missing_ok: files the capture may lack, ``"mask"`` (mask.png) and ``"intensities"``
+        (light_intensities.txt): a missing one leaves ``mask`` / ``intensities`` None for
+        the caller to make (:mod:`cnnps.api.capture_estimates`); a file that is there is
+        read and checked as always.
 
     Example: ``scan_capture("ballPNG").n_images`` -> 96.
     """
@@ -334,7 +345,10 @@ def scan_capture(
     names = read_filenames(root)
     m_all = len(names)
     positions = read_light_positions(root, m_all, notes)
-    lights, intensities = read_lights(root, m_all, positions)
+    unknown = sorted(set(missing_ok) - {"mask", "intensities"})
+    if unknown:
+        raise ValueError(f"missing_ok: unknown file kind {unknown[0]!r} (mask, intensities)")
+    lights, intensities = read_lights(root, m_all, positions, intensities_required="intensities" not in missing_ok)
     intrinsics = read_intrinsics(root / INTRINSICS_FILE)
 
     dropped = _normalise_drop([] if drop is None else drop, m_all, root / FILENAMES_FILE)
@@ -342,19 +356,20 @@ def scan_capture(
     if keep.size < MIN_IMAGES:
         raise ConfigError(f"{root}: only {keep.size} images left after dropping {len(dropped)}; need at least {MIN_IMAGES}")
     names = [names[i] for i in keep]
-    lights, intensities = lights[keep], intensities[keep]
+    lights, intensities = lights[keep], None if intensities is None else intensities[keep]
     if positions is not None:
         positions = positions[keep]
 
     paths = _image_paths(root, names)
     check_linearize(paths, linearize)
-    require_mask(root)  # before any image is decoded
+    if "mask" not in missing_ok:
+        require_mask(root)  # before any image is decoded
 
     first = _check_image(paths[0], read_image_raw(paths[0]), None)
     H, W = first.shape[:2]
     kind = pixel_kind(paths[0], first)
     del first
-    mask = read_mask_file(root, (H, W))
+    mask = read_mask_file(root, (H, W), required="mask" not in missing_ok)
     normal_gt = read_normal_gt(root, (H, W))
     depth_gt = read_depth_gt(root, (H, W))
 
@@ -374,6 +389,7 @@ def scan_capture(
         grey=grey,
         linearize=linearize,
         first_kind=kind,
+        frame=(H, W),
     )
 
 
