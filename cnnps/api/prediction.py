@@ -197,7 +197,6 @@ def predict_folder(
     *,
     drop=None,
     mask: Source = "auto",
-    intensities: Source = "auto",
     depth: bool = False,
     report: bool = True,
     scratch_dir=None,
@@ -214,9 +213,9 @@ def predict_folder(
     ``saturated``, ``sparse_fill``, ``tile_pixels``, ...), with its defaults.
     drop: image indices to leave out (None: none; DiLiGenT's rule for bearPNG is
     ``benchmark_drop(capture_dir, DILIGENT_RULES)`` of :mod:`cnnps.io.capture`);
-    mask, intensities: ``auto`` (the folder's mask.png / light_intensities.txt, made from the
-    photos when it has none), ``file`` (the file, required) or ``estimate`` (made from the
-    photos: :mod:`cnnps.api.capture_estimates`; a made mask is written to OUT_DIR as mask.png);
+    mask: ``auto`` (the folder's mask.png, made from the photos when it has none), ``file``
+    (mask.png, required) or ``estimate`` (made from the photos:
+    :mod:`cnnps.api.capture_estimates`); a made mask is written to OUT_DIR as mask.png;
     depth: also integrate the normals into depth.npy, depth.png and surface.ply; report:
     write report.html (:mod:`cnnps.io.report`); scratch_dir: where the pixel stack's temporary file goes
     when it does not fit in ``memory_limit`` bytes (default: OUT_DIR's parent folder;
@@ -235,7 +234,7 @@ def predict_folder(
 
     t0 = time.perf_counter()
     capture_dir, out_dir = Path(capture_dir), Path(out_dir)
-    sources = check_arguments(predict_folder, {"mask": mask, "intensities": intensities})
+    sources = check_arguments(predict_folder, {"mask": mask})
     opts = check_options(with_defaults(options))
     check_solver(opts)  # a model file, a device: before the capture is read
     if not capture_dir.is_dir():

@@ -61,8 +61,6 @@ def _command(
                                        rich_help_panel=CAPTURE),
     mask: str = typer.Option("auto", "--mask", metavar="auto|file|estimate", help="mask.png, or made from the photos.",
                              rich_help_panel=CAPTURE),
-    intensities: str = typer.Option("auto", "--intensities", metavar="auto|file|estimate",
-                                    help="light_intensities.txt, or fitted.", rich_help_panel=CAPTURE),
     depth: bool = typer.Option(False, "--depth", help="Also integrate a surface.", rich_help_panel=OUTPUT),
     report: bool = typer.Option(True, "--report/--no-report", help="Write report.html.", rich_help_panel=OUTPUT),
     scratch: Optional[Path] = typer.Option(None, "--scratch", metavar="DIR", help="Folder for the pixel stack.",
@@ -128,7 +126,7 @@ def parse_options(texts: dict) -> dict:
             if text is not None}
 
 
-def predict(capture_dir: Path, out: Path, drop: Optional[str], mask: str, intensities: str, depth: bool, report: bool,
+def predict(capture_dir: Path, out: Path, drop: Optional[str], mask: str, depth: bool, report: bool,
             scratch: Optional[Path], progress: bool, verbose: bool, **options) -> None:
     """``cnnps predict``: the command's own values (:func:`_command`'s flags), and
     ``options``, :func:`cnnps.predict`'s as the command line gives them (text, or None when
@@ -139,9 +137,9 @@ def predict(capture_dir: Path, out: Path, drop: Optional[str], mask: str, intens
     from cnnps.api.capture_estimates import Source
     from cnnps.infra.options import parse
 
-    result = predict_folder(capture_dir, out, drop=parse_drop(drop), mask=parse("--mask", mask, Source),
-                            intensities=parse("--intensities", intensities, Source), depth=depth, report=report,
-                            scratch_dir=scratch, progress=progress, command="cnnps predict", **parse_options(options))
+    result = predict_folder(capture_dir, out, drop=parse_drop(drop), mask=parse("--mask", mask, Source), depth=depth,
+                            report=report, scratch_dir=scratch, progress=progress, command="cnnps predict",
+                            **parse_options(options))
     _report(result, capture_dir, out, verbose)
 
 

@@ -188,12 +188,11 @@ def read_lights(root: Path, m: int, positions: np.ndarray | None = None,
     ``positions`` the directions are those seen from the optical axis at their median
     distance (:func:`cnnps.ps.near_lights.directions_from_positions`) and no directions
     file is read. Intensities None: no file, and not ``intensities_required``."""
-    ints = read_light_intensities(root, m, intensities_required)
     if positions is not None:
         from cnnps.ps.near_lights import directions_from_positions
 
-        return directions_from_positions(positions), ints
-    return read_light_directions(root, m), ints
+        return directions_from_positions(positions), read_light_intensities(root, m, intensities_required)
+    return read_light_directions(root, m), read_light_intensities(root, m, intensities_required)
 
 
 # ----------------------------------------------------------------------------- mask, ground truth, record
