@@ -25,6 +25,7 @@ import numpy as np
 
 from cnnps.infra.errors import CnnpsError, ConfigError, InputError
 from cnnps.infra.output_folder import OutputFolder
+from cnnps.io.capture import MASK_FILE
 
 
 @dataclass
@@ -71,7 +72,7 @@ class Prediction:
 DEPTH_FILES = ("depth.npy", "depth.png", "surface.ply")
 CONFIDENCE_FILES = ("confidence.npy", "confidence.png")
 OUTPUT_FILES = ("normal.npy", "normal.png", "prediction.json", "error.png", "metrics.json") + CONFIDENCE_FILES + DEPTH_FILES + (
-    "report.html", "mask.png")  # mask.png: made from the photos (cnnps.api.capture_estimates)
+    "report.html", MASK_FILE)  # MASK_FILE: a mask made from the photos (cnnps.api.capture_estimates)
 
 
 def check_out_dir(out_dir: Path, capture_dir: Path) -> None:
