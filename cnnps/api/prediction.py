@@ -197,6 +197,8 @@ def predict_folder(
     *,
     drop=None,
     mask: Source = "auto",
+    intensities: Source = "auto",
+    check: bool = False,
     depth: bool = False,
     report: bool = True,
     scratch_dir=None,
@@ -216,6 +218,11 @@ def predict_folder(
     mask: ``auto`` (the folder's mask.png, made from the photos when it has none), ``file``
     (mask.png, required) or ``estimate`` (made from the photos:
     :mod:`cnnps.api.capture_estimates`); a made mask is written to OUT_DIR as mask.png;
+    intensities: the same for light_intensities.txt (estimated from the object, the
+    semi-calibrated way; written to OUT_DIR when no image was dropped); check: also look
+    for what hurts the normals (:mod:`cnnps.api.capture_check`, what ``cnnps check``
+    says: one more read of every image), its warnings among the record's, its findings
+    in ``prediction.json`` (``check``) and the report;
     depth: also integrate the normals into depth.npy, depth.png and surface.ply; report:
     write report.html (:mod:`cnnps.io.report`); scratch_dir: where the pixel stack's temporary file goes
     when it does not fit in ``memory_limit`` bytes (default: OUT_DIR's parent folder;
@@ -229,12 +236,13 @@ def predict_folder(
     capture has ground truth, the error statistics (``mean_deg``, ``median_deg``, ...).
     Every argument and the whole capture are checked before any heavy work.
     """
+    from cnnps.api.capture_check import inspect_capture
     from cnnps.api.capture_estimates import fill_estimates, missing_ok
     from cnnps.io.capture import scan_capture
 
     t0 = time.perf_counter()
     capture_dir, out_dir = Path(capture_dir), Path(out_dir)
-    sources = check_arguments(predict_folder, {"mask": mask})
+    sources = check_arguments(predict_folder, {"mask": mask, "intensities": intensities})
     opts = check_options(with_defaults(options))
     check_solver(opts)  # a model file, a device: before the capture is read
     if not capture_dir.is_dir():
@@ -245,6 +253,7 @@ def predict_folder(
         capture = scan_capture(capture_dir, drop=drop, grey=opts["grey"], linearize=opts["linearize"],
                                missing_ok=missing_ok(sources))
         capture, estimated, made_notes = fill_estimates(capture, sources)
+        checked = inspect_capture(capture, list(estimated), progress) if check else None
         camera, lighting = capture_lighting(capture, opts)
         solver = prepare_solver(opts)
         warnings = solver.warnings(capture.n_images)
@@ -256,8 +265,10 @@ def predict_folder(
             record = {"capture": str(capture_dir),
                       **outputs.make_record(solver, camera, found, stack, n_images=capture.n_images,
                                             image_size=capture.shape, options=opts, dropped=capture.dropped),
-                      **({"estimated": estimated} if estimated else {})}
+                      **({"estimated": estimated} if estimated else {}),
+                      **({"check": checked.record()} if checked is not None else {})}
         warnings += outputs.scale_warning(found.lights)
+        warnings += [] if checked is None else [f"{f.kind}: {f.message}" for f in checked.warnings]
         notes = capture.notes + made_notes + found.notes
         scored = (None if capture.normal_gt is None
                   else outputs.score(found.normal, capture.normal_gt, capture.mask, capture_dir, notes))
@@ -267,7 +278,7 @@ def predict_folder(
         finish = functools.partial(outputs.finish_record, t0=t0, t_load=t_load, notes=notes,
                                    linearize=opts["linearize"], warnings=warnings)
         outputs.write_outputs(out, found.normal, capture.mask, record, scored, write_surface, finish,
-                              found.counts.confidence, report, write_mask="mask" in estimated)
+                              found.counts.confidence, report, made=outputs.made_files(capture, estimated))
     result = dict(record)
     if scored is not None:
         result.update(scored.stats)

@@ -25,7 +25,7 @@ import numpy as np
 
 from cnnps.infra.errors import CnnpsError, ConfigError, InputError
 from cnnps.infra.output_folder import OutputFolder
-from cnnps.io.capture import MASK_FILE
+from cnnps.io.capture import LIGHT_INTENSITIES_FILE, MASK_FILE
 
 
 @dataclass
@@ -72,7 +72,7 @@ class Prediction:
 DEPTH_FILES = ("depth.npy", "depth.png", "surface.ply")
 CONFIDENCE_FILES = ("confidence.npy", "confidence.png")
 OUTPUT_FILES = ("normal.npy", "normal.png", "prediction.json", "error.png", "metrics.json") + CONFIDENCE_FILES + DEPTH_FILES + (
-    "report.html", MASK_FILE)  # MASK_FILE: a mask made from the photos (cnnps.api.capture_estimates)
+    "report.html", MASK_FILE, LIGHT_INTENSITIES_FILE)  # made from the photos (cnnps.api.capture_estimates)
 
 
 def check_out_dir(out_dir: Path, capture_dir: Path) -> None:
@@ -209,21 +209,34 @@ def normal_picture(normal: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return rgb
 
 
+def made_files(capture, estimated: dict) -> dict:
+    """{capture file writer: value} for what :mod:`cnnps.api.capture_estimates` made, in a
+    capture's own formats: the mask; the intensities when no image was dropped (else they
+    would not match the folder's filenames.txt; prediction.json holds them either way)."""
+    from cnnps.io.capture import write_light_intensities, write_mask
+
+    out = {}
+    if "mask" in estimated:
+        out[write_mask] = capture.mask
+    if "intensities" in estimated and not capture.dropped:
+        out[write_light_intensities] = capture.intensities
+    return out
+
+
 def write_outputs(out: OutputFolder, normal, mask, record: dict, scored, write_surface, finish,
-                  confidence: np.ndarray | None = None, report: bool = True, write_mask: bool = False) -> None:
+                  confidence: np.ndarray | None = None, report: bool = True, made: dict | None = None) -> None:
     """normal.npy, normal.png, confidence.npy + .png with a ``confidence`` map, error.png +
-    metrics.json with a score, the surface files with ``write_surface``, mask.png with
-    ``write_mask`` (a mask made from the photos, in a capture's own format), prediction.json
-    (``finish(record)`` completes it first), then report.html with ``report``; all at
-    once (:meth:`OutputFolder.replace`: ``out`` must be held)."""
+    metrics.json with a score, the surface files with ``write_surface``, the capture files
+    of ``made`` ({writer(folder, value): value}: what was made from the photos,
+    :func:`made_files`), prediction.json (``finish(record)`` completes it first), then
+    report.html with ``report``; all at once (:meth:`OutputFolder.replace`: ``out`` must
+    be held)."""
     from cnnps.io.images import write_png
     from cnnps.io.visualize import confidence_picture, score_picture
 
     with out.replace() as tmp:
-        if write_mask:
-            from cnnps.io.capture import write_mask as write_mask_file
-
-            write_mask_file(tmp, mask)
+        for write, value in (made or {}).items():
+            write(tmp, value)
         np.save(tmp / "normal.npy", normal)
         write_png(tmp / "normal.png", normal_picture(normal, mask))
         if confidence is not None:

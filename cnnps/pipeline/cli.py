@@ -18,6 +18,7 @@ from cnnps.infra.options import spelled_as_flags
 # Command modules register their commands on ``app`` when imported.
 from cnnps.pipeline import (
     cli_calibrate,  # noqa: E402,F401
+    cli_check,  # noqa: E402,F401
     cli_integrate,  # noqa: E402,F401
     cli_predict,  # noqa: E402,F401
     cli_render,  # noqa: E402,F401

@@ -54,13 +54,23 @@ def parse_drop(text: Optional[str]) -> Optional[list[int]]:
     return out
 
 
+# the capture's flags, shared with cnnps check
+DROP_FLAG = typer.Option(None, "--drop", metavar="INDICES", help="Images to leave out: 0,1 or 0-19.",
+                         rich_help_panel=CAPTURE)
+MASK_FLAG = typer.Option("auto", "--mask", metavar="auto|file|estimate", help="mask.png, or made from the photos.",
+                         rich_help_panel=CAPTURE)
+INTENSITIES_FLAG = typer.Option("auto", "--intensities", metavar="auto|file|estimate",
+                                help="light_intensities.txt, or estimated from the object.", rich_help_panel=CAPTURE)
+
+
 def _command(
     capture_dir: Path = typer.Argument(..., help="Capture folder (docs/capture.md)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder, written whole.", rich_help_panel=OUTPUT),
-    drop: Optional[str] = typer.Option(None, "--drop", metavar="INDICES", help="Images to leave out: 0,1 or 0-19.",
-                                       rich_help_panel=CAPTURE),
-    mask: str = typer.Option("auto", "--mask", metavar="auto|file|estimate", help="mask.png, or made from the photos.",
-                             rich_help_panel=CAPTURE),
+    drop: Optional[str] = DROP_FLAG,
+    mask: str = MASK_FLAG,
+    intensities: str = INTENSITIES_FLAG,
+    check: bool = typer.Option(False, "--check", help="Also say what hurts (as cnnps check does).",
+                               rich_help_panel=OUTPUT),
     depth: bool = typer.Option(False, "--depth", help="Also integrate a surface.", rich_help_panel=OUTPUT),
     report: bool = typer.Option(True, "--report/--no-report", help="Write report.html.", rich_help_panel=OUTPUT),
     scratch: Optional[Path] = typer.Option(None, "--scratch", metavar="DIR", help="Folder for the pixel stack.",
@@ -126,7 +136,8 @@ def parse_options(texts: dict) -> dict:
             if text is not None}
 
 
-def predict(capture_dir: Path, out: Path, drop: Optional[str], mask: str, depth: bool, report: bool,
+def predict(capture_dir: Path, out: Path, drop: Optional[str], mask: str, intensities: str, check: bool, depth: bool,
+            report: bool,
             scratch: Optional[Path], progress: bool, verbose: bool, **options) -> None:
     """``cnnps predict``: the command's own values (:func:`_command`'s flags), and
     ``options``, :func:`cnnps.predict`'s as the command line gives them (text, or None when
@@ -137,7 +148,8 @@ def predict(capture_dir: Path, out: Path, drop: Optional[str], mask: str, depth:
     from cnnps.api.capture_estimates import Source
     from cnnps.infra.options import parse
 
-    result = predict_folder(capture_dir, out, drop=parse_drop(drop), mask=parse("--mask", mask, Source), depth=depth,
+    result = predict_folder(capture_dir, out, drop=parse_drop(drop), mask=parse("--mask", mask, Source),
+                            intensities=parse("--intensities", intensities, Source), check=check, depth=depth,
                             report=report, scratch_dir=scratch, progress=progress, command="cnnps predict",
                             **parse_options(options))
     _report(result, capture_dir, out, verbose)

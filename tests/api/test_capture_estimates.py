@@ -57,3 +57,58 @@ def test_a_mask_that_is_there_is_read_unless_estimate_is_asked(sphere, tmp_path)
     assert "estimated" not in given and not (tmp_path / "a" / "mask.png").exists()
     made = predict_folder(root, tmp_path / "b", method="lambertian", mask="estimate", report=False, progress=False)
     assert "mask" in made["estimated"] and (tmp_path / "b" / "mask.png").is_file()
+
+
+@pytest.fixture
+def one_lamp(tmp_path):
+    """A sphere under one lamp whose shots differ only in exposure: the same colour,
+    intensities 0.5-2x (16-bit PNG, so the made intensities can be checked to 1 %)."""
+    root = tmp_path / "lamp"
+    e = np.random.default_rng(7).uniform(0.5, 2.0, 20)
+    truth = write_capture(root, fmt="png16", size=48, m=20, max_tilt_deg=45, intensities=np.repeat(e[:, None], 3, 1))
+    return root, truth, e / e.mean()
+
+
+def test_missing_intensities_are_estimated_from_the_object_and_written(one_lamp, tmp_path):
+    root, truth, e = one_lamp
+    calibrated = predict_folder(root, tmp_path / "calibrated", method="lambertian", report=False, progress=False)
+    (root / "light_intensities.txt").unlink()
+    out = tmp_path / "out"
+    result = predict_folder(root, out, method="lambertian", report=False, progress=False)
+    made = np.array(result["estimated"]["intensities"]["values"])
+    assert np.abs(made / e - 1).max() < 0.01
+    written = np.loadtxt(out / "light_intensities.txt")
+    assert written.shape == (20, 3) and np.allclose(written, made[:, None], rtol=1e-4)
+    assert result["mean_deg"] < calibrated["mean_deg"] + 0.1
+    assert any(n.startswith("light_intensities.txt: estimated from the object") for n in result["notes"])
+    assert "mask" not in result["estimated"]
+
+
+def test_mask_and_intensities_both_made(one_lamp, tmp_path):
+    root, truth, e = one_lamp
+    (root / "mask.png").unlink()
+    mask_only = predict_folder(root, tmp_path / "mask-only", method="lambertian", report=False, progress=False)
+    (root / "light_intensities.txt").unlink()
+    result = predict_folder(root, tmp_path / "out", method="lambertian", report=False, progress=False)
+    assert set(result["estimated"]) == {"mask", "intensities"}
+    assert np.abs(np.array(result["estimated"]["intensities"]["values"]) / e - 1).max() < 0.02
+    assert result["mean_deg"] < mask_only["mean_deg"] + 0.1
+
+
+def test_intensities_file_means_the_file(one_lamp, tmp_path):
+    root, _, _ = one_lamp
+    (root / "light_intensities.txt").unlink()
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match="light_intensities.txt"):
+        predict_folder(root, out, method="lambertian", intensities="file", report=False, progress=False)
+    assert not out.exists()
+
+
+def test_estimate_overrides_the_file_and_dropped_images_keep_the_folder_consistent(one_lamp, tmp_path):
+    root, _, e = one_lamp
+    out = tmp_path / "out"
+    result = predict_folder(root, out, method="lambertian", intensities="estimate", drop=[0, 1], report=False,
+                            progress=False)
+    made = np.array(result["estimated"]["intensities"]["values"])
+    assert made.shape == (18,) and np.abs(made / (e[2:] / e[2:].mean()) - 1).max() < 0.01
+    assert not (out / "light_intensities.txt").exists()  # 18 lines beside a filenames.txt of 20

@@ -79,7 +79,7 @@ def test_every_bad_input_exits_2_naming_the_file(tmp_path, capsys, case):
     cap, name, words = make_bad_capture(tmp_path, case)
     out = tmp_path / "out"
     code, stdout, stderr = run_cli(["predict", str(cap), "--out", str(out), "--method", "lambertian",
-                                    "--no-progress", "--mask", "file"], capsys)  # a missing mask.png: an error
+                                    "--no-progress", "--mask", "file", "--intensities", "file"], capsys)  # missing: errors
     assert code == 2
     assert stderr.count("\n") == 1 and stderr.startswith("cnnps: error: ")
     assert f"{name}: " in stderr and words in stderr
