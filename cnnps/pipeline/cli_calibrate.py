@@ -15,19 +15,35 @@ def _ball_line(what: str, ball) -> str:
             f"({ball.source}; fit RMS {ball.rms_px:.2f} px)")
 
 
+BALLS, PHOTOS, OUTPUT = "Balls", "Photos", "Output"  # the --help panels; the details: docs/calibration.md
+
+
 @app.command("calibrate")
 def calibrate(
-    chrome_dirs: list[Path] = typer.Argument(..., metavar="CHROME_DIR...", help="Chrome (mirror) ball photos, one per light in the object's light order: filenames.txt, the images (PNG, JPEG, TIFF, EXR), optional mask.png of the ball. Two or more folders with --ball-radius: point lights."),
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder (written atomically): light_directions.txt, light_intensities.txt (with --matte), calibration.json, calibration.png; with --ball-radius light_positions.txt, intrinsics.txt, calibration.json."),
-    matte: Optional[Path] = typer.Option(None, "--matte", help="Matte white ball photos under the same lights (same count and order; optional mask.png): per-light RGB intensities (with point lights: radiant intensities, the ball placed in 3D from its outline and --matte-radius)."),
-    matte_radius: Optional[float] = typer.Option(None, "--matte-radius", metavar="R", help="Point lights with --matte: the matte ball's radius, in the unit of --ball-radius (default: --ball-radius)."),
-    ball_radius: Optional[float] = typer.Option(None, "--ball-radius", metavar="R", help="Point lights: the chrome balls' radius, in the unit the light positions should have; needs --intrinsics and two or more CHROME_DIRs (two balls, or one ball at two places)."),
-    intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", metavar="K.txt", help="The camera's 3x3 K (OpenCV convention), as in a capture's intrinsics.txt: each highlight then reflects its own pixel's view (one ball: distant lights); needed for point lights."),
-    linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none", help="How 8/16-bit images become linear, as in cnnps predict: srgb = decode the sRGB curve (camera JPEG/PNG), none = already linear. Unset: taken as linear, with a note when images are 8-bit. Camera RAW photos are always read linearly."),
-    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show progress bars."),
+    chrome_dirs: list[Path] = typer.Argument(..., metavar="CHROME_DIR...",
+                                             help="Chrome ball photos, one per light (two folders or more: point lights)."),
+    matte: Optional[Path] = typer.Option(None, "--matte", metavar="DIR",
+                                         help="Matte white ball photos: the intensities (optional).",
+                                         rich_help_panel=BALLS),
+    matte_radius: Optional[float] = typer.Option(None, "--matte-radius", metavar="R",
+                                                 help="Point lights: the matte ball's radius.", rich_help_panel=BALLS),
+    ball_radius: Optional[float] = typer.Option(None, "--ball-radius", metavar="R",
+                                                help="Point lights: the chrome balls' radius.", rich_help_panel=BALLS),
+    intrinsics: Optional[Path] = typer.Option(None, "--intrinsics", metavar="K.txt",
+                                              help="The camera's 3x3 K (needed for point lights).",
+                                              rich_help_panel=BALLS),
+    linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none",
+                                            help="How 8/16-bit photos become linear, as in predict.",
+                                            rich_help_panel=PHOTOS),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder, written whole.", rich_help_panel=OUTPUT),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Progress bars.", rich_help_panel=OUTPUT),
 ) -> None:
-    """Calibrate the lights from photos of a chrome ball (directions) and a matte ball (intensities),
-    or point-light positions from two or more chrome balls of known radius."""
+    """Calibrate the lights from photos of a chrome ball: their directions (and, with
+    --matte, their intensities from a matte white ball; without it `cnnps predict`
+    estimates them from the object), or point-light positions from two or more chrome
+    balls of known radius. Writes light_directions.txt (or light_positions.txt and
+    intrinsics.txt), light_intensities.txt with --matte, calibration.json and .png.
+    Details: docs/calibration.md."""
     from cnnps.api.calibration import SCALE_NOTE, check_out_dir, write_calibration
     from cnnps.api.calibration import calibrate as run
 
@@ -50,8 +66,8 @@ def calibrate(
         typer.echo(_ball_line("matte ball", cal.matte_ball))
         typer.echo(f"light_intensities.txt: {SCALE_NOTE}")
     else:
-        typer.echo("note: no --matte: light_intensities.txt not written (give the object's capture one; "
-                   "all '1 1 1' assumes equal lights)")
+        typer.echo("note: no --matte: light_intensities.txt not written; without one in the object's capture, "
+                   "cnnps predict estimates the intensities from the object (docs/capture.md)")
     saturated = sum(1 for h in cal.highlights if h.saturated_px)
     extra = f", {saturated} with a clipped core" if saturated else ""
     typer.echo(f"{len(cal.names)} light directions{extra} -> {out} (check the highlights in "

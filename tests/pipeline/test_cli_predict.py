@@ -274,3 +274,15 @@ def test_help_fits_a_screen_in_groups(capsys, monkeypatch):
     titles = [t for t in ("Capture", "Method and network", "Camera and lights", "Output") if f"─ {t} ─" in out + err]
     assert titles == ["Capture", "Method and network", "Camera and lights", "Output"]
     assert max(len(line) for line in lines) <= 80
+
+
+@pytest.mark.parametrize("command, panels", [("calibrate", ("Balls", "Photos", "Output")),
+                                             ("check", ("Capture", "Output"))])
+def test_the_other_capture_commands_fit_half_a_screen(capsys, monkeypatch, command, panels):
+    """`cnnps calibrate --help` and `cnnps check --help` at 80 columns: at most 40 lines,
+    one short line a flag in its group (the details live in the docs)."""
+    monkeypatch.setenv("COLUMNS", "80")
+    code, out, err = run_cli([command, "--help"], capsys)
+    lines = (out + err).rstrip("\n").splitlines()
+    assert code == 0 and len(lines) <= 40, len(lines)
+    assert [t for t in panels if f"─ {t} ─" in out + err] == list(panels)
