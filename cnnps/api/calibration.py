@@ -190,17 +190,20 @@ def read_ball_photos(folder, names, paths, keep: bool, progress: bool = False, d
                       max_image, mask, dict(sorted(kinds.items())))
 
 
-def locate_ball(photos: BallPhotos, picture: np.ndarray, picture_name: str) -> Ball:
+def locate_ball(photos: BallPhotos, picture: np.ndarray, picture_name: str, peaks=None) -> Ball:
     """The ball's image circle: fitted to ``mask.png`` when the folder has one, else to
-    the bright region of ``picture`` (called ``picture_name`` in errors); an InputError
-    naming the file or folder when no round ball is found."""
+    the bright region of ``picture`` (called ``picture_name`` in errors) that holds most
+    of ``peaks`` (each photo's brightest pixel: a chrome ball beside an object in the same
+    photos) or, without them, the largest; an InputError naming the file or folder when no
+    round ball is found."""
     if photos.mask is not None:
         try:
             return fit_circle(photos.mask, source="circle fit to mask.png")
         except CalibrationError as exc:
             raise InputError(photos.root / MASK_FILE, str(exc)) from None
     try:
-        return find_ball(picture, source=f"circle fit to the bright region of the {picture_name} (no mask.png)")
+        where = "the bright region holding the highlights" if peaks is not None else "the bright region"
+        return find_ball(picture, source=f"circle fit to {where} of the {picture_name} (no mask.png)", peaks=peaks)
     except CalibrationError as exc:
         raise InputError(photos.root, f"{exc} in the {picture_name}; add a mask.png of the ball") from None
 
@@ -331,7 +334,11 @@ def matte_names(matte_dir: Path, chrome_dir: Path, m: int) -> tuple[list[str], l
 def _chrome_lights(chrome: BallPhotos, paths: list[Path]) -> tuple[Ball, np.ndarray, list[Highlight]]:
     """(the chrome ball, (m, 3) directions, the highlights), an image's problem naming it."""
     median = np.median(chrome.grey, axis=0) if chrome.mask is None else None
-    ball = locate_ball(chrome, median, "median image")
+    peaks = None
+    if chrome.mask is None:  # each photo's brightest pixel: on the ball, whatever else is in the frame
+        flat = chrome.grey.reshape(len(chrome.grey), -1).argmax(axis=1)
+        peaks = np.stack(np.unravel_index(flat, chrome.grey.shape[1:]), axis=1)
+    ball = locate_ball(chrome, median, "median image", peaks)
     try:
         L, highs = chrome_directions(chrome.grey, ball, chrome.saturated)
     except CalibrationError as exc:

@@ -226,10 +226,13 @@ def fit_circle(mask: np.ndarray, source: str = "mask") -> Ball:
     return _fit_points(_boundary_points(region.astype(np.float64), 0.5), source)
 
 
-def find_ball(image: np.ndarray, source: str = "image") -> Ball:
+def find_ball(image: np.ndarray, source: str = "image", peaks=None) -> Ball:
     """Find a bright ball on a darker background in ``image`` (H, W).
 
-    Otsu's threshold t; the largest region above it (holes filled); its outline where
+    Otsu's threshold t and the largest region above it (holes filled), or with ``peaks``
+    ((k, 2) rows and columns: each photo's brightest pixel, a chrome ball's highlight) the
+    region around them (:func:`cnnps.ps.ball_search.ball_region`: the ball beside an
+    object in the same photos); its outline where
     the picture itself crosses the level halfway between the ball's brightness just
     inside the region's edge (1-3 px, median) and the background's just outside it
     (sub-pixel: a pixel the ball half covers reads about halfway), with everything
@@ -244,7 +247,15 @@ def find_ball(image: np.ndarray, source: str = "image") -> Ball:
     if not np.all(np.isfinite(img)) or img.max() <= img.min():
         raise CalibrationError("no ball found (the picture is uniform)")
     t = float(threshold_otsu(img))
-    region = largest_region(img > t)
+    if peaks is None:
+        region = largest_region(img > t)
+    else:
+        from cnnps.ps.ball_search import ball_region
+
+        try:
+            region, t = ball_region(img, peaks)
+        except ValueError as exc:
+            raise CalibrationError(str(exc)) from None
     n = int(region.sum())
     if n < math.pi * MIN_RADIUS_PX**2:
         raise CalibrationError(f"no ball found (largest bright region {n} pixels)")

@@ -110,3 +110,23 @@ def test_calibrate_refuses_an_unknown_linearize(tmp_path):
         calibrate(tmp_path / "chrome", linearize="gamma")
     cal = calibrate(tmp_path / "chrome")  # EXR: always linear, no note
     assert cal.notices == [] and cal.report["image_types"] == {"chrome": {"float32": 4}}
+
+
+def test_the_ball_beside_an_object_in_the_same_photos_is_found_by_its_highlights(tmp_path):
+    """A chrome ball and, beside it, a larger matte sphere that is brighter on average (the
+    object): no mask.png; the ball is the bright region holding each photo's brightest
+    pixel, and the directions are those of the ball alone."""
+    from cnnps.ps.light_calibration import Ball
+
+    shape = (72, 160)
+    obj = Ball(118.0, 36.0, 33.0)
+    photos = []
+    for light in LIGHTS:
+        ball = chrome_image(light, shape=shape, peak=0.9, body=0.05)
+        photos.append(ball + 0.5 * matte_image(light, np.ones(3), ball=obj, shape=shape)[:, :, 0])
+    write_ball_folder(tmp_path / "both", np.array(photos), "png16")
+    cal = calibrate(tmp_path / "both")
+    assert abs(cal.ball.cx - BALL.cx) < 0.5 and abs(cal.ball.cy - BALL.cy) < 0.5
+    assert abs(cal.ball.radius - BALL.radius) < 0.5
+    assert angles_deg(cal.directions, LIGHTS).max() < 1.0
+    assert "holding the highlights" in cal.ball.source
