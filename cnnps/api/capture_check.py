@@ -20,8 +20,10 @@
 - **exposure**: the EXIF exposure (time x ISO / f-number squared) of JPEG, TIFF and DNG
   files, when they carry it: differing exposures with a fixed intensities file mean the
   intensities are wrong for some images;
-- **lights**: their count and cone (angles from the view axis); **intensities**: their
-  spread, or where they will come from.
+- **lights**: their count and cone (angles from the view axis), or that there are none
+  yet (photos before ``cnnps calibrate``: frames are then registered against the most
+  alike shots, by the correlation of the object's shading); **intensities**: their spread, or where they will come
+  from.
 
 The object's pixels are the folder's ``mask.png``, or the mask made from the photos
 (:mod:`cnnps.api.capture_estimates`) when it has none. Every limit is declared once below.
@@ -35,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.api.capture_estimates import Source, made_mask, missing_ok, wanted
+from cnnps.api.capture_estimates import Source, calibrated_ball, made_mask, missing_ok, wanted
 
 CLIPPED_SHARE = 0.01  # an image with more of the object's pixels clipped than this is reported
 DIM_LEVELS = 32  # the object's 99th percentile below this many levels of an integer format: a dim image
@@ -178,7 +180,7 @@ def _scan(capture, mask: np.ndarray, progress: bool):
     clipped, peak, shift = np.zeros(m), np.full(m, np.nan), np.zeros((m, 2))
     rows, cols, step = _box(mask)
     band = _outline_band(mask[rows, cols][::step, ::step])
-    edges = []
+    edges, shading = [], []
     for k in progress_bar(range(m), total=m, desc="check", unit="image", disable=not progress):
         raw = capture.read_raw(k)
         top = max_code(raw.dtype)
@@ -186,11 +188,19 @@ def _scan(capture, mask: np.ndarray, progress: bool):
         if top is not None:
             clipped[k] = float((obj >= SATURATION_LEVEL * top).any(axis=1).mean()) if obj.size else 0.0
             peak[k] = float(np.percentile(obj.max(axis=1), 99)) / top if obj.size else 0.0
-        edges.append(_edges(raw[rows, cols].astype(np.float64).mean(axis=2)[::step, ::step]).astype(np.float32))
+        grey = raw[rows, cols].astype(np.float64).mean(axis=2)[::step, ::step]
+        edges.append(_edges(grey).astype(np.float32))
+        shading.append(grey.astype(np.float32))
     if min(edges[0].shape) * step < MIN_REGISTRATION_SIDE:
         return clipped, peak, np.full((m, 2), np.nan)
-    L = capture.lights / np.linalg.norm(capture.lights, axis=1, keepdims=True)
-    near = L @ L.T
+    if capture.lights is None:  # no lights yet: the most alike shots (the object's shading as a vector)
+        F = np.stack([g[mask[rows, cols][::step, ::step]] for g in shading]).astype(np.float64)
+        F -= F.mean(axis=1, keepdims=True)
+        F /= np.linalg.norm(F, axis=1, keepdims=True) + 1e-12
+        near = F @ F.T
+    else:
+        L = capture.lights / np.linalg.norm(capture.lights, axis=1, keepdims=True)
+        near = L @ L.T
     np.fill_diagonal(near, -np.inf)
     edges = [e * band for e in edges]
     for k in range(m):  # the median of three: a frame beside a moved one differs from one of them only
@@ -199,7 +209,11 @@ def _scan(capture, mask: np.ndarray, progress: bool):
     return clipped, peak, shift
 
 
-def _light_findings(lights: np.ndarray) -> tuple[list[Finding], str]:
+def _light_findings(lights: np.ndarray | None) -> tuple[list[Finding], str]:
+    if lights is None:
+        return [Finding("lights", "warning", "no light files: cnnps predict needs the lights; photograph a chrome "
+                        "ball in the same shots, run cnnps calibrate PHOTOS -o LIGHTS and give --lights LIGHTS")], \
+            "lights: none yet (no light_directions.txt)"
     L = lights / np.linalg.norm(lights, axis=1, keepdims=True)
     angle = np.degrees(np.arccos(np.clip(L[:, 2], -1, 1)))
     m = len(L)
@@ -221,23 +235,26 @@ def _light_findings(lights: np.ndarray) -> tuple[list[Finding], str]:
 
 
 def check_capture(capture_dir, *, drop=None, mask: Source = "auto", intensities: Source = "auto",
-                  grey: str = "mean", linearize=None, progress: bool = False) -> CaptureCheck:
+                  lights_dir=None, grey: str = "mean", linearize=None, progress: bool = False) -> CaptureCheck:
     """Check the capture folder ``capture_dir`` for what will hurt its normals (the module
-    docstring). ``drop``, ``mask``, ``intensities``, ``grey`` and ``linearize`` mean what
-    they mean to :func:`cnnps.predict_folder`. Raises what it raises for a capture it
-    refuses (:class:`cnnps.infra.errors.InputError` naming the file, ConfigError); writes
-    nothing."""
+    docstring). ``drop``, ``mask``, ``intensities``, ``lights_dir``, ``grey`` and
+    ``linearize`` mean what they mean to :func:`cnnps.predict_folder`; a capture without
+    light files yet (photos of the object with the chrome ball beside it, before
+    ``cnnps calibrate``) is checked too, with a warning. Raises what predict raises for a
+    capture it refuses otherwise (:class:`cnnps.infra.errors.InputError` naming the file,
+    ConfigError); writes nothing."""
     from cnnps.infra.options import check_arguments
     from cnnps.io.capture import scan_capture
 
     sources = check_arguments(check_capture, {"mask": mask, "intensities": intensities})
     capture = scan_capture(Path(capture_dir), drop=drop, grey=grey, linearize=linearize,
-                           missing_ok=missing_ok(sources))
+                           missing_ok=missing_ok(sources) + ("lights",), lights_dir=lights_dir)
+    ball = None if lights_dir is None else calibrated_ball(lights_dir, capture_dir)
     todo = wanted(capture, sources)
     if "mask" in todo:  # made as cnnps predict makes it: from the images as stored when the intensities are made
         base = (dataclasses.replace(capture, intensities=np.ones((capture.n_images, 3))) if "intensities" in todo
                 else capture)
-        capture = dataclasses.replace(capture, mask=made_mask(base)[0])
+        capture = dataclasses.replace(capture, mask=made_mask(base, ball)[0])
     return inspect_capture(capture, todo, progress)
 
 

@@ -20,6 +20,7 @@ left out; they are relative (mean 1, the same in the three channels: one lamp's 
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -28,6 +29,7 @@ from cnnps.io.capture import Capture
 
 Source = Literal["auto", "file", "estimate"]  # where the mask / the intensities come from
 ESTIMATED = ("mask", "intensities")  # what a capture may leave out, in the order it is made
+BALL_MARGIN_PX = 3.0  # a chrome ball in the photos is left out of a made mask this far beyond its circle
 
 
 def missing_ok(options: dict) -> tuple[str, ...]:
@@ -41,19 +43,55 @@ def wanted(capture: Capture, options: dict) -> list[str]:
             if options.get(name, "auto") == "estimate" or getattr(capture, name) is None]
 
 
-def made_mask(capture: Capture) -> tuple[np.ndarray, dict, str]:
-    """The mask made from ``capture``'s grey images, its record and its note."""
+def calibrated_ball(lights_dir, capture_dir) -> tuple[float, float, float] | None:
+    """The chrome ball's image circle (cx, cy, r in pixels: x = column, y = row) from
+    ``lights_dir``'s ``calibration.json`` (``cnnps calibrate``'s output) when the ball was
+    found in the capture's own photos (its folder is ``capture_dir``, or has its name);
+    None when it was photographed apart or the folder has no record."""
+    import json
+
+    from cnnps.api.calibration import REPORT_FILE
+    from cnnps.infra.errors import InputError
+
+    path = Path(lights_dir) / REPORT_FILE
+    if not path.is_file():
+        return None
+    try:
+        ball = json.loads(path.read_text())["chrome_ball"]
+        folder, (cx, cy), r = Path(ball["folder"]), ball["centre_px"], ball["radius_px"]
+    except (ValueError, KeyError, TypeError):
+        raise InputError(path, "not a record of cnnps calibrate (chrome_ball: folder, centre_px, radius_px)") from None
+    here = Path(capture_dir)
+    return (float(cx), float(cy), float(r)) if folder.name == here.name or folder.resolve() == here.resolve() else None
+
+
+def ball_disc(ball: tuple[float, float, float], shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool: the pixels within :data:`BALL_MARGIN_PX` of the ball's image circle."""
+    cx, cy, r = ball
+    rows, cols = np.ogrid[:shape[0], :shape[1]]
+    return (cols - cx) ** 2 + (rows - cy) ** 2 <= (r + BALL_MARGIN_PX) ** 2
+
+
+def made_mask(capture: Capture, ball: tuple[float, float, float] | None = None) -> tuple[np.ndarray, dict, str]:
+    """The mask made from ``capture``'s grey images, its record and its note; a chrome
+    ``ball`` in the same photos (:func:`calibrated_ball`) is left out of it."""
     from cnnps.ps.mask_estimate import estimate_mask
 
     stack = np.stack([capture.read_grey(k) for k in range(capture.n_images)])
+    disc = None if ball is None else ball_disc(ball, stack.shape[1:])
+    if disc is not None:
+        stack[:, disc] = 0.0  # no response: background
     est = estimate_mask(stack, source=str(capture.root or "capture"))
     del stack
-    record = {"pixels": int(est.mask.sum()), "fraction": round(float(est.fraction), 4),
+    mask = est.mask if disc is None else est.mask & ~disc
+    record = {"pixels": int(mask.sum()), "fraction": round(float(mask.mean()), 4),
               "threshold": float(est.threshold), "components": int(est.components),
-              "holes_filled": int(est.holes_filled)}
-    note = (f"mask.png: made from the photos ({int(est.mask.sum())} pixels, {est.fraction:.0%} of the frame; "
-            "written to the output folder): check it, or give the capture a mask.png of its own")
-    return est.mask, record, note
+              "holes_filled": int(est.holes_filled),
+              **({} if ball is None else {"ball_left_out": [round(v, 2) for v in ball]})}
+    note = (f"mask.png: made from the photos ({int(mask.sum())} pixels, {mask.mean():.0%} of the frame"
+            f"{'' if ball is None else ', the chrome ball left out'}; written to the output folder): check it, "
+            "or give the capture a mask.png of its own")
+    return mask, record, note
 
 
 def _made_intensities(capture: Capture) -> tuple[np.ndarray, dict, str]:
@@ -83,17 +121,19 @@ def _made_intensities(capture: Capture) -> tuple[np.ndarray, dict, str]:
     return np.repeat(e[:, None], 3, axis=1), record, note
 
 
-def fill_estimates(capture: Capture, options: dict) -> tuple[Capture, dict, list[str]]:
+def fill_estimates(capture: Capture, options: dict,
+                   ball: tuple[float, float, float] | None = None) -> tuple[Capture, dict, list[str]]:
     """``capture`` with its missing (or ``estimate``-d) mask and intensities made from the
-    photos; the record of what was made (``{"mask": {...}, "intensities": {...}}``, empty
-    when nothing was) and one note per thing made. Reads every image once per thing made."""
+    photos (a chrome ``ball`` in them left out: :func:`made_mask`); the record of what was
+    made (``{"mask": {...}, "intensities": {...}}``, empty when nothing was) and one note
+    per thing made. Reads every image once per thing made."""
     todo = wanted(capture, options)
     record: dict = {}
     notes: list[str] = []
     if "intensities" in todo:  # read as stored until they are made
         capture = dataclasses.replace(capture, intensities=np.ones((capture.n_images, 3)))
     if "mask" in todo:
-        mask, record["mask"], note = made_mask(capture)
+        mask, record["mask"], note = made_mask(capture, ball)
         capture = dataclasses.replace(capture, mask=mask)
         notes.append(note)
     if "intensities" in todo:

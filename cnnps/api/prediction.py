@@ -198,6 +198,7 @@ def predict_folder(
     drop=None,
     mask: Source = "auto",
     intensities: Source = "auto",
+    lights_dir=None,
     check: bool = False,
     depth: bool = False,
     report: bool = True,
@@ -219,7 +220,9 @@ def predict_folder(
     (mask.png, required) or ``estimate`` (made from the photos:
     :mod:`cnnps.api.capture_estimates`); a made mask is written to OUT_DIR as mask.png;
     intensities: the same for light_intensities.txt (estimated from the object, the
-    semi-calibrated way; written to OUT_DIR when no image was dropped); check: also look
+    semi-calibrated way; written to OUT_DIR when no image was dropped); lights_dir: the
+    folder of the light files when not ``capture_dir`` (``cnnps calibrate``'s output; a
+    chrome ball it found in these same photos is left out of a made mask); check: also look
     for what hurts the normals (:mod:`cnnps.api.capture_check`, what ``cnnps check``
     says: one more read of every image), its warnings among the record's, its findings
     in ``prediction.json`` (``check``) and the report;
@@ -237,7 +240,7 @@ def predict_folder(
     Every argument and the whole capture are checked before any heavy work.
     """
     from cnnps.api.capture_check import inspect_capture
-    from cnnps.api.capture_estimates import fill_estimates, missing_ok
+    from cnnps.api.capture_estimates import calibrated_ball, fill_estimates, missing_ok
     from cnnps.io.capture import scan_capture
 
     t0 = time.perf_counter()
@@ -247,12 +250,13 @@ def predict_folder(
     check_solver(opts)  # a model file, a device: before the capture is read
     if not capture_dir.is_dir():
         raise InputError(capture_dir, "capture folder not found" if not capture_dir.exists() else "not a folder")
-    outputs.check_out_dir(out_dir, capture_dir)
+    outputs.check_out_dir(out_dir, capture_dir, *([] if lights_dir is None else [lights_dir]))
     write_surface = outputs.surface_writer() if depth else None
     with OutputFolder(out_dir, command) as out:  # FolderBusy at once while another writes OUT_DIR
         capture = scan_capture(capture_dir, drop=drop, grey=opts["grey"], linearize=opts["linearize"],
-                               missing_ok=missing_ok(sources))
-        capture, estimated, made_notes = fill_estimates(capture, sources)
+                               missing_ok=missing_ok(sources), lights_dir=lights_dir)
+        ball = None if lights_dir is None else calibrated_ball(lights_dir, capture_dir)
+        capture, estimated, made_notes = fill_estimates(capture, sources, ball)
         checked = inspect_capture(capture, list(estimated), progress) if check else None
         camera, lighting = capture_lighting(capture, opts)
         solver = prepare_solver(opts)
@@ -262,7 +266,7 @@ def predict_folder(
             t_load = time.perf_counter() - t0
             found = capture_normals(stack, capture.mask, solver, camera, lighting, tile_pixels=opts["tile_pixels"],
                                     progress=progress)
-            record = {"capture": str(capture_dir),
+            record = {"capture": str(capture_dir), **({} if lights_dir is None else {"lights_dir": str(lights_dir)}),
                       **outputs.make_record(solver, camera, found, stack, n_images=capture.n_images,
                                             image_size=capture.shape, options=opts, dropped=capture.dropped),
                       **({"estimated": estimated} if estimated else {}),

@@ -75,12 +75,14 @@ OUTPUT_FILES = ("normal.npy", "normal.png", "prediction.json", "error.png", "met
     "report.html", MASK_FILE, LIGHT_INTENSITIES_FILE)  # made from the photos (cnnps.api.capture_estimates)
 
 
-def check_out_dir(out_dir: Path, capture_dir: Path) -> None:
-    """Refuse OUT_DIRs whose replacement would destroy something that is not ours."""
+def check_out_dir(out_dir: Path, capture_dir: Path, *inputs: Path) -> None:
+    """Refuse OUT_DIRs whose replacement would destroy something that is not ours: the
+    capture folder or another input folder (``inputs``), or a folder holding one."""
     out = out_dir.resolve()
-    cap = capture_dir.resolve()
-    if out == cap or out in cap.parents:
-        raise InputError(out_dir, "output folder must not be the capture folder or contain it")
+    for folder, what in [(capture_dir, "the capture folder"), *((d, "an input folder") for d in inputs)]:
+        cap = Path(folder).resolve()
+        if out == cap or out in cap.parents:
+            raise InputError(out_dir, f"output folder must not be {what} or contain it")
     if out.exists():
         if not out.is_dir():
             raise InputError(out_dir, "exists and is not a folder")

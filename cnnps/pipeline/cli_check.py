@@ -9,7 +9,7 @@ import typer
 
 from cnnps.api.prediction_options import CAPTURE, OUTPUT
 from cnnps.pipeline.app import app
-from cnnps.pipeline.cli_predict import DROP_FLAG, INTENSITIES_FLAG, MASK_FLAG
+from cnnps.pipeline.cli_predict import DROP_FLAG, INTENSITIES_FLAG, LIGHTS_FLAG, MASK_FLAG
 
 
 @app.command("check")
@@ -18,6 +18,7 @@ def check(
     drop: Optional[str] = DROP_FLAG,
     mask: str = MASK_FLAG,
     intensities: str = INTENSITIES_FLAG,
+    lights: Optional[Path] = LIGHTS_FLAG,
     linearize: Optional[str] = typer.Option(None, "--linearize", metavar="srgb|none",
                                             help="How 8/16-bit images become linear.", rich_help_panel=CAPTURE),
     json_out: Optional[Path] = typer.Option(None, "--json", metavar="FILE",
@@ -38,7 +39,7 @@ def check(
     from cnnps.pipeline.cli_predict import parse_drop
 
     result = check_capture(capture_dir, drop=parse_drop(drop), mask=parse("--mask", mask, Source),
-                           intensities=parse("--intensities", intensities, Source),
+                           intensities=parse("--intensities", intensities, Source), lights_dir=lights,
                            linearize=None if linearize is None else parse("--linearize", linearize, Linearize),
                            progress=progress)
     for line in result.summary:

@@ -61,6 +61,8 @@ MASK_FLAG = typer.Option("auto", "--mask", metavar="auto|file|estimate", help="m
                          rich_help_panel=CAPTURE)
 INTENSITIES_FLAG = typer.Option("auto", "--intensities", metavar="auto|file|estimate",
                                 help="light_intensities.txt, or estimated from the object.", rich_help_panel=CAPTURE)
+LIGHTS_FLAG = typer.Option(None, "--lights", metavar="DIR", help="Light files from there (cnnps calibrate's -o).",
+                           rich_help_panel=CAPTURE)
 
 
 def _command(
@@ -69,6 +71,7 @@ def _command(
     drop: Optional[str] = DROP_FLAG,
     mask: str = MASK_FLAG,
     intensities: str = INTENSITIES_FLAG,
+    lights: Optional[Path] = LIGHTS_FLAG,
     check: bool = typer.Option(False, "--check", help="Also say what hurts (as cnnps check does).",
                                rich_help_panel=OUTPUT),
     depth: bool = typer.Option(False, "--depth", help="Also integrate a surface.", rich_help_panel=OUTPUT),
@@ -136,9 +139,8 @@ def parse_options(texts: dict) -> dict:
             if text is not None}
 
 
-def predict(capture_dir: Path, out: Path, drop: Optional[str], mask: str, intensities: str, check: bool, depth: bool,
-            report: bool,
-            scratch: Optional[Path], progress: bool, verbose: bool, **options) -> None:
+def predict(capture_dir: Path, out: Path, drop: Optional[str], mask: str, intensities: str, lights: Optional[Path],
+            check: bool, depth: bool, report: bool, scratch: Optional[Path], progress: bool, verbose: bool, **options) -> None:
     """``cnnps predict``: the command's own values (:func:`_command`'s flags), and
     ``options``, :func:`cnnps.predict`'s as the command line gives them (text, or None when
     unset); the set ones are parsed (:func:`parse_options`) and
@@ -149,7 +151,7 @@ def predict(capture_dir: Path, out: Path, drop: Optional[str], mask: str, intens
     from cnnps.infra.options import parse
 
     result = predict_folder(capture_dir, out, drop=parse_drop(drop), mask=parse("--mask", mask, Source),
-                            intensities=parse("--intensities", intensities, Source), check=check, depth=depth,
+                            intensities=parse("--intensities", intensities, Source), lights_dir=lights, check=check, depth=depth,
                             report=report, scratch_dir=scratch, progress=progress, command="cnnps predict",
                             **parse_options(options))
     _report(result, capture_dir, out, verbose)

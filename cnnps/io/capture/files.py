@@ -195,6 +195,25 @@ def read_lights(root: Path, m: int, positions: np.ndarray | None = None,
     return read_light_directions(root, m), read_light_intensities(root, m, intensities_required)
 
 
+def read_light_files(root: Path, m: int, notes: list[str], lights_dir: Path | None = None,
+                     missing_ok: tuple[str, ...] = ()):
+    """(positions or None, (m, 3) directions or None, (m, 3) intensities or None, K or None)
+    of a capture folder ``root`` whose light files (directions or positions, intensities and
+    the camera's ``intrinsics.txt`` when there) are in ``lights_dir`` (a ``cnnps calibrate``
+    output folder; default: ``root`` itself; ``intrinsics.txt`` is then read from ``root``
+    when ``lights_dir`` has none). ``missing_ok`` may hold ``"lights"`` (no directions or
+    positions file: directions None) and ``"intensities"`` (:func:`read_lights`)."""
+    src = Path(root) if lights_dir is None else Path(lights_dir)
+    if lights_dir is not None and not src.is_dir():
+        raise InputError(src, "light files folder not found" if not src.exists() else "not a folder")
+    K = read_intrinsics(src / INTRINSICS_FILE)
+    K = read_intrinsics(Path(root) / INTRINSICS_FILE) if K is None else K
+    positions = read_light_positions(src, m, notes)
+    if positions is None and "lights" in missing_ok and not (src / LIGHT_DIRECTIONS_FILE).is_file():
+        return None, None, read_light_intensities(src, m, "intensities" not in missing_ok), K
+    return (positions, *read_lights(src, m, positions, intensities_required="intensities" not in missing_ok), K)
+
+
 # ----------------------------------------------------------------------------- mask, ground truth, record
 
 

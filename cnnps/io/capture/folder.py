@@ -21,12 +21,9 @@ from cnnps.infra.options import check_arguments
 from cnnps.io.capture.benchmark import MIN_IMAGES
 from cnnps.io.capture.files import (
     FILENAMES_FILE,
-    INTRINSICS_FILE,
     read_depth_gt,
     read_filenames,
-    read_intrinsics,
-    read_light_positions,
-    read_lights,
+    read_light_files,
     read_mask_file,
     read_normal_gt,
     require_mask,
@@ -316,6 +313,7 @@ def scan_capture(
     grey: Grey = "mean",
     linearize: Linearize | None = None,
     missing_ok: tuple[str, ...] = (),
+    lights_dir: str | Path | None = None,
 ) -> Capture:
     """Validate a capture folder and read everything but the image stack.
 
@@ -330,10 +328,12 @@ def scan_capture(
     grey: "mean" or "luminance" (see :mod:`cnnps.io.capture.pixels`).
     linearize: "srgb" | "none" | None for integer images ("srgb" with a RAW photo is an
         InputError naming it).
-    missing_ok: files the capture may lack, ``"mask"`` (mask.png) and ``"intensities"``
-        (light_intensities.txt): a missing one leaves ``mask`` / ``intensities`` None for
-        the caller to make (:mod:`cnnps.api.capture_estimates`); a file that is there is
-        read and checked as always.
+    missing_ok: files the capture may lack, ``"mask"`` (mask.png), ``"intensities"``
+        (light_intensities.txt) and ``"lights"`` (the directions or positions file): a
+        missing one leaves ``mask`` / ``intensities`` / ``lights`` None for the caller to
+        make (:mod:`cnnps.api.capture_estimates`); a file that is there is read as always.
+    lights_dir: the folder holding the light files (``cnnps calibrate``'s output), when
+        not ``path`` (:func:`cnnps.io.capture.files.read_light_files`).
 
     Example: ``scan_capture("ballPNG").n_images`` -> 96.
     """
@@ -344,21 +344,17 @@ def scan_capture(
 
     names = read_filenames(root)
     m_all = len(names)
-    positions = read_light_positions(root, m_all, notes)
-    unknown = sorted(set(missing_ok) - {"mask", "intensities"})
+    unknown = sorted(set(missing_ok) - {"lights", "mask", "intensities"})
     if unknown:
-        raise ValueError(f"missing_ok: unknown file kind {unknown[0]!r} (mask, intensities)")
-    lights, intensities = read_lights(root, m_all, positions, intensities_required="intensities" not in missing_ok)
-    intrinsics = read_intrinsics(root / INTRINSICS_FILE)
+        raise ValueError(f"missing_ok: unknown file kind {unknown[0]!r} (lights, mask, intensities)")
+    positions, lights, intensities, intrinsics = read_light_files(root, m_all, notes, lights_dir, missing_ok)
 
     dropped = _normalise_drop([] if drop is None else drop, m_all, root / FILENAMES_FILE)
     keep = np.setdiff1d(np.arange(m_all), dropped)
     if keep.size < MIN_IMAGES:
         raise ConfigError(f"{root}: only {keep.size} images left after dropping {len(dropped)}; need at least {MIN_IMAGES}")
     names = [names[i] for i in keep]
-    lights, intensities = lights[keep], None if intensities is None else intensities[keep]
-    if positions is not None:
-        positions = positions[keep]
+    lights, intensities, positions = (None if a is None else a[keep] for a in (lights, intensities, positions))
 
     paths = _image_paths(root, names)
     check_linearize(paths, linearize)
