@@ -43,6 +43,12 @@ travels in the checkpoints, so a resume reaches the same one), and the final val
 and ``val_mean_deg`` are the mean's (``metrics.json``'s ``average`` also gives the last
 step's).
 
+Phases: with ``phases`` (:mod:`cnnps.train.phase_params`) the run is a sequence of
+phases, each a run as above in ``data_dir/train/phases/kk-name/`` of its own steps and
+changed settings, from the weights the phase before it ended with or from a weighted mean
+of earlier phases' weights; ``model.pt`` is the last phase's (:mod:`cnnps.train.phases`:
+resuming, the keys, the outputs). ``epochs`` and ``max_steps`` are then unused.
+
 Several processes: under ``torchrun`` (``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK``), e.g.
 ``torchrun --standalone --nproc-per-node 4 -m cnnps run-stage train``, every process
 trains a DistributedDataParallel replica (NCCL on GPUs, ``cuda:LOCAL_RANK``; gloo on CPU).
@@ -141,20 +147,37 @@ def run(params: Params, data_dir: Path, *, until=None, _stop_after_step: int | N
     prefer_passive_openmp()  # before torch loads (the import below)
     from cnnps.train import loop
     from cnnps.train.init_weights import load_init_weights
-    from cnnps.train.pixelwise_batches import input_channels
+    from cnnps.train.pixelwise_batches import input_channels, pixelwise_maker
     from cnnps.train.process_setup import training_processes
     from cnnps.train.training_data import open_training_data, pixelwise_only_data
 
     data_dir = Path(data_dir)
-    with training_processes(params) as (info, device):
-        if params.pixelwise.share >= 1.0:
-            data = pixelwise_only_data(params.pixelwise.w)  # no shards at all
-        else:
-            data = open_training_data(params.data.shards or data_dir / "extract")
-        init_state, init_sha = load_init_weights(params.init, data.w, input_channels(params),
-                                                 params.model.options())
-        def key_for(precision: str) -> str:
-            return run_key(params, data.manifest_sha256, init_sha, precision)
 
-        return loop.train(params, data, data_dir / "train", key_for, info, device, init_state, init_sha,
-                          stop_after_step=_stop_after_step, until=until)
+    def open_data(p: Params):
+        if p.pixelwise.share >= 1.0:
+            return pixelwise_only_data(p.pixelwise.w)  # no shards at all
+        return open_training_data(p.data.shards or data_dir / "extract")
+
+    def load_init(p: Params, data):
+        return load_init_weights(p.init, data.w, input_channels(p), p.model.options())
+
+    def train_one(p: Params, data, out_dir: Path, init_state, init_sha, stop, until_):
+        return loop.train(p, data, out_dir, lambda precision: run_key(p, data.manifest_sha256, init_sha, precision),
+                          info, device, init_state, init_sha, stop_after_step=stop, until=until_)
+
+    def validate_only(p: Params, data, out_dir: Path, init_state, init_sha):  # a phase of 0 steps
+        t = loop.Trainer(p, data, out_dir, lambda precision: run_key(p, data.manifest_sha256, init_sha, precision),
+                         info, device, init_state, init_sha)
+        t.make_pixelwise, t.precision = pixelwise_maker(p), "fp32"
+        t.load_validation()
+        return t.finish()
+
+    with training_processes(params) as (info, device):
+        if params.phases:
+            from cnnps.train.phases import run_phases
+
+            return run_phases(params, data_dir, info, device, open_data=open_data, load_init=load_init,
+                              train_one=train_one, validate_only=validate_only, stop_after_step=_stop_after_step,
+                              until=until)
+        data = open_data(params)
+        return train_one(params, data, data_dir / "train", *load_init(params, data), _stop_after_step, until)

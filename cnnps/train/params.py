@@ -31,6 +31,7 @@ from cnnps.infra.options import Count, Positive, Range, UnitFraction, check_fiel
 from cnnps.synth.bsdf import DEFAULT_CATEGORIES, MaterialRanges, checked_categories, checked_ranges
 from cnnps.synth.effect_settings import EFFECT_NAMES
 from cnnps.synth.light_subsets import RULE, SETTINGS, check_light_subsets
+from cnnps.train.phase_params import PhaseParams, check_phases, phase_values
 
 
 Steps = Annotated[int, Range(ge=0)]  # a count where 0 means none (or no limit)
@@ -314,17 +315,21 @@ class Params:
     cpu: CpuParams = field(default_factory=CpuParams)
     synthesis: SynthesisParams = field(default_factory=SynthesisParams)  # from materials and extract
     model: ModelParams = field(default_factory=ModelParams)
+    # the run as a sequence of phases, each with its own steps and changed settings (cnnps.train.phase_params);
+    # empty: one run of max_steps / epochs
+    phases: tuple[PhaseParams, ...] = ()
 
     def __post_init__(self):
         for name, cls in SECTIONS.items():
             object.__setattr__(self, name, _section(cls, getattr(self, name), name))
+        object.__setattr__(self, "phases", check_phases(self.phases))
         check_fields(self, "train.")  # every declared field: counts, steps, dropout, device, precision
         if self.init is not None and (not isinstance(self.init, str) or not self.init.strip()):
             raise ConfigError(f"train.init must be a checkpoint path, got {self.init!r}")
         if self.cpu.step_processes > 1 and (self.compile or self.cpu.dropout_masks == "torch"):
             raise ConfigError("train.cpu.step_processes > 1 needs eager steps with counter dropout masks "
                               "(compile: false, cpu.dropout_masks: counter16 or counter)")
-        if self.pixelwise.share >= 1.0 and not self.max_steps:
+        if self.pixelwise.share >= 1.0 and not self.max_steps and not self.phases:
             raise ConfigError("train.pixelwise.share: 1 (per-pixel maps only) needs train.max_steps: "
                               "there are no epochs")
         syn = self.synthesis
@@ -338,6 +343,23 @@ class Params:
         if self.pixelwise.rgb and self.pixelwise.share < 1.0:
             raise ConfigError(f"train.pixelwise.rgb: true needs train.pixelwise.share: 1.0 (the rendered shards "
                               f"hold grey maps only), got share {self.pixelwise.share}")
+
+        for i, ph in enumerate(self.phases):  # each phase's settings checked as a run's
+            try:
+                self.phase(i)
+            except ConfigError as exc:
+                said = str(exc)
+                raise ConfigError(said if said.startswith("train.phases") else f"train.phases: {ph.name!r}: {said}") \
+                    from None
+
+    def phase(self, i: int, init: str | None = None) -> Params:
+        """The params phase ``i`` of ``phases`` runs with: these with its ``set`` applied,
+        ``max_steps`` its steps (1 for a phase of 0 steps: it runs none), starting from
+        ``init``, no phases of its own."""
+        ph = self.phases[i]
+        values = phase_values({f.name: getattr(self, f.name) for f in fields(self)}, ph, SECTIONS)
+        values.update(max_steps=ph.steps or 1, init=init, phases=())
+        return Params(**values)
 
     @classmethod
     def from_record(cls, record: Mapping) -> Params:
@@ -365,7 +387,9 @@ class Params:
         section key with no flat name (:data:`OMITTED_AT_DEFAULT`, and ``synthesis``'s:
         :meth:`SynthesisParams.changed`) is ``<section>_<key>`` and only there when it is
         not at its default, so a Params that leaves it at its default keys its runs without it."""
-        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in SECTIONS}
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in SECTIONS and f.name != "phases"}
+        if self.phases:  # no key at all without phases: a run's key is what it was before they existed
+            d["phases"] = [ph.record() for ph in self.phases]
         back = {new: old for old, new in MOVED_KEYS.items()}
         d.update({f"synthesis_{key}": value for key, value in self.synthesis.changed().items()})
         for name in SECTIONS:
