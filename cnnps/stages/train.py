@@ -41,7 +41,8 @@ Weight averaging: with ``optimiser.average_from: N`` (N >= 1) ``model.pt`` holds
 of the weights at every checkpoint from step N on (:mod:`cnnps.train.averaging`; the mean
 travels in the checkpoints, so a resume reaches the same one), and the final validation
 and ``val_mean_deg`` are the mean's (``metrics.json``'s ``average`` also gives the last
-step's).
+step's). With ``optimiser.ema_decay: d`` it is instead the exponential moving average
+e <- d e + (1 - d) w over every step (in the checkpoints too; one of the two).
 
 Phases: with ``phases`` (:mod:`cnnps.train.phase_params`) the run is a sequence of
 phases, each a run as above in ``data_dir/train/phases/kk-name/`` of its own steps and

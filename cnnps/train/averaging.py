@@ -1,4 +1,6 @@
-"""The mean of a run's weights over its checkpoints (stochastic weight averaging).
+"""Averages of a run's weights: the mean over its checkpoints (stochastic weight
+averaging, :class:`WeightAverage`) and an exponential moving average over its steps
+(:class:`WeightEMA`).
 
 With ``train.optimiser.average_from: N`` (N >= 1) the train stage keeps the running mean of
 the network's weights at every checkpoint from step N on (each ``checkpoint_every`` steps
@@ -18,6 +20,11 @@ Example::
         if avg.wants(step):
             avg.add(step, model.state_dict())      # steps 200 and 300
     model.load_state_dict(avg.mean())             # (w200 + w300) / 2
+
+With ``train.optimiser.ema_decay: d`` (0 < d < 1) the stage keeps, after every optimiser
+step, e <- d e + (1 - d) w (e the first step's weights at the start; float32, on the
+weights' device), and ``model.pt`` is e; it travels in the checkpoints like the mean. A
+decay d averages over about 1 / (1 - d) steps (0.999: the last thousand or so).
 """
 
 from __future__ import annotations
@@ -67,3 +74,48 @@ class WeightAverage:
             self.n, self.last_step, self._mean = 0, None, None
             return
         self.n, self.last_step, self._mean = int(state["n"]), state["last_step"], state["mean"]
+
+
+class WeightEMA:
+    """Exponential moving average of a model's weights, updated once a step (``decay`` 0: off)."""
+
+    def __init__(self, decay: float = 0.0):
+        self.decay = float(decay)
+        self.n = 0  # steps folded in
+        self._ema: dict[str, torch.Tensor] | None = None
+
+    def update(self, state: dict[str, torch.Tensor]) -> None:
+        """Fold the weights after one more step into the average (floating tensors; others copied)."""
+        if not self.decay:
+            return
+        self.n += 1
+        if self._ema is None:
+            self._ema = {k: v.detach().to(torch.float32, copy=True) for k, v in state.items()}
+            return
+        with torch.no_grad():
+            for k, v in state.items():
+                e = self._ema[k]
+                if torch.is_floating_point(v):
+                    e.mul_(self.decay).add_(v.detach().to(torch.float32), alpha=1.0 - self.decay)
+                else:
+                    e.copy_(v)
+
+    def mean(self, like: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+        """The average as a state dict (on the CPU; with ``like``, in its dtypes). Raises when empty."""
+        if self._ema is None:
+            raise ValueError("no weights were averaged")
+        return {k: v.detach().to("cpu", like[k].dtype if like is not None else v.dtype, copy=True)
+                for k, v in self._ema.items()}
+
+    def state_dict(self) -> dict:
+        """What a checkpoint keeps: ``decay``, ``n`` and the average (on the CPU)."""
+        return {"decay": self.decay, "n": self.n,
+                "ema": None if self._ema is None else {k: v.detach().cpu() for k, v in self._ema.items()}}
+
+    def load_state_dict(self, state: dict | None, device=None) -> None:
+        """Take a checkpoint's average back onto ``device`` (None: a checkpoint without one)."""
+        if not state or state.get("ema") is None:
+            self.n, self._ema = 0, None
+            return
+        self.n = int(state["n"])
+        self._ema = {k: v.to(device or "cpu", torch.float32) for k, v in state["ema"].items()}

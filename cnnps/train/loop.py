@@ -39,7 +39,7 @@ from tqdm import tqdm
 from cnnps.infra.errors import ConfigError
 from cnnps.infra.progress import progress_bar
 from cnnps.models.train_layers import COUNTER_MASK_BITS
-from cnnps.train.averaging import WeightAverage
+from cnnps.train.averaging import WeightAverage, WeightEMA
 from cnnps.train.batch_lookahead import Lookahead
 from cnnps.train.data_streams import rank_stream
 from cnnps.train.device_feed import fed
@@ -113,6 +113,7 @@ class Trainer(RunState, RunOutputs):
         self.precision_source = "checkpoint"  # how this call got it: probe, cache, params or checkpoint
         # the mean of the weights at the checkpoints from optimiser.average_from on (0: off)
         self.average = WeightAverage(params.optimiser.average_from)
+        self.ema = WeightEMA(params.optimiser.ema_decay if info.is_main else 0.0)  # rank 0 writes the model
 
     def _build_model(self, init_state: dict | None) -> None:
         """``raw`` (the CNN-PS) and ``opt`` (Adam); ``model``, what a step runs: ``raw``,
@@ -303,6 +304,7 @@ class Trainer(RunState, RunOutputs):
                     loss, step_model = self._train_step(step_model, maps, normals, feed.pull if ahead else None)
                     self.step += 1
                     step = self.step
+                    self.ema.update(self.raw.state_dict())
                     if until is not None and until(step):
                         self.total_steps = step  # ends here: the loss, the checkpoint and the loop below see the end
                     loss_acc += loss.float()

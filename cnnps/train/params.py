@@ -50,9 +50,15 @@ class OptimiserParams:
     # N >= 1: model.pt is the mean of the weights at every checkpoint from step N on (each
     # checkpoint_every steps and the last; cnnps.train.averaging); 0: the last step's weights
     average_from: Annotated[int, Range(ge=0)] = 0
+    # d in (0, 1): model.pt is the exponential moving average of the weights over the steps,
+    # e <- d e + (1 - d) w after each step (cnnps.train.averaging.WeightEMA); 0: off
+    ema_decay: Annotated[float, Range(ge=0.0, lt=1.0)] = 0.0
 
     def __post_init__(self):
         check_fields(self, "train.optimiser.")
+        if self.average_from and self.ema_decay:
+            raise ConfigError("train.optimiser: average_from and ema_decay are two ways to average the weights; "
+                              "set one of them")
         object.__setattr__(self, "lr_milestones", tuple(self.lr_milestones or ()))
         if any(not isinstance(m, int) or m < 1 for m in self.lr_milestones) or list(self.lr_milestones) != sorted(
             set(self.lr_milestones)
@@ -237,7 +243,8 @@ MOVED_KEYS = {
 
 # Section keys with no flat name, with their defaults: in the flat params (and so in the
 # run key) as ``<section>_<key>`` only off that default. (``synthesis``'s keys: SynthesisParams.changed.)
-OMITTED_AT_DEFAULT = {"pixelwise.rgb": False, "optimiser.average_from": 0, "pixelwise.lights": 1300,
+OMITTED_AT_DEFAULT = {"pixelwise.rgb": False, "optimiser.average_from": 0, "optimiser.ema_decay": 0.0,
+                      "pixelwise.lights": 1300,
                       "model.arch": "cnnps", "model.head": "regression", "model.patch": 1}
 
 # Sections of the train params filled from other stages' sections by the config layer

@@ -62,15 +62,18 @@ class RunOutputs:
 
     def _final_model(self, last_val: dict) -> tuple[torch.nn.Module, dict | None]:
         """What ``model.pt`` holds: the network, or with ``optimiser.average_from`` a copy
-        holding the mean of the averaged checkpoints' weights, and then a record (rank 0):
-        from_step, checkpoints, the last weights' validation and the mean's (``val``)."""
-        if not (self.main and self.average.n):
+        holding the mean of the averaged checkpoints' weights (``optimiser.ema_decay``: their
+        moving average), and then a record (rank 0): from_step and checkpoints (ema_decay
+        and steps), the last weights' validation and the average's (``val``)."""
+        if not (self.main and (self.average.n or self.ema.n)):
             return self.raw, None
         final = copy.deepcopy(self.raw)
-        final.load_state_dict(self.average.mean(like=self.raw.state_dict()))
-        record = {"from_step": self.average.from_step, "checkpoints": self.average.n,
-                  "last_step_val_mean_deg": last_val.get("val_mean_deg"),
-                  "val": val_errors(final, self.val_maps, self.val_normals, self.device, "fp32")}
+        averaged = self.average if self.average.n else self.ema
+        final.load_state_dict(averaged.mean(like=self.raw.state_dict()))
+        record = ({"from_step": self.average.from_step, "checkpoints": self.average.n} if self.average.n
+                  else {"ema_decay": self.ema.decay, "steps": self.ema.n})
+        record.update(last_step_val_mean_deg=last_val.get("val_mean_deg"),
+                      val=val_errors(final, self.val_maps, self.val_normals, self.device, "fp32"))
         return final, record
 
     def _train_rows(self) -> int:

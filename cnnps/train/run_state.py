@@ -70,6 +70,7 @@ class RunState:
             set_rng_states(cpu_rng, cuda_rng, self.device)
             self.step, self.history = int(state["step"]), state["history"]
             self.average.load_state_dict(state.get("average"))
+            self.ema.load_state_dict(state.get("ema"), self.device)
             # the run's precision is its key's: every segment of it steps alike
             self.run_key = state["run_key"]
             self.precision = next(prec for prec, key in keys.items() if key == self.run_key)
@@ -148,6 +149,7 @@ class RunState:
                 "precision": self.precision,
                 "precision_choice": self.precision_choice,
                 "average": self.average.state_dict(),
+                **({"ema": self.ema.state_dict()} if self.ema.decay else {}),
                 # the model options off the paper's network (cnnps.models.model_options.recorded_options)
                 **({"model_options": opts} if (opts := recorded_options(self.raw)) else {}),
             },
