@@ -21,7 +21,10 @@ from typing import Optional
 import typer
 
 from cnnps.infra.errors import ConfigError, InputError
+from cnnps.api.prediction_options import METHOD, OUTPUT
 from cnnps.pipeline.app import app
+
+SCORING = "Scoring"
 
 SHIPPED = "shipped"  # MODEL: the weights cnnps ships (cnnps/models/weights/cnnps_default.pt)
 OUT_FORMAT = 1  # the --out file's layout version
@@ -84,19 +87,30 @@ def _model(model: str) -> Path:
 
 @app.command("score")
 def score(
-    model: str = typer.Argument(..., metavar="MODEL", help=f"CNN-PS checkpoint (.pt), or '{SHIPPED}' for the shipped weights."),
-    capture_dirs: list[Path] = typer.Argument(..., metavar="CAPTURE_DIR...", help="Capture folders with ground truth (DiLiGenT layout, Normal_gt.mat or normal_gt.npy); each is named by its folder. bearPNG is scored without its first 20 images, as the DiLiGenT benchmark does."),
-    rotations: Optional[str] = typer.Option(None, "--rotations", metavar="K[,K...]", help=f"Test-time rotations; several give one column each. (default: {_default('rotations')})"),
-    subsets: Optional[str] = typer.Option(None, "--subsets", metavar="N[,N...]", help="Also score each capture from N of its images, drawn by the seeded rule of cnnps.io.capture.subset_drop (rows <capture>-<N>)."),
-    exclude_from_mean: Optional[str] = typer.Option(None, "--exclude-from-mean", metavar="NAME[,NAME...]", help="Capture folder names scored and shown but left out of the means."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", metavar="FILE.json", help="Also write the numbers there (written atomically; the eval stage's metrics.json keys)."),
-    device: Optional[str] = typer.Option(None, "--device", metavar="auto|cpu|cuda", help=f"Where the network runs. (default: {_default('device')})"),
-    precision: Optional[str] = typer.Option(None, "--precision", metavar="auto|fp32|bf16", help=f"As cnnps predict --precision. (default: {_default('precision')})"),
-    saturated: Optional[str] = typer.Option(None, "--saturated", metavar="exclude|keep", help=f"As cnnps predict --saturated. (default: {_default('saturated')})"),
-    sparse_fill: Optional[str] = typer.Option(None, "--sparse-fill", metavar="auto|on|off", help=f"As cnnps predict --sparse-fill. (default: {_default('sparse_fill')})"),
-    batch_size: Optional[str] = typer.Option(None, "--batch-size", metavar="N", help="Observation maps per network batch (default 256 on a CPU, 4096 on CUDA)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the subset rule (cnnps.io.capture.subset_drop) and of --pixels; another seed draws other images and pixels."),
-    pixels: int = typer.Option(0, "--pixels", metavar="N", help="Score each capture on a seeded sample of N of its mask pixels, the same for every model (0 = all): a quick paired comparison of checkpoints, not the benchmark's number."),
+    model: str = typer.Argument(..., metavar="MODEL", help=f"Weights (.pt), or '{SHIPPED}'."),
+    capture_dirs: list[Path] = typer.Argument(..., metavar="CAPTURE_DIR...",
+                                              help="Captures with ground truth (docs/results.md)."),
+    rotations: Optional[str] = typer.Option(None, "--rotations", metavar="K[,K...]", rich_help_panel=SCORING,
+                                            help=f"Test-time rotations, a column each. (default: {_default('rotations')})"),
+    subsets: Optional[str] = typer.Option(None, "--subsets", metavar="N[,N...]", rich_help_panel=SCORING,
+                                          help="Also from N of the images (seeded)."),
+    exclude_from_mean: Optional[str] = typer.Option(None, "--exclude-from-mean", metavar="NAME[,...]",
+                                                    rich_help_panel=SCORING, help="Shown, left out of the means."),
+    seed: int = typer.Option(0, "--seed", rich_help_panel=SCORING, help="Seed of --subsets and --pixels."),
+    pixels: int = typer.Option(0, "--pixels", metavar="N", rich_help_panel=SCORING,
+                               help="A seeded sample of N mask pixels (0: all)."),
+    device: Optional[str] = typer.Option(None, "--device", metavar="auto|cpu|cuda", rich_help_panel=METHOD,
+                                         help=f"Where the network runs. (default: {_default('device')})"),
+    precision: Optional[str] = typer.Option(None, "--precision", metavar="auto|fp32|bf16", rich_help_panel=METHOD,
+                                            help=f"As cnnps predict. (default: {_default('precision')})"),
+    saturated: Optional[str] = typer.Option(None, "--saturated", metavar="exclude|keep", rich_help_panel=METHOD,
+                                            help=f"As cnnps predict. (default: {_default('saturated')})"),
+    sparse_fill: Optional[str] = typer.Option(None, "--sparse-fill", metavar="auto|on|off", rich_help_panel=METHOD,
+                                              help=f"As cnnps predict. (default: {_default('sparse_fill')})"),
+    batch_size: Optional[str] = typer.Option(None, "--batch-size", metavar="N", rich_help_panel=METHOD,
+                                             help="Maps per network batch."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", metavar="FILE.json", rich_help_panel=OUTPUT,
+                                       help="Also write the numbers there."),
 ) -> None:
     """Score a weights file on capture folders with ground truth, least squares beside it.
 
