@@ -68,4 +68,5 @@ def test_photos_to_normals_and_depth_with_a_ball_in_the_frame(tmp_path):
     common = true_mask & made_mask
     phone, calibrated = (_error(np.load(d / "normal.npy"), gt, common) for d in (out, ref))
     assert calibrated < 4.0
-    assert phone < calibrated + 1.5  # measured: +0.98 (benchmarks/results/pipeline/phone_capture.json)
+    # the benchmark (40 lights, K=10, three seeds): +0.74 +- 0.26 deg (benchmarks/results/pipeline/phone_capture.json)
+    assert phone < calibrated + 1.5
