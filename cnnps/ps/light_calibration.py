@@ -3,11 +3,10 @@
 The maths of ``cnnps calibrate`` on arrays (the folders, the report and the outputs are
 :mod:`cnnps.api.calibration`); NumPy, SciPy and scikit-image only.
 
-Pixel coordinates: ``x`` = column, ``y`` = row, with the centre of pixel (row 0, column 0)
-at (0, 0) (scikit-image's convention); the capture frame is x right, y up, z toward the
-camera, so a pixel offset ``(dx, dy)`` from the ball's centre is the direction
-``(dx, -dy)`` in that frame (image rows grow downward). The camera is orthographic and
-looks along -z, so the view vector is ``v = (0, 0, 1)`` for every pixel.
+Pixel coordinates: ``x`` = column, ``y`` = row, the centre of pixel (0, 0) at (0, 0)
+(scikit-image's); the capture frame is x right, y up, z toward the camera, so a pixel
+offset ``(dx, dy)`` from the ball's centre is the direction ``(dx, -dy)``. The camera is
+orthographic along -z: the view is ``v = (0, 0, 1)`` for every pixel.
 
 Finding the ball (:func:`fit_circle`, :func:`find_ball`). From ``mask.png`` when the
 folder has one, else from a picture of the folder: the per-pixel **median** over the
@@ -35,7 +34,10 @@ channels), inside the disc of radius r - 1 px:
 - *no highlight*: c at most 5 % of the median contrast of all the folder's images, or p
   below 2 b;
 - *two highlights*: the pixels above half the contrast (b + c/2) form two or more
-  regions more than 2 px apart (8-connectivity after a 1-px dilation);
+  regions more than 2 px apart (8-connectivity after a 1-px dilation), unless the
+  brightest one stands out (it is clipped and the next is not, or the next peaks below
+  :data:`SECOND_PEAK_FRACTION` of the contrast): the others then mirror lit surroundings,
+  such as the object beside the ball, and the brightest is the lamp's;
 - *saturated*: in integer images (8/16-bit PNG, JPEG, TIFF) a pixel whose stored
   channel reaches 0.99 of the format's maximum is clipped
   (:data:`cnnps.io.capture.SATURATION_LEVEL`, the level ``cnnps predict`` uses). A
@@ -47,13 +49,11 @@ channels), inside the disc of radius r - 1 px:
 - *not a highlight*: the half-contrast region covers more than 5 % of the disc (a rough
   or matte ball, not a mirror);
 - otherwise the highlight is the **intensity-weighted centroid** of the connected region
-  around the brightest pixel where the value exceeds b + c/10, each pixel weighted by its
-  value minus that level (weights fall continuously to 0 at the region's edge, so the
-  centroid moves smoothly with the highlight: sub-pixel precision).
+  around the brightest pixel where the value exceeds b + c/10, weighted by the value
+  minus that level (falling to 0 at the region's edge: sub-pixel precision).
 
 Directions (:func:`highlight_normal`, :func:`reflect`): the sphere's normal at the
-highlight ``n = ((x - cx)/r, -(y - cy)/r, sqrt(1 - ...))`` and the light
-``l = 2 (n.v) n - v`` with ``v = (0, 0, 1)``.
+highlight ``n = ((x - cx)/r, -(y - cy)/r, sqrt(1 - ...))``, the light ``l = 2 (n.v) n - v``.
 
 Intensities (:func:`fit_intensities`), with photos of a matte white ball under the same
 lights: per light and channel, the least-squares scale e of ``pixel = e * max(n.l, 0)``
@@ -62,8 +62,8 @@ that are lit (n.l >= 0.1, away from the terminator where a real ball's albedo an
 calibrated direction matter most) and, in integer images, unsaturated. The albedo is
 one unknown common factor, so the intensities are returned **normalised to a mean of 1
 over lights and channels** (:func:`normalise_intensities`). The ball must be white or
-neutral grey: a coloured ball's albedo would end up in the channels' ratios. The model
-has no ambient term: photograph the matte ball in the dark, or subtract a dark frame.
+grey (a coloured ball's albedo would end up in the channels' ratios); no ambient term:
+photograph the matte ball in the dark, or subtract a dark frame.
 """
 
 from __future__ import annotations
@@ -75,6 +75,9 @@ import numpy as np
 
 SEARCH_MARGIN_PX = 1.0  # highlights are looked for inside the disc of radius r - this
 DETECT_LEVEL = 0.5  # fraction of the contrast: the regions counted ("two highlights")
+# a second region whose peak is under this fraction of the contrast (or unclipped beside a clipped
+# brightest one) mirrors lit surroundings, not a second lamp: the brightest region is the highlight
+SECOND_PEAK_FRACTION = 0.8
 CENTROID_LEVEL = 0.1  # fraction of the contrast: the centroid's support and zero weight
 MERGE_PX = 1  # regions closer than 2 * MERGE_PX are one highlight
 MIN_CONTRAST_FRACTION = 0.05  # of the folder's median contrast: below it, no highlight
@@ -83,8 +86,7 @@ MAX_SATURATED_FRACTION = 0.01  # of the disc's area: a larger clipped core is an
 MAX_HIGHLIGHT_FRACTION = 0.05  # of the disc's area: a larger bright region is not a highlight
 MIN_SHADING = 0.1  # matte fit: pixels with n.l below this are left out
 MATTE_RADIUS_FRACTION = 0.95  # matte fit: pixels inside this fraction of the radius
-MIN_FIT_PIXELS = 20  # matte fit: fewest usable pixels per light and channel
-MIN_RADIUS_PX = 4.0
+MIN_FIT_PIXELS, MIN_RADIUS_PX = 20, 4.0  # matte fit: fewest usable pixels per light and channel; smallest ball
 MIN_ROUND_FRACTION = 0.6  # of the outline within 1 px of the fitted circle
 RANSAC_SEED = 0
 SCALE_NOTE = "normalised so that the mean over lights and channels is 1"
@@ -331,9 +333,16 @@ def locate_highlight(
         for k in range(1, n + 1):
             rr, cc = np.nonzero(lab == k)
             i = int(np.argmax(grey[rr, cc]))
-            spots.append((float(grey[rr[i], cc[i]]), int(cc[i]), int(rr[i])))
+            clipped = bool(saturated is not None and saturated[rr, cc].any())
+            spots.append((float(grey[rr[i], cc[i]]), int(cc[i]), int(rr[i]), clipped, k))
         spots.sort(reverse=True)
-        (_, x1, y1), (_, x2, y2) = spots[:2]
+        (p1, x1, y1, clip1, k1), (p2, x2, y2, clip2, _) = spots[:2]
+        if (clip1 and not clip2) or p2 - b < SECOND_PEAK_FRACTION * c:
+            # the lamp's own reflection stands out (clipped, or far the brightest); the others
+            # mirror lit surroundings (the object beside the ball, a table): not lamps
+            half = lab == k1
+            n = 1
+    if n >= 2:
         raise CalibrationError(
             f"{n} separate highlights on the ball (brightest at x={x1}, y={y1} and x={x2}, y={y2} px): "
             "one light per image, and no other bright reflections", "two")

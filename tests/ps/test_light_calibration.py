@@ -150,6 +150,14 @@ def test_no_highlight_two_highlights_and_a_matte_ball_are_refused():
     with pytest.raises(CalibrationError, match="2 separate highlights") as info:
         locate_highlight(chrome_image(LIGHTS[0], extra_spots=[(BALL.cx - 12, BALL.cy + 9)]), BALL)
     assert info.value.kind == "two"
+    # the lamp's highlight clipped, a dimmer mirror image of the lit object beside the ball: the lamp's
+    lamp = np.clip(chrome_image(LIGHTS[2], peak=3.0, body=0.1, sigma=1.5), 0, 1)
+    mirror = chrome_image(LIGHTS[2], peak=0.7, body=0.0, sigma=1.5, extra_spots=[(BALL.cx - 12, BALL.cy + 9)])
+    img = np.clip(lamp + mirror - chrome_image(LIGHTS[2], peak=0.7, body=0.0, sigma=1.5), 0, 1)
+    h = locate_highlight(img, BALL, img >= 0.99)
+    assert angles_deg(light_from_highlight(h, BALL), LIGHTS[2]) < 0.2
+    with pytest.raises(CalibrationError, match="2 separate highlights"):  # unclipped and as bright: refused
+        locate_highlight(chrome_image(LIGHTS[2], peak=0.7, extra_spots=[(BALL.cx - 12, BALL.cy + 9)]), BALL)
     # two spots closer than 2 px are one highlight, not two
     x, y = highlight_position(LIGHTS[0], BALL)
     locate_highlight(chrome_image(LIGHTS[0], sigma=0.6, extra_spots=[(x + 1.5, y)]), BALL)
