@@ -16,7 +16,10 @@ versions of the same photos, each with the light files in a calibration folder
 - ``ball_lights``: the directions calibrate found, the rest true;
 - ``estimated_intensities``: no intensities file (estimated from the object), the rest true;
 - ``made_mask``: no mask (made from the photos, the ball left out), the rest true;
-- ``phone``: all three shortcuts, what a user with a phone runs.
+- ``phone``: all three shortcuts, what a user with a phone runs;
+- ``exif_intensities``: the intensities from each JPEG's EXIF exposure
+  (``--intensities exif``: right when the lamp keeps its power and distance), the rest true;
+- ``phone_exif``: the ball's directions, the EXIF intensities and the made mask.
 
 Each is scored against the rendered normals on the object's pixels that the made mask
 also holds (the same pixels for every version). Reported: per seed and as mean ± spread
@@ -42,6 +45,8 @@ VERSIONS = {  # name: (directions, intensities, mask): "true" from the twin, or 
     "estimated_intensities": ("true", "estimated", "true"),
     "made_mask": ("true", "true", "made"),
     "phone": ("ball", "estimated", "made"),
+    "exif_intensities": ("true", "exif", "true"),
+    "phone_exif": ("ball", "exif", "made"),
 }
 
 
@@ -95,6 +100,7 @@ def one_seed(work: Path, seed: int, a) -> dict:
         out = root / "versions" / version / "out"
         with Stopwatch() as t:
             runs[version] = predict_folder(capture, out, lights_dir=lights, linearize="srgb", rotations=a.rotations,
+                                           intensities="exif" if VERSIONS[version][1] == "exif" else "auto",
                                            report=False, progress=False)
         outs[version] = (out, t.seconds)
     made_mask = read_mask(outs["phone"][0] / "mask.png")
@@ -135,9 +141,10 @@ def main(argv: list[str] | None = None) -> int:
     for version in VERSIONS:
         v = np.array([r["mean_deg"][version] for r in rows])
         summary[version] = {"mean": round(float(v.mean()), 3), "sd": round(float(v.std(ddof=1)), 3) if len(v) > 1 else None}
-    gap = np.array([r["mean_deg"]["phone"] - r["mean_deg"]["twin"] for r in rows])
-    summary["phone_minus_twin"] = {"mean": round(float(gap.mean()), 3),
-                                   "sd": round(float(gap.std(ddof=1)), 3) if len(gap) > 1 else None}
+    for version in ("phone", "phone_exif"):
+        gap = np.array([r["mean_deg"][version] - r["mean_deg"]["twin"] for r in rows])
+        summary[f"{version}_minus_twin"] = {"mean": round(float(gap.mean()), 3),
+                                            "sd": round(float(gap.std(ddof=1)), 3) if len(gap) > 1 else None}
     print(json.dumps(summary, indent=1))
     write_result(a.out, __spec__.name, vars(a), {"seeds": rows, "summary": summary})
     return 0

@@ -37,7 +37,16 @@ from pathlib import Path
 
 import numpy as np
 
-from cnnps.api.capture_estimates import Source, calibrated_ball, made_mask, missing_ok, wanted
+from cnnps.api.capture_estimates import (
+    IntensitySource,
+    Source,
+    calibrated_ball,
+    exif_intensities,
+    made_mask,
+    missing_ok,
+    wanted,
+)
+from cnnps.io.exif import exif_exposure
 
 CLIPPED_SHARE = 0.01  # an image with more of the object's pixels clipped than this is reported
 DIM_LEVELS = 32  # the object's 99th percentile below this many levels of an integer format: a dim image
@@ -48,8 +57,6 @@ NARROW_CONE_DEG = 20.0  # all lights within this angle of the view: the normals 
 EXPOSURE_SPREAD = 0.02  # EXIF exposures differing by more than this (relative) have changed
 MIN_REGISTRATION_SIDE = 48  # an object's box smaller than this a side is not registered (too little outline)
 REGISTRATION_SIDE = 512  # the object's box is downsampled to at most this many pixels a side to register
-EXIF_EXPOSURE_TIME, EXIF_F_NUMBER, EXIF_ISO = 0x829A, 0x829D, 0x8827  # tags of the Exif IFD
-EXIF_IFD = 0x8769
 
 
 @dataclass(frozen=True)
@@ -106,29 +113,6 @@ def top_code(capture) -> float:
 def _listed(images, limit: int = 8) -> str:
     shown = ", ".join(str(k) for k in images[:limit])
     return shown + (f" and {len(images) - limit} more" if len(images) > limit else "")
-
-
-def exif_exposure(path: Path) -> float:
-    """The relative exposure ``time x ISO / f_number^2`` from a JPEG, TIFF or DNG file's
-    EXIF, NaN when the file has none (or is of another kind). Missing ISO or f-number count
-    as 1 (a fixed lens, a fixed gain)."""
-    if path.suffix.lower() not in (".jpg", ".jpeg", ".tif", ".tiff", ".dng"):
-        return float("nan")
-    try:
-        from PIL import Image
-
-        with Image.open(path) as img:
-            exif = img.getexif()
-            tags = {**dict(exif), **dict(exif.get_ifd(EXIF_IFD))}
-    except Exception:  # not readable by Pillow (a RAW variant): no EXIF figure
-        return float("nan")
-    time = tags.get(EXIF_EXPOSURE_TIME)
-    if time is None or float(time) <= 0:
-        return float("nan")
-    iso = tags.get(EXIF_ISO) or 1
-    iso = iso[0] if isinstance(iso, tuple) else iso
-    f = float(tags.get(EXIF_F_NUMBER) or 1) or 1.0
-    return float(time) * float(iso) / (f * f)
 
 
 def _box(mask: np.ndarray) -> tuple[slice, slice, int]:
@@ -234,7 +218,7 @@ def _light_findings(lights: np.ndarray | None) -> tuple[list[Finding], str]:
     return out, line
 
 
-def check_capture(capture_dir, *, drop=None, mask: Source = "auto", intensities: Source = "auto",
+def check_capture(capture_dir, *, drop=None, mask: Source = "auto", intensities: IntensitySource = "auto",
                   lights_dir=None, grey: str = "mean", linearize=None, progress: bool = False) -> CaptureCheck:
     """Check the capture folder ``capture_dir`` for what will hurt its normals (the module
     docstring). ``drop``, ``mask``, ``intensities``, ``lights_dir``, ``grey`` and
@@ -255,13 +239,17 @@ def check_capture(capture_dir, *, drop=None, mask: Source = "auto", intensities:
         base = (dataclasses.replace(capture, intensities=np.ones((capture.n_images, 3))) if "intensities" in todo
                 else capture)
         capture = dataclasses.replace(capture, mask=made_mask(base, ball)[0])
-    return inspect_capture(capture, todo, progress)
+    exif = sources["intensities"] == "exif"
+    if exif:
+        exif_intensities(capture)  # every image has its EXIF exposure, as predict requires
+    return inspect_capture(capture, todo, progress, exif=exif)
 
 
-def inspect_capture(capture, made, progress: bool = False) -> CaptureCheck:
+def inspect_capture(capture, made, progress: bool = False, exif: bool = False) -> CaptureCheck:
     """:func:`check_capture`'s findings for a capture already read, its mask in place;
     ``made``: what is (or will be) made from the photos (``"mask"``, ``"intensities"``:
-    :func:`cnnps.api.capture_estimates.wanted`). Reads every image once."""
+    :func:`cnnps.api.capture_estimates.wanted`; ``exif``: the intensities from the EXIF
+    exposure). Reads every image once."""
     todo = list(made)
     findings: list[Finding] = []
     m, (H, W) = capture.n_images, capture.shape
@@ -309,8 +297,9 @@ def inspect_capture(capture, made, progress: bool = False) -> CaptureCheck:
         if np.abs(ratio - 1).max() > EXPOSURE_SPREAD:
             summary.append(f"EXIF exposure: differs from shot to shot ({ratio.min():.2f}-{ratio.max():.2f} x the median)")
             if "intensities" in todo:
-                findings.append(Finding("exposure", "note", "the EXIF exposure changes from shot to shot: the estimated "
-                                        "intensities take it out"))
+                findings.append(Finding("exposure", "note", "the EXIF exposure changes from shot to shot: the "
+                                        "intensities made from the photos take it out (--intensities exif reads it "
+                                        "exactly when the lamp kept its power and distance)"))
             else:
                 findings.append(Finding("exposure", "warning", "the EXIF exposure changes from shot to shot, but the "
                                         "intensities come from light_intensities.txt: lock the exposure on the camera, "
@@ -318,7 +307,8 @@ def inspect_capture(capture, made, progress: bool = False) -> CaptureCheck:
         else:
             summary.append("EXIF exposure: the same in every shot")
     if "intensities" in todo:
-        summary.append("intensities: estimated from the object when predicting (no light_intensities.txt, or "
+        summary.append("intensities: from the EXIF exposure when predicting (--intensities exif)" if exif else
+                       "intensities: estimated from the object when predicting (no light_intensities.txt, or "
                        "--intensities estimate)")
     elif capture.intensities is not None:
         e = capture.intensities.mean(axis=1)

@@ -7,7 +7,9 @@ The arguments ``mask`` and ``intensities`` of :func:`cnnps.predict_folder` (``cn
 --mask / --intensities``) say where each comes from: ``auto`` (the default) reads the file
 when the folder has it and makes it from the photos when not; ``file`` requires the file
 (one line naming it when it is missing); ``estimate`` makes it from the photos even when
-the file is there.
+the file is there; for the intensities, ``exif`` takes each image's EXIF exposure (time x
+ISO / f-number squared: a phone's auto exposure, exactly, when the lamp keeps its power
+and distance).
 
 :func:`fill_estimates` completes a capture read with :func:`missing_ok` and returns what
 was made, for ``prediction.json`` (``estimated``) and the user (``notes``). The mask comes
@@ -27,7 +29,9 @@ import numpy as np
 
 from cnnps.io.capture import Capture
 
-Source = Literal["auto", "file", "estimate"]  # where the mask / the intensities come from
+Source = Literal["auto", "file", "estimate"]  # where the mask comes from
+# where the intensities come from: those, or each photo's EXIF exposure (a lamp of fixed power and distance)
+IntensitySource = Literal["auto", "file", "estimate", "exif"]
 ESTIMATED = ("mask", "intensities")  # what a capture may leave out, in the order it is made
 BALL_MARGIN_PX = 3.0  # a chrome ball in the photos is left out of a made mask this far beyond its circle
 
@@ -40,7 +44,7 @@ def missing_ok(options: dict) -> tuple[str, ...]:
 def wanted(capture: Capture, options: dict) -> list[str]:
     """What :func:`fill_estimates` will make for ``capture``: missing, or asked for."""
     return [name for name in ESTIMATED
-            if options.get(name, "auto") == "estimate" or getattr(capture, name) is None]
+            if options.get(name, "auto") in ("estimate", "exif") or getattr(capture, name) is None]
 
 
 def calibrated_ball(lights_dir, capture_dir) -> tuple[float, float, float] | None:
@@ -121,6 +125,26 @@ def _made_intensities(capture: Capture) -> tuple[np.ndarray, dict, str]:
     return np.repeat(e[:, None], 3, axis=1), record, note
 
 
+def exif_intensities(capture: Capture) -> tuple[np.ndarray, dict, str]:
+    """(m, 3) intensities from each image's EXIF exposure (time x ISO / f-number squared),
+    mean 1; an InputError naming the first image without one."""
+    from cnnps.infra.errors import InputError
+    from cnnps.io.exif import exif_exposure
+
+    e = np.array([exif_exposure(path) for path in capture.paths], np.float64)
+    missing = np.flatnonzero(~np.isfinite(e))
+    if not capture.paths or missing.size:
+        where = capture.paths[int(missing[0])] if capture.paths else capture.root
+        raise InputError(where, "no EXIF exposure time (--intensities exif reads it from every image); "
+                                "use --intensities estimate")
+    e = e / e.mean()
+    record = {"source": "exif", "values": [round(float(v), 5) for v in e], "spread": round(float(e.max() / e.min()), 4)}
+    note = (f"light_intensities.txt: from the photos' EXIF exposure ({len(e)} images, from {e.min():.2f} to "
+            f"{e.max():.2f} x their mean; written to the output folder): right when the lamp kept its power and "
+            "its distance from the object")
+    return np.repeat(e[:, None], 3, axis=1), record, note
+
+
 def fill_estimates(capture: Capture, options: dict,
                    ball: tuple[float, float, float] | None = None) -> tuple[Capture, dict, list[str]]:
     """``capture`` with its missing (or ``estimate``-d) mask and intensities made from the
@@ -137,7 +161,8 @@ def fill_estimates(capture: Capture, options: dict,
         capture = dataclasses.replace(capture, mask=mask)
         notes.append(note)
     if "intensities" in todo:
-        intensities, record["intensities"], note = _made_intensities(capture)
+        made = exif_intensities if options.get("intensities") == "exif" else _made_intensities
+        intensities, record["intensities"], note = made(capture)
         capture = dataclasses.replace(capture, intensities=intensities)
         notes.append(note)
     return capture, record, notes

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from cnnps.api import prediction_outputs as outputs
-from cnnps.api.capture_estimates import Source
+from cnnps.api.capture_estimates import IntensitySource, Source
 from cnnps.api.cameras import make_camera
 from cnnps.api.light_models import make_light_model
 from cnnps.api.normals import capture_normals
@@ -197,7 +197,7 @@ def predict_folder(
     *,
     drop=None,
     mask: Source = "auto",
-    intensities: Source = "auto",
+    intensities: IntensitySource = "auto",
     lights_dir=None,
     check: bool = False,
     depth: bool = False,
@@ -220,7 +220,8 @@ def predict_folder(
     (mask.png, required) or ``estimate`` (made from the photos:
     :mod:`cnnps.api.capture_estimates`); a made mask is written to OUT_DIR as mask.png;
     intensities: the same for light_intensities.txt (estimated from the object, the
-    semi-calibrated way; written to OUT_DIR when no image was dropped); lights_dir: the
+    semi-calibrated way; ``exif``: from each image's EXIF exposure; written to OUT_DIR when
+    no image was dropped); lights_dir: the
     folder of the light files when not ``capture_dir`` (``cnnps calibrate``'s output; a
     chrome ball it found in these same photos is left out of a made mask); check: also look
     for what hurts the normals (:mod:`cnnps.api.capture_check`, what ``cnnps check``
@@ -257,7 +258,8 @@ def predict_folder(
                                missing_ok=missing_ok(sources), lights_dir=lights_dir)
         ball = None if lights_dir is None else calibrated_ball(lights_dir, capture_dir)
         capture, estimated, made_notes = fill_estimates(capture, sources, ball)
-        checked = inspect_capture(capture, list(estimated), progress) if check else None
+        checked = (inspect_capture(capture, list(estimated), progress, exif=intensities == "exif") if check
+                   else None)
         camera, lighting = capture_lighting(capture, opts)
         solver = prepare_solver(opts)
         warnings = solver.warnings(capture.n_images)

@@ -32,14 +32,14 @@ def check(
     import json
 
     from cnnps.api.capture_check import check_capture
-    from cnnps.api.capture_estimates import Source
+    from cnnps.api.capture_estimates import IntensitySource, Source
     from cnnps.infra.atomic import write_text
     from cnnps.infra.options import parse
     from cnnps.io.srgb import Linearize
     from cnnps.pipeline.cli_predict import parse_drop
 
     result = check_capture(capture_dir, drop=parse_drop(drop), mask=parse("--mask", mask, Source),
-                           intensities=parse("--intensities", intensities, Source), lights_dir=lights,
+                           intensities=parse("--intensities", intensities, IntensitySource), lights_dir=lights,
                            linearize=None if linearize is None else parse("--linearize", linearize, Linearize),
                            progress=progress)
     for line in result.summary:

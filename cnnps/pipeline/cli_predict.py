@@ -59,8 +59,8 @@ DROP_FLAG = typer.Option(None, "--drop", metavar="INDICES", help="Images to leav
                          rich_help_panel=CAPTURE)
 MASK_FLAG = typer.Option("auto", "--mask", metavar="auto|file|estimate", help="mask.png, or made from the photos.",
                          rich_help_panel=CAPTURE)
-INTENSITIES_FLAG = typer.Option("auto", "--intensities", metavar="auto|file|estimate",
-                                help="light_intensities.txt, or estimated from the object.", rich_help_panel=CAPTURE)
+INTENSITIES_FLAG = typer.Option("auto", "--intensities", metavar="auto|file|estimate|exif",
+                                help="light_intensities.txt, estimated, or EXIF exposure.", rich_help_panel=CAPTURE)
 LIGHTS_FLAG = typer.Option(None, "--lights", metavar="DIR", help="Light files from there (cnnps calibrate's -o).",
                            rich_help_panel=CAPTURE)
 
@@ -147,11 +147,11 @@ def predict(capture_dir: Path, out: Path, drop: Optional[str], mask: str, intens
     passed on to :func:`cnnps.predict_folder`, the others left to their declared defaults."""
     from cnnps.api.prediction import predict_folder
 
-    from cnnps.api.capture_estimates import Source
+    from cnnps.api.capture_estimates import IntensitySource, Source
     from cnnps.infra.options import parse
 
     result = predict_folder(capture_dir, out, drop=parse_drop(drop), mask=parse("--mask", mask, Source),
-                            intensities=parse("--intensities", intensities, Source), lights_dir=lights, check=check, depth=depth,
+                            intensities=parse("--intensities", intensities, IntensitySource), lights_dir=lights, check=check, depth=depth,
                             report=report, scratch_dir=scratch, progress=progress, command="cnnps predict",
                             **parse_options(options))
     _report(result, capture_dir, out, verbose)

@@ -56,7 +56,8 @@ channels, e = 1) reads :data:`TARGET_LEVEL` of full scale (the chrome highlight 
 on a phone). Then, with ``noise``, Poisson-Gaussian sensor noise: ``Poisson(v *
 FULL_WELL) / FULL_WELL`` plus Gaussian read noise of :data:`READ_NOISE_DN` / 255 (seeded
 per shot); clipping to [0, 1]; the sRGB curve (:func:`cnnps.io.srgb.linear_to_srgb`); 8
-bits; a JPEG of ``jpeg_quality`` (Pillow). Each final folder appears at once
+bits; a JPEG of ``jpeg_quality`` (Pillow) whose EXIF holds the shot's exposure time
+(``1/60 s x e_k``), ISO 100 and f/1.8, as a phone records its auto exposure. Each final folder appears at once
 (:func:`cnnps.infra.atomic.atomic_dir`).
 
 Example::
@@ -95,6 +96,7 @@ TARGET_PERCENTILE = 99.0
 FULL_WELL = 2000.0  # electrons at full scale (shot noise)
 READ_NOISE_DN = 1.0  # read noise, in 8-bit steps
 MIN_BALL_RADIUS_PX = 8.0
+EXIF_EXPOSURE = (1 / 60, 100, 1.8)  # each JPEG's EXIF at e = 1: time (s), ISO, f-number; the time scales with e
 VERSION = 1  # bump when what is written for the same inputs changes
 
 
@@ -247,14 +249,16 @@ def _render(work: Path, tm, material_params: dict, L: np.ndarray, size: int, sam
     return out
 
 
-def _write_folders(out_root: Path, linear: list[np.ndarray], L: np.ndarray, E: np.ndarray, obj: np.ndarray,
-                   normals: np.ndarray, noise_seed: int | None, jpeg_quality: int) -> None:
+def _write_folders(out_root: Path, linear: list[np.ndarray], exposures: np.ndarray, L: np.ndarray, E: np.ndarray,
+                   obj: np.ndarray, normals: np.ndarray, noise_seed: int | None, jpeg_quality: int) -> None:
     """``photos/`` (each of ``linear``, developed: :func:`develop`, noise seeded by
-    ``noise_seed`` and the shot, None: none; then a JPEG) and ``twin/`` (the same files
-    with the true lights ``L``, intensities ``E``, object mask ``obj`` and ``normals``)."""
+    ``noise_seed`` and the shot, None: none; then a JPEG whose EXIF holds the shot's
+    exposure, :data:`EXIF_EXPOSURE`) and ``twin/`` (the same files with the true lights
+    ``L``, intensities ``E``, object mask ``obj`` and ``normals``)."""
     from PIL import Image
 
     from cnnps.infra.atomic import atomic_dir
+    from cnnps.io.exif import exposure_exif
     from cnnps.io.capture import (
         write_filenames,
         write_light_directions,
@@ -267,7 +271,9 @@ def _write_folders(out_root: Path, linear: list[np.ndarray], L: np.ndarray, E: n
     with atomic_dir(out_root / "photos") as tmp:
         for j, v in enumerate(linear):
             rng = None if noise_seed is None else np.random.default_rng(derive_seed(noise_seed, "phone-noise", j))
-            Image.fromarray(develop(v, rng)).save(tmp / names[j], "JPEG", quality=jpeg_quality)
+            time_s, iso, f_number = EXIF_EXPOSURE
+            Image.fromarray(develop(v, rng)).save(tmp / names[j], "JPEG", quality=jpeg_quality,
+                                                  exif=exposure_exif(time_s * exposures[j], iso, f_number))
         write_filenames(tmp, names)
     with atomic_dir(out_root / "twin") as tmp:
         for name in names:
@@ -336,7 +342,7 @@ def render_phone_capture(
     renders = [read_exr(p).astype(np.float64)[:, :, :3] * lamp for p in frames.paths]
     scale = TARGET_LEVEL / float(np.percentile(np.stack([r[obj] for r in renders]), TARGET_PERCENTILE))
     E = scale * exposures[:, None] * lamp[None, :]
-    _write_folders(out_root, [r * scale * e for r, e in zip(renders, exposures)], L, E, obj, normals,
+    _write_folders(out_root, [r * scale * e for r, e in zip(renders, exposures)], exposures, L, E, obj, normals,
                    seed if noise else None, int(jpeg_quality))
 
     truth = {

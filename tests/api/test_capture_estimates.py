@@ -112,3 +112,42 @@ def test_estimate_overrides_the_file_and_dropped_images_keep_the_folder_consiste
     made = np.array(result["estimated"]["intensities"]["values"])
     assert made.shape == (18,) and np.abs(made / (e[2:] / e[2:].mean()) - 1).max() < 0.01
     assert not (out / "light_intensities.txt").exists()  # 18 lines beside a filenames.txt of 20
+
+
+def test_intensities_from_the_exif_exposure(sphere, tmp_path):
+    """--intensities exif: each image's EXIF exposure (time x ISO / f-number squared), mean 1;
+    an image without one is one line naming it."""
+    from PIL import Image
+
+    from cnnps.io.capture import read_filenames
+    from cnnps.io.exif import exposure_exif
+    from cnnps.io.images import read_image_raw
+
+    root, _ = sphere
+    names = read_filenames(root)
+    times = np.linspace(1 / 120, 1 / 30, len(names))
+    isos = np.where(np.arange(len(names)) % 2, 200, 100)
+    jpgs = []
+    for name, t, iso in zip(names, times, isos):
+        img = Image.fromarray((read_image_raw(root / name) >> 8).astype(np.uint8))
+        (root / name).unlink()
+        jpgs.append(name.rsplit(".", 1)[0] + ".jpg")
+        img.save(root / jpgs[-1], quality=95, exif=exposure_exif(t, int(iso), 2.0))
+    (root / "filenames.txt").write_text("\n".join(jpgs) + "\n")
+    (root / "light_intensities.txt").unlink()
+    result = predict_folder(root, tmp_path / "out", intensities="exif", method="lambertian", report=False,
+                            progress=False)
+    expected = times * isos / np.mean(times * isos)
+    np.testing.assert_allclose(result["estimated"]["intensities"]["values"], expected, rtol=1e-4)
+    written = np.loadtxt(tmp_path / "out" / "light_intensities.txt")
+    np.testing.assert_allclose(written[:, 0], expected, rtol=1e-4)
+    assert any("EXIF exposure" in n for n in result["notes"])
+    Image.open(root / jpgs[3]).save(root / jpgs[3], quality=95)  # its EXIF gone
+    with pytest.raises(InputError, match=f"{jpgs[3]}: no EXIF exposure time"):
+        predict_folder(root, tmp_path / "again", intensities="exif", method="lambertian", report=False,
+                       progress=False)
+    assert not (tmp_path / "again").exists()
+    from cnnps.api.capture_check import check_capture
+
+    with pytest.raises(InputError, match=f"{jpgs[3]}: no EXIF exposure time"):  # check refuses it alike
+        check_capture(root, intensities="exif")
