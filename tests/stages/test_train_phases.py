@@ -100,3 +100,22 @@ def test_phase_settings_are_checked_when_the_params_are_read():
     plain = train.Params(**BASE, max_steps=3)
     assert "phases" not in plain.result_key()  # a run without phases keeps the key it had
     assert train.Params(**BASE, phases=PHASES).result_key()["phases"][1]["set"]["optimiser.lr"] == 3e-4
+
+
+def test_a_per_pixel_phase_then_a_phase_on_the_shards(tmp_path):
+    """The candidate recipe's shape: per-pixel maps alone, then the extract stage's shards
+    with a share of per-pixel maps, from the first phase's weights."""
+    from cnnps.stages import extract
+    from tests.support.renders import make_render_dir
+
+    make_render_dir(tmp_path, n_scenes=2, size=24, m=40)
+    extract.run(extract.Params(w=16, min_lights=10, max_lights=40, rotations=2, val_fraction=0.5,
+                               rows_per_group=200), tmp_path)
+    phases = [{"name": "pixels", "steps": 2},
+              {"name": "shards", "steps": 2, "set": {"pixelwise.share": 0.25, "optimiser.lr": 1e-4}}]
+    p = train.Params(**BASE, phases=phases)
+    m = train.run(p, tmp_path)
+    first, second = (json.loads((phase_dir(tmp_path / "train", p, i) / "metrics.json").read_text()) for i in (0, 1))
+    assert first["train_rows"] == 0 and first["pixelwise_share"] == 1.0  # no shards read
+    assert second["train_rows"] > 0 and second["pixelwise_share"] == 0.25
+    assert m["steps"] == 4 and [s["name"] for s in m["phases"]] == ["pixels", "shards"]
