@@ -20,6 +20,9 @@ CPU-time ledger, and a fallback to committed weights.
     .venv/bin/python tools/long_run.py arms v6 --arm heatmap=v6-hm-s1,v6-hm-s2 --arm regression=v6-re-s1,v6-re-s2 \
         --reference v6-v4   # the arms' table, the selection rule's verdicts, tools/runs/v6/arms.json
 
+A run of ``train.phases`` is handled too: its checkpoints and validation log are read from
+its phases' folders, steps counted over the chain (:mod:`~tools.longrun.checkpoints`).
+
 It imports ``cnnps`` from this interpreter's install (``make setup``: this checkout, in
 editable mode) for its own bookkeeping; the stages run the clone's code.
 
@@ -79,6 +82,7 @@ The package's modules: :mod:`~tools.longrun.run` (the run's folder, its stages, 
 :mod:`~tools.longrun.variant_study`, :mod:`~tools.longrun.real_scores` and
 :mod:`~tools.longrun.carried_weights` (the run's parts), :mod:`~tools.longrun.arms` (the
 arms of a study), :mod:`~tools.longrun.train_section` (a train section in either layout),
+:mod:`~tools.longrun.checkpoints` (a run's checkpoints, with or without phases),
 :mod:`~tools.longrun.process_time` (CPU time of a process tree),
 :mod:`~tools.longrun.paths` and :mod:`~tools.longrun.cli` (``tools/long_run.py``).
 """

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import yaml
 
+from .checkpoints import check_one_network, newest, planned_steps, val_rows
 from .paths import REPO
 from .sibling_tools import run_weights, tree_size
 from .train_section import train_value
@@ -34,15 +35,15 @@ class CarriedWeights:
             if metrics.is_file():
                 shutil.copy(metrics, dst / f"{stage}_metrics.json")
         self._save_val_curve(dst / "val.csv")
-        cks = sorted((self.data / "train" / "checkpoints").glob("step-*.pt"))
-        if not cks:
+        last = newest(self.data, yaml.safe_load(self.params.read_text()))  # over the phases of a phased run
+        if last is None:
             return None
         out = self.dir / run_weights.WEIGHTS
-        done = int(cks[-1].stem.split("-")[1]) + int(self._offset())
-        planned = int(self.record()["params"]["train"].get("max_steps") or 0)
+        done = last[0] + int(self._offset())
+        planned = planned_steps(self.record()["params"])
         # float16, as the shipped weights: half the bytes; a fallback continues from
         # weights rounded to 1 part in 2,000, far below what one training step changes
-        self.export(cks[-1], out, meta={"steps": done, "run": self.name, "commit": self.record()["commit"]}, half=True)
+        self.export(last[1], out, meta={"steps": done, "run": self.name, "commit": self.record()["commit"]}, half=True)
         prev = run_weights.read_record(dst)  # a run ended with --final stays ended while its step is the same
         ended = prev is not None and prev["finished"] and int(prev["steps"]) == done
         room = tree_size.room(REPO, replacing=dst / run_weights.WEIGHTS) if dst.resolve().is_relative_to(REPO.resolve()) else None
@@ -51,25 +52,24 @@ class CarriedWeights:
         return carried or out
 
     def _save_val_curve(self, dst: Path) -> None:
-        """The train stage's validation log (steps counted from the run's start) with the
-        CPU-hours at each step (:meth:`_cpu_hours_at`): what the learning-curve plot reads."""
-        src = self.data / "train" / "plots" / "val.csv"
-        if not src.is_file():
+        """The train stage's validation log (steps counted from the run's start; a phased
+        run's over its chain, :func:`tools.longrun.checkpoints.val_rows`) with the CPU-hours
+        at each step (:meth:`_cpu_hours_at`): what the learning-curve plot reads."""
+        rows = val_rows(self.data, yaml.safe_load(self.params.read_text()))
+        if rows is None:
             return
         offset = self._offset()
         lines = ["step,cpu_hours,val_mean_deg,val_median_deg"]
-        for ln in src.read_text().splitlines()[1:]:
-            if ln.strip():
-                step, mean, median = ln.split(",")[:3]
-                s = int(float(step)) + offset
-                lines.append(f"{s},{self._cpu_hours_at(s)},{mean},{median}")
+        for step, (mean, median, *_) in rows:
+            s = step + offset
+            lines.append(f"{s},{self._cpu_hours_at(s)},{mean},{median}")
         from cnnps.infra.atomic import write_text
 
         write_text(dst, "\n".join(lines) + "\n")
 
     def export(self, checkpoint: Path, out: Path, meta: dict, half: bool = False) -> Path:
-        """A train stage checkpoint's network as a cnnps weights file (what ``cnnps predict
-        --model`` and ``cnnps score`` read), float16 when ``half``."""
+        """A train stage checkpoint's network (a phase's too) as a cnnps weights file (what
+        ``cnnps predict --model`` and ``cnnps score`` read), float16 when ``half``."""
         import torch
 
         from cnnps.models.checkpoint import save_checkpoint
@@ -77,6 +77,7 @@ class CarriedWeights:
 
         state = torch.load(checkpoint, map_location="cpu", weights_only=True)
         params = yaml.safe_load(self.params.read_text())
+        check_one_network(params)  # a phase's network is the base one: its options are train.model's
         train = params.get("train") or {}
         manifest = self.data / "extract" / "manifest.json"  # shards carry their map width
         per_pixel_only = train_value(train, "pixelwise", 0) >= 1

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import yaml
 
+from .checkpoints import checkpoints, newest, val_rows
 from .paths import REPO, git_head, write_json
 from .variant_study import metric_columns
 
@@ -83,13 +84,11 @@ class RealScores:
         return row
 
     def _val_of_step(self, step: int) -> float | None:
-        """The train stage's validation error at the last validation up to ``step``."""
-        train = self.data / "train" / "plots" / "val.csv"
-        if not train.is_file():
-            return None
-        lines = [ln.split(",") for ln in train.read_text().splitlines()[1:] if ln.strip()]
-        done = [ln for ln in lines if int(float(ln[0])) <= step]
-        return float(done[-1][1]) if done else None
+        """The train stage's validation error at the last validation up to ``step`` (a
+        phased run's: over its chain)."""
+        rows = val_rows(self.data, yaml.safe_load(self.params.read_text()))
+        done = [rest for s, rest in rows or [] if s <= step]
+        return float(done[-1][0]) if done else None
 
     def _val_of_model(self, weights: Path, params: dict) -> float | None:
         """``weights``' mean error on the train stage's validation sample (as training scores
@@ -116,8 +115,9 @@ class RealScores:
               newest: bool = True) -> list[dict]:
         """Score the checkpoints at multiples of ``every`` steps and, with ``newest``, the
         newest (see the module's ``curve``); returns every row of ``real_curve.json``.
-        ``newest=False`` suits scoring while the run trains: only the grid's points."""
-        cks = {int(p.stem.split("-")[1]): p for p in (self.data / "train" / "checkpoints").glob("step-*.pt")}
+        ``newest=False`` suits scoring while the run trains: only the grid's points. A
+        phased run's steps are its chain's (:func:`tools.longrun.checkpoints.checkpoints`)."""
+        cks = dict(checkpoints(self.data, yaml.safe_load(self.params.read_text())))
         if not cks:
             raise SystemExit(f"{self.name}: no checkpoint to score yet")
         steps = sorted({s for s in cks if s % every == 0} | ({max(cks)} if newest else set()))
@@ -159,9 +159,9 @@ class RealScores:
     def _cpu_hours_at(self, step: int) -> float | None:
         """The train stage's CPU-hours up to ``step``: its total so far times the share of
         the steps done (the step rate of one machine and precision is steady)."""
-        cks = sorted(int(p.stem.split("-")[1]) for p in (self.data / "train" / "checkpoints").glob("step-*.pt"))
+        ck = newest(self.data, yaml.safe_load(self.params.read_text()))
         total = self.totals().get("train", {}).get("cpu_hours")
-        if not cks or not total:
+        if ck is None or not total:
             return None
-        last = cks[-1] + self._offset()
+        last = ck[0] + self._offset()
         return round(total * min(step, last) / last, 3)

@@ -14,6 +14,7 @@ from pathlib import Path
 import yaml
 
 from .carried_weights import CarriedWeights
+from .checkpoints import checkpoints, newest, phases
 from .paths import CARRIED, REPO, STAGES, write_json
 from .process_time import children_cpu, pids_of, process_tree, run_timed
 from .real_scores import RealScores
@@ -98,11 +99,13 @@ class Run(VariantStudy, RealScores, CarriedWeights):
             self.create(rec["commit"], rec["preset"], rec.get("overrides", []))
             notes.append(f"cloned {rec['commit'][:12]} again into {self.code}")
         notes += self.link_data(rec.get("data_from", []), self.dir.parent)
-        if not any((self.data / "train" / "checkpoints").glob("step-*.pt")):
+        params = yaml.safe_load(self.params.read_text())
+        if not checkpoints(self.data, params):  # in any phase of a phased run
             w, kept = self.carried / run_weights.WEIGHTS, run_weights.read_record(self.carried)
-            if kept is not None or w.is_file():
+            if phases(params) and (kept is not None or w.is_file()):
+                notes.append(f"no checkpoint: {w.name} is not used (a run of train.phases has no fallback to it)")
+            elif kept is not None or w.is_file():
                 step = int(kept["steps"]) if kept is not None else int(self._meta(w)["steps"])
-                params = yaml.safe_load(self.params.read_text())
                 base = rec["params"]["train"]
                 if step < int(base.get("max_steps") or 0):
                     w = run_weights.carried_weights(self.carried)  # checked against the record, or one line
@@ -203,14 +206,14 @@ class Run(VariantStudy, RealScores, CarriedWeights):
         """Wait for the next checkpoint, then end this run's training process tree."""
         import signal
 
-        ck_dir = self.data / "train" / "checkpoints"
         pids = pids_of(f"tools/long_run.py resume {self.name}")
         if not pids:
             print(f"{self.name}: not running")
             return 0
-        newest = max(ck_dir.glob("step-*.pt"), default=None)
+        params = yaml.safe_load(self.params.read_text())  # a phased run's checkpoints: in its phases' folders
+        last = newest(self.data, params)
         t0 = time.time()
-        while max(ck_dir.glob("step-*.pt"), default=None) == newest:
+        while newest(self.data, params) == last:
             if time.time() - t0 > timeout:
                 raise SystemExit(f"{self.name}: no new checkpoint in {timeout:.0f} s; not stopped")
             time.sleep(2)
@@ -221,7 +224,8 @@ class Run(VariantStudy, RealScores, CarriedWeights):
                 os.kill(p, signal.SIGTERM)
             except ProcessLookupError:
                 pass
-        print(f"{self.name}: stopped after {max(ck_dir.glob('step-*.pt')).name}")
+        ck = newest(self.data, params)[1]
+        print(f"{self.name}: stopped after {ck.name if not phases(params) else ck.relative_to(self.data / 'train')}")
         return 0
 
     def totals(self) -> dict:
