@@ -47,8 +47,8 @@ def wanted(capture: Capture, options: dict) -> list[str]:
             if options.get(name, "auto") in ("estimate", "exif") or getattr(capture, name) is None]
 
 
-def calibrated_ball(lights_dir, capture_dir) -> tuple[float, float, float] | None:
-    """The chrome ball's image circle (cx, cy, r in pixels: x = column, y = row) from
+def calibrated_ball(lights_dir, capture_dir):
+    """The chrome ball's image circle (a :class:`cnnps.ps.light_calibration.Ball`) from
     ``lights_dir``'s ``calibration.json`` (``cnnps calibrate``'s output) when the ball was
     found in the capture's own photos (its folder is ``capture_dir``, or has its name);
     None when it was photographed apart or the folder has no record."""
@@ -56,6 +56,7 @@ def calibrated_ball(lights_dir, capture_dir) -> tuple[float, float, float] | Non
 
     from cnnps.api.calibration import REPORT_FILE
     from cnnps.infra.errors import InputError
+    from cnnps.ps.light_calibration import Ball
 
     path = Path(lights_dir) / REPORT_FILE
     if not path.is_file():
@@ -66,23 +67,19 @@ def calibrated_ball(lights_dir, capture_dir) -> tuple[float, float, float] | Non
     except (ValueError, KeyError, TypeError):
         raise InputError(path, "not a record of cnnps calibrate (chrome_ball: folder, centre_px, radius_px)") from None
     here = Path(capture_dir)
-    return (float(cx), float(cy), float(r)) if folder.name == here.name or folder.resolve() == here.resolve() else None
+    if folder.name != here.name and folder.resolve() != here.resolve():
+        return None
+    return Ball(float(cx), float(cy), float(r), source=str(path))
 
 
-def ball_disc(ball: tuple[float, float, float], shape: tuple[int, int]) -> np.ndarray:
-    """(H, W) bool: the pixels within :data:`BALL_MARGIN_PX` of the ball's image circle."""
-    cx, cy, r = ball
-    rows, cols = np.ogrid[:shape[0], :shape[1]]
-    return (cols - cx) ** 2 + (rows - cy) ** 2 <= (r + BALL_MARGIN_PX) ** 2
-
-
-def made_mask(capture: Capture, ball: tuple[float, float, float] | None = None) -> tuple[np.ndarray, dict, str]:
+def made_mask(capture: Capture, ball=None) -> tuple[np.ndarray, dict, str]:
     """The mask made from ``capture``'s grey images, its record and its note; a chrome
-    ``ball`` in the same photos (:func:`calibrated_ball`) is left out of it."""
+    ``ball`` in the same photos (:func:`calibrated_ball`) is left out of it, with
+    :data:`BALL_MARGIN_PX` around its circle."""
     from cnnps.ps.mask_estimate import estimate_mask
 
     stack = np.stack([capture.read_grey(k) for k in range(capture.n_images)])
-    disc = None if ball is None else ball_disc(ball, stack.shape[1:])
+    disc = None if ball is None else ball.disc(stack.shape[1:], ball.radius + BALL_MARGIN_PX)
     if disc is not None:
         stack[:, disc] = 0.0  # no response: background
     est = estimate_mask(stack, source=str(capture.root or "capture"))
@@ -91,7 +88,7 @@ def made_mask(capture: Capture, ball: tuple[float, float, float] | None = None) 
     record = {"pixels": int(mask.sum()), "fraction": round(float(mask.mean()), 4),
               "threshold": float(est.threshold), "components": int(est.components),
               "holes_filled": int(est.holes_filled),
-              **({} if ball is None else {"ball_left_out": [round(v, 2) for v in ball]})}
+              **({} if ball is None else {"ball_left_out": [round(v, 2) for v in (ball.cx, ball.cy, ball.radius)]})}
     note = (f"mask.png: made from the photos ({int(mask.sum())} pixels, {mask.mean():.0%} of the frame"
             f"{'' if ball is None else ', the chrome ball left out'}; written to the output folder): check it, "
             "or give the capture a mask.png of its own")
@@ -145,8 +142,7 @@ def exif_intensities(capture: Capture) -> tuple[np.ndarray, dict, str]:
     return np.repeat(e[:, None], 3, axis=1), record, note
 
 
-def fill_estimates(capture: Capture, options: dict,
-                   ball: tuple[float, float, float] | None = None) -> tuple[Capture, dict, list[str]]:
+def fill_estimates(capture: Capture, options: dict, ball=None) -> tuple[Capture, dict, list[str]]:
     """``capture`` with its missing (or ``estimate``-d) mask and intensities made from the
     photos (a chrome ``ball`` in them left out: :func:`made_mask`); the record of what was
     made (``{"mask": {...}, "intensities": {...}}``, empty when nothing was) and one note

@@ -120,10 +120,10 @@ def phone_layout(size: int) -> dict:
 
 def ball_disc(layout: dict, margin_px: float = 0.0) -> np.ndarray:
     """(S, S) bool: the pixels whose centres lie within the ball's image circle plus ``margin_px``."""
-    S = layout["size"]
-    cx, cy = layout["ball"]["centre_px"]
-    rows, cols = np.mgrid[0:S, 0:S]
-    return np.hypot(cols - cx, rows - cy) <= layout["ball"]["radius_px"] + margin_px
+    from cnnps.ps.light_calibration import Ball
+
+    ball = Ball(*layout["ball"]["centre_px"], layout["ball"]["radius_px"])
+    return ball.disc((layout["size"],) * 2, ball.radius + margin_px)
 
 
 def placed_object(mesh: Any) -> tuple[Any, dict]:

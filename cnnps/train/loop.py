@@ -304,7 +304,8 @@ class Trainer(RunState, RunOutputs):
                     loss, step_model = self._train_step(step_model, maps, normals, feed.pull if ahead else None)
                     self.step += 1
                     step = self.step
-                    self.ema.update(self.raw.state_dict())
+                    if self.ema.decay:  # the moving average of the weights (off: no state_dict a step)
+                        self.ema.update(self.raw.state_dict())
                     if until is not None and until(step):
                         self.total_steps = step  # ends here: the loss, the checkpoint and the loop below see the end
                     loss_acc += loss.float()
