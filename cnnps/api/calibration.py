@@ -133,10 +133,13 @@ class BallPhotos:
     kinds: dict[str, int] = field(default_factory=dict)  # stored pixel type -> image count
 
 
-def read_names(folder: Path, what: str) -> tuple[list[str], list[Path]]:
-    """filenames.txt of a ball folder (names and paths), every listed image present
+def read_names(folder: Path, what: str, notes: list[str] | None = None) -> tuple[list[str], list[Path]]:
+    """filenames.txt of a ball folder (names and paths; without it, the photos in name
+    order, said in ``notes``), every listed image present
     (:func:`cnnps.io.capture.scan_images`; ``what`` names the folder in errors)."""
     photos = scan_images(folder, what)
+    if notes is not None:
+        notes.extend(photos.notes)
     return photos.filenames, photos.paths
 
 
@@ -278,7 +281,8 @@ def calibrate(chrome_dir, matte_dir=None, *, linearize: Linearize | None = None,
     check_arguments(calibrate, {"linearize": linearize})
     t0 = time.perf_counter()
     chrome_dir = Path(chrome_dir)
-    names, paths = read_names(chrome_dir, "chrome ball")
+    order_notes: list[str] = []
+    names, paths = read_names(chrome_dir, "chrome ball", order_notes)
     matte_dir = None if matte_dir is None else Path(matte_dir)
     if matte_dir is not None:
         mnames, mpaths = matte_names(matte_dir, chrome_dir, len(names))
@@ -299,7 +303,7 @@ def calibrate(chrome_dir, matte_dir=None, *, linearize: Linearize | None = None,
         matte_ball = locate_ball(matte, matte.max_image, "maximum image")
         E = _matte_intensities(matte_dir, matte_ball, mpaths, L, linearize, progress, report)
     kinds = _image_types(report, chrome, matte)
-    notices = [UNCHOSEN_8BIT_NOTE] if linearize is None and kinds.get("uint8") else []
+    notices = order_notes + ([UNCHOSEN_8BIT_NOTE] if linearize is None and kinds.get("uint8") else [])
     picture = overlay_picture(chrome.max_image, ball, [(h.x, h.y) for h in highs], [str(i) for i in range(len(highs))])
     report["seconds"] = round(time.perf_counter() - t0, 3)
     return Calibration(list(names), L, E, ball, highs, matte_ball, report, picture, notices)

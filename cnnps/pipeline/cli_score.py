@@ -67,7 +67,7 @@ def check_capture_dir(path: Path) -> None:
     if not path.is_dir():
         raise InputError(path, "not a folder")
     if not is_capture_folder(path):
-        raise InputError(path, f"not a capture folder (no {FILENAMES_FILE})")
+        raise InputError(path, f"not a capture folder (no {FILENAMES_FILE} and no images)")
     if ground_truth_file(path) is None:
         raise InputError(path, f"no ground truth ({' or '.join(GROUND_TRUTH_FILES)}): nothing to score")
 

@@ -72,7 +72,7 @@ def check_inputs(params: Params, data_dir: Path) -> None:
     for c in params.real_captures:
         p = Path(c)
         if not is_capture_folder(p):
-            raise ConfigError(f"eval.real_captures: {p} is not a capture folder (no {FILENAMES_FILE})")
+            raise ConfigError(f"eval.real_captures: {p} is not a capture folder (no {FILENAMES_FILE} and no images)")
 
 
 def stage_columns(params: Params, data_dir: Path) -> tuple[dict, Path]:

@@ -4,7 +4,7 @@ every photo, written as a phone writes JPEGs, for the end-to-end path ``cnnps ch
 
 :func:`render_phone_capture` writes, under ``out_root``:
 
-- ``photos/``: ``000.jpg ...`` and ``filenames.txt``, nothing else: what a user brings;
+- ``photos/``: ``000.jpg ...``, nothing else (the names give the order): what a user brings;
 - ``twin/``: the same JPEG files (byte for byte), ``filenames.txt``, the TRUE
   ``light_directions.txt`` (unit, camera frame: x right, y up, z toward the camera),
   ``light_intensities.txt`` (shot k: ``scale * e_k * LAMP_RGB``: what a white Lambertian
@@ -274,7 +274,6 @@ def _write_folders(out_root: Path, linear: list[np.ndarray], exposures: np.ndarr
             time_s, iso, f_number = EXIF_EXPOSURE
             Image.fromarray(develop(v, rng)).save(tmp / names[j], "JPEG", quality=jpeg_quality,
                                                   exif=exposure_exif(time_s * exposures[j], iso, f_number))
-        write_filenames(tmp, names)
     with atomic_dir(out_root / "twin") as tmp:
         for name in names:
             shutil.copyfile(out_root / "photos" / name, tmp / name)

@@ -133,7 +133,7 @@ def _bad(tmp_path: Path, case: str) -> tuple[list[str], str]:
         return ["shipped", str(good), str(tmp_path / "nope")], f"{tmp_path / 'nope'}: capture folder not found"
     if case == "not a capture":
         (tmp_path / "empty").mkdir(exist_ok=True)
-        return ["shipped", str(tmp_path / "empty")], f"{tmp_path / 'empty'}: not a capture folder (no filenames.txt)"
+        return ["shipped", str(tmp_path / "empty")], f"{tmp_path / 'empty'}: not a capture folder (no filenames.txt and no images)"
     if case == "no ground truth":
         write_capture(tmp_path / "nogt", fmt="png8", size=12, m=8, gt=None)
         return ["shipped", str(tmp_path / "nogt")], f"{tmp_path / 'nogt'}: no ground truth"

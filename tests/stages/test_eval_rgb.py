@@ -3,7 +3,6 @@ colour model (4 input channels) is refused by both in the same one line."""
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from cnnps.infra.errors import ConfigError

@@ -24,7 +24,12 @@ def _write_exr_pixel(cap, name, value):
 
 # (corruption, file named in the error, words in the message)
 BAD_INPUTS = {
-    "no filenames.txt": (lambda c: (c / "filenames.txt").unlink(), "filenames.txt", "not found"),
+    "no filenames.txt, no images": (lambda c: [f.unlink() for f in c.iterdir() if f.name == "filenames.txt" or f.suffix == ".exr"],
+                                    "filenames.txt", "not found"),
+    # without filenames.txt the images are taken in name order: a stray one is one image too many
+    "no filenames.txt, a stray image": (lambda c: ((c / "filenames.txt").unlink(),
+                                                   images.write_exr(c / "extra.exr", np.zeros((16, 16, 3), np.float32))),
+                                        "light_directions.txt", "7 images"),
     "no light_directions.txt": (lambda c: (c / "light_directions.txt").unlink(), "light_directions.txt", "not found"),
     "no light_intensities.txt": (lambda c: (c / "light_intensities.txt").unlink(), "light_intensities.txt", "not found"),
     "no mask": (lambda c: (c / "mask.png").unlink(), "mask.png", "not found"),

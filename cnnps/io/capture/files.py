@@ -31,6 +31,7 @@ Example::
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +53,9 @@ FILE_NAMES = (FILENAMES_FILE, LIGHT_DIRECTIONS_FILE, LIGHT_INTENSITIES_FILE, LIG
               MASK_FILE, NORMAL_GT_MAT_FILE, NORMAL_GT_FILE, DEPTH_GT_FILE, SCENE_FILE)
 NORMAL_GT_MAT_VARIABLE = "Normal_gt"  # the variable of NORMAL_GT_MAT_FILE
 GROUND_TRUTH_FILES = (NORMAL_GT_MAT_FILE, NORMAL_GT_FILE)  # normals; the first present is read
+# the stems of pictures a capture folder may hold beside its photos (mask.png, DiLiGenT's
+# Normal_gt.png): never taken for photos when there is no FILENAMES_FILE
+NOT_PHOTO_STEMS = ("mask", "normal_gt")
 SCENE_INDENT = 2  # SCENE_FILE is json.dumps(scene, indent=2) + "\n"
 
 
@@ -97,10 +101,42 @@ def read_vectors(path: Path, what: str) -> tuple[np.ndarray, list[int]]:
     return np.array([v for _, v in rows], dtype=np.float64), [n for n, _ in rows]
 
 
-def read_filenames(root: Path) -> list[str]:
+def _natural_key(name: str) -> list:
+    """Sort key putting ``IMG_2`` before ``IMG_10``: digit runs compared as numbers."""
+    return [(0, int(part), part) if part.isdigit() else (1, 0, part.lower()) for part in re.split(r"(\d+)", name)]
+
+
+def photo_names(root: Path) -> list[str]:
+    """The photos of a folder without ``filenames.txt``: its image files
+    (:data:`cnnps.io.images.IMAGE_SUFFIXES`) in natural name order (``IMG_2`` before
+    ``IMG_10``), less hidden files and the pictures a capture folder holds beside its photos
+    (:data:`NOT_PHOTO_STEMS`: ``mask.png``, ``Normal_gt.png``). Sub-folders are not read."""
+    from cnnps.io.images import IMAGE_SUFFIXES
+
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    names = [p.name for p in root.iterdir()
+             if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
+             and p.stem.lower() not in NOT_PHOTO_STEMS]
+    return sorted(names, key=_natural_key)
+
+
+def read_filenames(root: Path, notes: list[str] | None = None) -> list[str]:
     """The image names of ``root/filenames.txt`` (one a line, light order; '#' comments
-    and blank lines skipped); an InputError when it is missing or lists nothing."""
+    and blank lines skipped). Without that file, the folder's photos in name order
+    (:func:`photo_names`), with a line saying so appended to ``notes``. An InputError when
+    the file lists nothing, or when there is neither the file nor a photo."""
     path = Path(root) / FILENAMES_FILE
+    if not path.is_file():
+        names = photo_names(root)
+        if not names:
+            raise InputError(path, "file not found, and the folder holds no images (PNG, JPEG, TIFF, EXR or RAW) "
+                                   "to take in name order")
+        if notes is not None:
+            notes.append(f"{FILENAMES_FILE}: none in {root}; its {len(names)} images taken in name order "
+                         f"({names[0]} ... {names[-1]}): light files must list the lights in that order")
+        return names
     names = [line for _, line in _read_lines(path)]
     if not names:
         raise InputError(path, "file is empty")
@@ -108,8 +144,9 @@ def read_filenames(root: Path) -> list[str]:
 
 
 def is_capture_folder(path: Path) -> bool:
-    """Whether ``path`` holds a ``filenames.txt`` (the mark of a capture folder)."""
-    return (Path(path) / FILENAMES_FILE).is_file()
+    """Whether ``path`` holds a ``filenames.txt`` or, without it, photos to take in name
+    order (:func:`photo_names`)."""
+    return (Path(path) / FILENAMES_FILE).is_file() or bool(photo_names(path))
 
 
 def read_intrinsics(path: Path) -> np.ndarray | None:

@@ -282,7 +282,8 @@ def _check_folder(root: Path, what: str) -> None:
         raise InputError(root, f"{what} folder not found")
     if not root.is_dir():
         expected = "a capture folder" if what == "capture" else f"the {what} photos"
-        raise InputError(root, f"not a folder (expected {expected} with {FILENAMES_FILE})")
+        raise InputError(root, f"not a folder (expected {expected}: its images, listed in light order in "
+                               f"{FILENAMES_FILE} or named in that order)")
 
 
 def _image_paths(root: Path, names: list[str]) -> list[Path]:
@@ -295,7 +296,8 @@ def _image_paths(root: Path, names: list[str]) -> list[Path]:
 
 def scan_images(path: str | Path, what: str = "capture") -> Capture:
     """A folder of photos in light order without lights (a calibration ball folder):
-    ``filenames.txt`` read and every listed image present. ``lights``, ``intensities`` and
+    ``filenames.txt`` read (without it, the photos in name order, said in ``notes``) and
+    every listed image present. ``lights``, ``intensities`` and
     ``mask`` are None (a ball's optional ``mask.png``: :func:`cnnps.io.capture.files.read_mask_file`
     once the image size is known); ``what`` names the folder in errors ("chrome ball").
 
@@ -303,8 +305,9 @@ def scan_images(path: str | Path, what: str = "capture") -> Capture:
     """
     root = Path(path)
     _check_folder(root, what)
-    names = read_filenames(root)
-    return Capture(filenames=names, root=root, paths=_image_paths(root, names))
+    notes: list[str] = []
+    names = read_filenames(root, notes)
+    return Capture(filenames=names, root=root, paths=_image_paths(root, names), notes=notes)
 
 
 def scan_capture(
@@ -342,7 +345,7 @@ def scan_capture(
     _check_folder(root, "capture")
     notes: list[str] = []
 
-    names = read_filenames(root)
+    names = read_filenames(root, notes)
     m_all = len(names)
     unknown = sorted(set(missing_ok) - {"lights", "mask", "intensities"})
     if unknown:
