@@ -3,6 +3,7 @@ real objects: the cheap part of a model study (docs/models.md, "Model v7: the ch
 
     .venv/bin/python tools/short_study.py averages v7-base-s1 [--swa-from 1750] [--ema-half-life 500]
     .venv/bin/python tools/short_study.py score v7-base-s1 [--pixels 2000] [--rotations 10] [--variants last swa]
+    .venv/bin/python tools/short_study.py score v7-renders-s1 --variants blend   # ROOT/RUN/variants/blend.pt
     .venv/bin/python tools/short_study.py reference v7 [--pixels 2000]   # the shipped model, scored alike
     .venv/bin/python tools/short_study.py table v7 --arm base=v7-base-s1,v7-base-s2 --arm cone50=...
 
@@ -182,6 +183,10 @@ def score_run(run: Run, shared: Path, pixels: int, rotations: int, variants=VARI
     options = {"pixels": pixels, "rotations": rotations}
     rows = old["rows"] if old.get("options") == options else {}
     commit = run.record()["commit"]
+    missing = [n for n in variants if not (folder / f"{n}.pt").is_file()]
+    if missing:
+        raise SystemExit(f"{folder / (missing[0] + '.pt')}: no such variant (averages makes last, swa, ema; "
+                         "put any other weights file there by that name)")
     for name in variants:
         if name in rows:
             continue
@@ -291,7 +296,9 @@ def main(argv=None) -> int:
     ap.add_argument("--pixels", type=int, default=2000)
     ap.add_argument("--rotations", type=int, default=10)
     ap.add_argument("--arm", action="append", default=[], metavar="NAME=RUN[,RUN...]")
-    ap.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS), help="score: these variants only")
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS),
+                    help="score: these variants only (last, swa, ema, or NAME for any weights file put in "
+                         "ROOT/RUN/variants/NAME.pt, e.g. a blend made by python -m cnnps.models.interpolate)")
     a = ap.parse_args(argv)
     if a.cmd in ("score", "reference") and not (a.shared / CAPTURES[0]).is_dir():
         raise SystemExit(f"{a.shared / CAPTURES[0]}: not a capture folder (--shared)")

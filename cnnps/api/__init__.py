@@ -63,7 +63,8 @@ def load_capture(folder, drop=None, *, progress: bool = False) -> Capture:
     """Read a capture folder (DiLiGenT layout) into memory, its images as stored.
 
     Arguments:
-        folder: holds ``filenames.txt`` (image names in light order),
+        folder: holds ``filenames.txt`` (image names in light order; without it the
+            images in name order),
             ``light_directions.txt`` (m x 3) or ``light_positions.txt`` with
             ``intrinsics.txt``, ``light_intensities.txt`` (m x 3 RGB), ``mask.png``, the
             images (8/16-bit PNG, JPEG, TIFF, float EXR or camera RAW) and optionally

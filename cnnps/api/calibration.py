@@ -5,7 +5,7 @@ is :mod:`cnnps.ps.light_calibration`; this module reads the folders, checks them
 draws the overlay picture, and writes the outputs.
 
 Folders (:func:`calibrate`, :func:`write_calibration`): a ball folder holds
-``filenames.txt`` (light order) and the images, in any format
+``filenames.txt`` (light order; without it, the images in name order) and the images, in any format
 :func:`cnnps.io.images.read_image_raw` reads, and optionally ``mask.png``. Images are
 made linear exactly as ``cnnps predict`` does (:func:`cnnps.io.capture.linear_values`):
 ``linearize="srgb"`` decodes 8/16-bit images with the sRGB curve (camera JPEG/PNG),
@@ -249,7 +249,8 @@ def calibrate(chrome_dir, matte_dir=None, *, linearize: Linearize | None = None,
     photos of a matte white ball under the same lights (same count, same order).
 
     Arguments:
-        chrome_dir: a folder with ``filenames.txt`` (light order), the images (8/16-bit
+        chrome_dir: a folder with ``filenames.txt`` (light order; without it, name
+            order), the images (8/16-bit
             PNG, JPEG, TIFF, float EXR or camera RAW) and optionally ``mask.png`` of the ball.
         matte_dir: the same for the matte ball, or None (directions only).
         linearize: how 8/16-bit images become linear, exactly as :func:`cnnps.predict`
