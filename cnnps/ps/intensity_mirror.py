@@ -121,11 +121,8 @@ def mirror_refine(I, L, n, start, *, valid=None, tol_deg: float = 2.0, floor: fl
     w = np.ones_like(d)
     x = x0
     for _ in range(ROUNDS):
-        A = np.zeros((m, m))
-        np.add.at(A, (j, j), w)
-        np.add.at(A, (k, k), w)
-        np.add.at(A, (j, k), -w)
-        np.add.at(A, (k, j), -w)
+        off = np.bincount(j * m + k, w, m * m).reshape(m, m)  # the pairs' weighted graph Laplacian
+        A = np.diag(np.bincount(j, w, m) + np.bincount(k, w, m)) - off - off.T
         b = np.bincount(j, w * d, m) - np.bincount(k, w * d, m)
         vals, vecs = np.linalg.eigh(A)  # the least-squares step from the start, on what the pairs fix
         fixed = vals > WEAK * w.sum() / m
