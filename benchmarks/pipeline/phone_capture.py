@@ -2,8 +2,8 @@
 each shortcut costs on its own.
 
     .venv/bin/python -m benchmarks.pipeline.phone_capture [--seeds 0 1 2] [--size 128]
-        [--lights 40] [--rotations 10] [--mesh procedural:blob:0] [--work DIR]
-        [--out benchmarks/results/pipeline/phone_capture.json]
+        [--lights 40] [--rotations 10] [--mesh procedural:blob:0] [--samples 16] [--table]
+        [--work DIR] [--out benchmarks/results/pipeline/phone_capture.json]
 
 Per seed, :func:`cnnps.synth.phone_capture.render_phone_capture` renders the object beside a
 chrome ball (8-bit sRGB JPEGs, a random 0.5-2x exposure per shot, sensor noise), then
@@ -20,6 +20,10 @@ versions of the same photos, each with the light files in a calibration folder
 - ``exif_intensities``: the intensities from each JPEG's EXIF exposure
   (``--intensities exif``: right when the lamp keeps its power and distance), the rest true;
 - ``phone_exif``: the ball's directions, the EXIF intensities and the made mask.
+
+``--table``: the object stands on a lit matt table that fills the rest of the frame (the ball
+then darker than the table around it; the made mask must leave the table out); its record is
+``phone_capture_table.json`` (64 samples: fewer leave fireflies on the dark ball).
 
 Each is scored against the rendered normals on the object's pixels that the made mask
 also holds (the same pixels for every version). Reported: per seed and as mean ± spread
@@ -83,7 +87,7 @@ def one_seed(work: Path, seed: int, a) -> dict:
     root = work / f"seed-{seed}"
     with Stopwatch() as t_render:
         made = render_phone_capture(root / "capture", mesh=a.mesh, size=a.size, lights=a.lights, seed=seed,
-                                    threads=a.threads)
+                                    samples=a.samples, table=a.table, threads=a.threads)
     truth = made["truth"]
     cal_dir = root / "cal"
     shutil.rmtree(cal_dir, ignore_errors=True)
@@ -132,6 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lights", type=int, default=40)
     ap.add_argument("--rotations", type=int, default=10)
     ap.add_argument("--mesh", default="procedural:blob:0")
+    ap.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel")
+    ap.add_argument("--table", action="store_true", help="the object on a lit table")
     ap.add_argument("--threads", type=int, default=0, help="Cycles threads (0: all cores)")
     ap.add_argument("--work", type=Path, default=ROOT / "data" / "bench-phone-capture")
     ap.add_argument("--out", type=Path, default=result_path(__spec__.name))

@@ -195,9 +195,10 @@ def read_ball_photos(folder, names, paths, keep: bool, progress: bool = False, d
 
 def locate_ball(photos: BallPhotos, picture: np.ndarray, picture_name: str, peaks=None) -> Ball:
     """The ball's image circle: fitted to ``mask.png`` when the folder has one, else to
-    the bright region of ``picture`` (called ``picture_name`` in errors) that holds most
-    of ``peaks`` (each photo's brightest pixel: a chrome ball beside an object in the same
-    photos) or, without them, the largest; an InputError naming the file or folder when no
+    the region of ``picture`` (called ``picture_name`` in errors) that holds most of
+    ``peaks`` (each photo's brightest pixel: a chrome ball beside an object in the same
+    photos; brighter than the background or darker than a lit table around it) or,
+    without them, the largest bright region; an InputError naming the file or folder when no
     round ball is found."""
     if photos.mask is not None:
         try:

@@ -7,7 +7,9 @@ brightest pixel lies on the ball. :func:`ball_region` takes the ball's body brig
 around those pixels in the picture (the median image: the room's reflection, often dim
 next to a lit object), thresholds halfway to the background, and keeps the region that
 holds most of them (:func:`region_of_peaks`); the object, even when larger and brighter,
-holds few of them.
+holds few of them. A ball darker than what surrounds it (it mirrors a dim room while the
+lamp lights the table it stands on) is taken the other way round: the region darker than
+halfway from its body to the picture's median (the lit table) that holds the peaks.
 
 Example:
     >>> import numpy as np
@@ -20,9 +22,13 @@ Example:
     (True, False)
     >>> picture = 0.05 * bright                 # a dim ball body ...
     >>> picture[5:35, 40:75] = 0.6              # ... beside a bright object
-    >>> region, t = ball_region(picture, peaks)
-    >>> bool(region[20, 15]), bool(region[20, 50]), round(t, 3)
-    (True, False, 0.025)
+    >>> region, t, dark = ball_region(picture, peaks)
+    >>> bool(region[20, 15]), bool(region[20, 50]), round(t, 3), dark
+    (True, False, 0.025, False)
+    >>> table = np.full((40, 80), 0.5); table[bright] = 0.05   # a dark ball on a lit table
+    >>> region, t, dark = ball_region(table, peaks[:3])
+    >>> bool(region[20, 15]), bool(region[20, 50]), round(t, 3), dark
+    (True, False, 0.275, True)
 """
 
 from __future__ import annotations
@@ -30,15 +36,18 @@ from __future__ import annotations
 import numpy as np
 
 MIN_SHARE = 0.5  # the ball's region must hold at least this share of the photos' brightest pixels
+DARK_CONTRAST = 0.7  # a dark ball's body reads at most this share of the picture's median
 
 
-def ball_region(picture: np.ndarray, peaks) -> tuple[np.ndarray, float]:
-    """The ball's region of ``picture`` (H, W) and the threshold that made it: halfway
-    between the picture's median around ``peaks`` (the ball's body, in a window twice
-    as wide as the peaks' median distance from their median: a stray peak on the object
-    does not widen it) and its 5th percentile (the background); ValueError, in words
-    for the user, when the body is no brighter than the background or no region holds
-    :data:`MIN_SHARE` of the peaks."""
+def ball_region(picture: np.ndarray, peaks) -> tuple[np.ndarray, float, bool]:
+    """The ball's region of ``picture`` (H, W), the threshold that made it and whether the
+    ball is dark: the threshold is halfway between the picture's median around ``peaks``
+    (the ball's body, in a window twice as wide as the peaks' median distance from their
+    median: a stray peak on the object does not widen it) and its 5th percentile (the
+    background), or, when the body is no brighter than that, halfway between the body and
+    the picture's median (a dark ball on a lit table: the region below it). ValueError, in
+    words for the user, when the body is neither brighter than the background nor darker
+    than the picture's median, or no region holds :data:`MIN_SHARE` of the peaks."""
     img = np.asarray(picture, dtype=np.float64)
     peaks = np.asarray(peaks, dtype=np.int64).reshape(-1, 2)
     H, W = img.shape
@@ -46,11 +55,15 @@ def ball_region(picture: np.ndarray, peaks) -> tuple[np.ndarray, float]:
     half = int(max(3, 2 * np.median(np.abs(peaks - (r0, c0)).max(axis=1)))) if len(peaks) else 3  # robust spread
     body = float(np.median(img[max(0, r0 - half):r0 + half + 1, max(0, c0 - half):c0 + half + 1]))
     background = float(np.percentile(img, 5))
-    if not body > background:
-        raise ValueError("no ball found: around the photos' brightest points the picture is no brighter than the "
-                         "background (the ball must reflect something brighter than what is behind it)")
-    t = 0.5 * (body + background)
-    return region_of_peaks(img > t, peaks), t
+    if body > background:
+        t = 0.5 * (body + background)
+        return region_of_peaks(img > t, peaks), t, False
+    surround = float(np.median(img))
+    if not body < DARK_CONTRAST * surround:
+        raise ValueError("no ball found: around the photos' brightest points the picture is neither brighter than "
+                         "the background nor darker than most of it (the ball must stand out from what is behind it)")
+    t = 0.5 * (body + surround)
+    return region_of_peaks(img < t, peaks), t, True
 
 
 def region_of_peaks(bright: np.ndarray, peaks) -> np.ndarray:

@@ -27,7 +27,9 @@ refined by least squares on the inliers. A region whose outline is less than 60 
 1 px of the circle (not round), too small or absent is an error asking for a mask.
 
 Highlights (:func:`locate_highlight`), per image, in the grey image (mean of the RGB
-channels), inside the disc of radius r - 1 px:
+channels), inside the disc of radius r - 1 px and 0.77 r (:func:`search_radius`: a light
+within 100 degrees of the view mirrors there; the ball's outer ring mirrors what is
+beside and behind it, a lit table, never a lamp in front):
 
 - b = median brightness of the disc (the ball's own reflection of the room), p = its
   brightest value, contrast c = p - b;
@@ -73,7 +75,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SEARCH_MARGIN_PX = 1.0  # highlights are looked for inside the disc of radius r - this
+SEARCH_MARGIN_PX = 1.0  # highlights are looked for inside the disc of radius r - this ...
+MAX_LIGHT_FROM_VIEW_DEG = 100.0  # ... and of r sin(this / 2): a light this far from the view mirrors there
 DETECT_LEVEL = 0.5  # fraction of the contrast: the regions counted ("two highlights")
 # a second region whose peak is under this fraction of the contrast (or unclipped beside a clipped
 # brightest one) mirrors lit surroundings, not a second lamp: the brightest region is the highlight
@@ -234,7 +237,7 @@ def find_ball(image: np.ndarray, source: str = "image", peaks=None) -> Ball:
     Otsu's threshold t and the largest region above it (holes filled), or with ``peaks``
     ((k, 2) rows and columns: each photo's brightest pixel, a chrome ball's highlight) the
     region around them (:func:`cnnps.ps.ball_search.ball_region`: the ball beside an
-    object in the same photos); its outline where
+    object in the same photos, also a ball darker than a lit table around it); its outline where
     the picture itself crosses the level halfway between the ball's brightness just
     inside the region's edge (1-3 px, median) and the background's just outside it
     (sub-pixel: a pixel the ball half covers reads about halfway), with everything
@@ -255,9 +258,11 @@ def find_ball(image: np.ndarray, source: str = "image", peaks=None) -> Ball:
         from cnnps.ps.ball_search import ball_region
 
         try:
-            region, t = ball_region(img, peaks)
+            region, t, dark = ball_region(img, peaks)
         except ValueError as exc:
             raise CalibrationError(str(exc)) from None
+        if dark:  # a dark ball on a lit table: the outline is found the other way round
+            img, t, source = -img, -t, source.replace("bright region", "dark region")
     n = int(region.sum())
     if n < math.pi * MIN_RADIUS_PX**2:
         raise CalibrationError(f"no ball found (largest bright region {n} pixels)")
@@ -288,6 +293,14 @@ class Highlight:
     saturated_px: int  # clipped pixels in the highlight
 
 
+def search_radius(ball: Ball) -> float:
+    """Where highlights are looked for: within ``r - SEARCH_MARGIN_PX`` of the ball's centre
+    and within ``r sin(MAX_LIGHT_FROM_VIEW_DEG / 2)`` (a light at angle a from the view
+    mirrors at ``r sin(a / 2)``; farther out the ball mirrors what is beside and behind it,
+    such as a lit table, never a lamp in front)."""
+    return min(ball.radius - SEARCH_MARGIN_PX, ball.radius * math.sin(math.radians(MAX_LIGHT_FROM_VIEW_DEG) / 2))
+
+
 def _regions(binary: np.ndarray, merge_px: int = MERGE_PX) -> tuple[np.ndarray, int]:
     """Labels of ``binary``'s regions, regions within 2 * merge_px merged (labels on binary only)."""
     from scipy.ndimage import binary_dilation
@@ -314,7 +327,7 @@ def locate_highlight(
     """
     grey = np.asarray(grey, dtype=np.float64)
     dist = ball.distance(grey.shape)
-    disc = dist <= ball.radius - SEARCH_MARGIN_PX
+    disc = dist <= search_radius(ball)
     if not disc.any():
         raise CalibrationError("the ball is too small to search for a highlight", "none")
     vals = grey[disc]
@@ -324,7 +337,7 @@ def locate_highlight(
     if not c > min_contrast or p < MIN_PEAK_OVER_BODY * b:
         raise CalibrationError(
             f"no specular highlight on the ball (brightest value {p:.4g}, the ball's median {b:.4g})", "none")
-    disc_area = float(disc.sum())
+    disc_area = float((dist <= ball.radius - SEARCH_MARGIN_PX).sum())  # the shares below are of the whole ball
 
     half = disc & (grey >= b + DETECT_LEVEL * c)
     lab, n = _regions(half)
@@ -411,7 +424,7 @@ def light_from_highlight(h: Highlight, ball: Ball) -> np.ndarray:
 
 def contrasts(grey_stack: np.ndarray, ball: Ball) -> np.ndarray:
     """(m,) highlight contrast (brightest minus median of the search disc) per image."""
-    disc = ball.distance(grey_stack.shape[1:]) <= ball.radius - SEARCH_MARGIN_PX
+    disc = ball.distance(grey_stack.shape[1:]) <= search_radius(ball)
     vals = grey_stack[:, disc]
     return vals.max(axis=1) - np.median(vals, axis=1)
 

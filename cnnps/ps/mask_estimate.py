@@ -12,8 +12,11 @@ stack's maximum; a pixel whose upper percentile is saturated (over-exposed in mo
 strongly as the capture's strongest pixels (the 99th percentile of the others' response;
 a lamp in view would too).
 
-The split, on ``log r`` (brightness spans decades: dark albedo, grazing normals, 8-bit
-captures with a few counts):
+A lit backdrop (a table top, a sheet of paper under an object seen from above) responds
+like the object: with ``backdrop`` (default) it is found first (:mod:`cnnps.ps.backdrop`:
+the pixels joined to the frame's edge that are shaded alike, image by image, as a flat
+surface is) and counted as not responding. Then the split, on ``log r`` (brightness spans
+decades: dark albedo, grazing normals, 8-bit captures with a few counts):
 
 1. Otsu's threshold ``t`` on ``log r``, clipped below at half the 1st percentile of the
    positive responses (half a count in quantised images), or ``FLOOR`` x r's 99th
@@ -46,8 +49,10 @@ the masks of BALL and the 8-bit crops match within about a pixel of outline, but
 without any measurable response) and the lit table, which then joins the mask. With 2
 images the response is their difference: pixels lit alike by both drop out. Surfaces a
 ground-truth mask leaves out (a cup's inner wall) respond like the rest and are kept. A
-flat object on a lit flat backdrop as bright (a fossil slab on grey paper) is not
-separable by its response at all.
+flat object lying on a lit flat backdrop (a fossil slab on grey paper) is shaded like it:
+neither its response nor the backdrop step tells them apart (the slab's faces turned like
+the paper go with the paper); give a ``mask.png`` then. A backdrop seen through a hole in
+the object (a handle) is not joined to the frame's edge and stays.
 
 Example::
 
@@ -64,6 +69,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from cnnps.infra.errors import InputError
+from cnnps.ps.backdrop import find_backdrop
 
 QUANTILES = (0.1, 0.9)  # the response is the spread between these per-pixel quantiles
 BAND = 1.0  # half-width of the undecided band around Otsu's threshold, in log units (e-fold)
@@ -86,7 +92,8 @@ class MaskEstimate:
     mask: (H, W) bool, True = object. threshold: the response (same units as the images)
     where Otsu split, the middle of the undecided band. components: regions kept;
     dropped: regions dropped as specks. holes_filled / holes_open: enclosed holes filled /
-    left open (background-like). fraction: the share of the frame in ``mask``.
+    left open (background-like). fraction: the share of the frame in ``mask``. backdrop:
+    pixels taken out as a lit backdrop (:mod:`cnnps.ps.backdrop`; 0: none found).
     """
 
     mask: np.ndarray
@@ -96,6 +103,7 @@ class MaskEstimate:
     holes_filled: int
     holes_open: int
     fraction: float
+    backdrop: int = 0
 
 
 def response(images: np.ndarray, saturated: np.ndarray | None = None,
@@ -161,7 +169,7 @@ def _fill_holes(mask: np.ndarray, lr: np.ndarray, small_hole: float) -> tuple[np
 def estimate_mask(images: np.ndarray, saturated: np.ndarray | None = None, *,
                   quantiles: tuple[float, float] = QUANTILES, band: float = BAND,
                   min_component: float = MIN_COMPONENT, small_hole: float = SMALL_HOLE,
-                  source: str | Path | None = None) -> MaskEstimate:
+                  backdrop: bool = True, source: str | Path | None = None) -> MaskEstimate:
     """The object mask of a capture from its (m, H, W) linear grey ``images`` (m >= 2, any
     scale: intensity-normalised floats or raw counts) and, optionally, (m, H, W) bool
     ``saturated`` flags; the method and the options are the module's docstring.
@@ -180,6 +188,8 @@ def estimate_mask(images: np.ndarray, saturated: np.ndarray | None = None, *,
         raise InputError(source, "mask estimate: no pixel responds to the lights (the images hardly differ)")
     floor = max(0.5 * float(np.percentile(r[r > 0], 1)), FLOOR * top)
     lr = np.log(np.maximum(r, floor))
+    behind = find_backdrop(images, r, saturated).mask if backdrop else np.zeros(r.shape, bool)
+    lr[behind] = lr.min()  # a lit backdrop does not count as responding
     if lr.max() - lr.min() < 1e-9:
         raise InputError(source, "mask estimate: every pixel responds alike (no object to tell apart)")
     t = float(threshold_otsu(lr))
@@ -191,6 +201,7 @@ def estimate_mask(images: np.ndarray, saturated: np.ndarray | None = None, *,
         mask = watershed(sobel(lr), markers) == 2
     else:  # one class spans the whole frame: the plain threshold
         mask = lr > t
+    mask &= ~behind
 
     mask = ndi.binary_opening(mask, structure=_CROSS)
     labels, n = ndi.label(mask, structure=_SQUARE)
@@ -203,4 +214,4 @@ def estimate_mask(images: np.ndarray, saturated: np.ndarray | None = None, *,
     mask, filled, still_open = _fill_holes(mask, lr, small_hole)
     return MaskEstimate(mask=mask, threshold=float(np.exp(t)), components=int(keep.size),
                         dropped=int(n - keep.size), holes_filled=filled, holes_open=still_open,
-                        fraction=float(mask.mean()))
+                        fraction=float(mask.mean()), backdrop=int(behind.sum()))

@@ -85,9 +85,13 @@ OBJECT_RADIUS = 0.55  # the object is scaled into this sphere
 BALL_CENTRE = (0.62, -0.45, 4.0)  # world x, y, z: 4 nearer the camera than the object (module docstring)
 BALL_RADIUS = 0.24  # 15.4 px at size 128
 PHONE_CHROME_ROUGHNESS = 0.08  # a near-mirror: a clipped highlight of a few pixels (module docstring)
-BALL_MARGIN_PX = 2.0  # the chrome material's disc: the ball's image circle plus this
+BALL_MARGIN_PX = 2.0  # the chrome material's disc: the ball's image circle plus this ...
+TABLE_BALL_MARGIN_PX = 0.0  # ... or this, with a table (a pixel is the table's when its centre is off the ball)
 OBJECT_PARAMS = {"base_color": (0.7, 0.6, 0.5), "metallic": 0.0, "specular": 0.5, "roughness": 0.5,
                  "sheen": 0.0, "sheen_tint": 0.0}  # paper parameters (cnnps.synth.bsdf.PARAM_NAMES)
+TABLE_PARAMS = {"base_color": (0.45, 0.42, 0.38), "metallic": 0.0, "specular": 0.3, "roughness": 0.9,
+                "sheen": 0.0, "sheen_tint": 0.0}  # a matt table top (``table=True``)
+TABLE_REACH = 1.5  # the table's square reaches this far from the frame's centre (past the frame)
 LAMP_RGB = (1.0, 0.93, 0.82)  # a warm white lamp
 MAX_LIGHT_ANGLE_DEG = 60.0  # every light within this of the view axis
 LIGHT_JITTER_DEG = 5.0
@@ -142,14 +146,28 @@ def placed_object(mesh: Any) -> tuple[Any, dict]:
     return obj, {**info, "scale": OBJECT_RADIUS / reach}
 
 
-def scene_mesh(obj) -> Any:
+def scene_mesh(obj, table: bool = False) -> Any:
     """The one mesh rendered: the placed object and the chrome ball (an icosphere of
-    :data:`~cnnps.synth.calibration_scenes.BALL_SUBDIVISIONS`)."""
+    :data:`~cnnps.synth.calibration_scenes.BALL_SUBDIVISIONS`); with ``table``, a square
+    facing the camera under the object, touching its lowest point, past the frame."""
     import trimesh
 
     ball = trimesh.creation.icosphere(subdivisions=BALL_SUBDIVISIONS, radius=BALL_RADIUS)
     ball.apply_translation(list(BALL_CENTRE))
-    return trimesh.util.concatenate([obj, ball])
+    parts = [obj, ball]
+    if table:
+        z, r = float(np.asarray(obj.vertices)[:, 2].min()), TABLE_REACH
+        parts.append(trimesh.Trimesh([[-r, -r, z], [r, -r, z], [r, r, z], [-r, r, z]], [[0, 1, 2], [0, 2, 3]],
+                                     process=False))
+    return trimesh.util.concatenate(parts)
+
+
+def object_pixels(obj, size: int) -> np.ndarray:
+    """(S, S) bool: the pixels the placed object covers (its raster,
+    :func:`cnnps.synth.raster.rasterize_full`)."""
+    from cnnps.synth.raster import rasterize_full
+
+    return rasterize_full(obj, int(size)).mask
 
 
 def ball_shadows(obj, L: np.ndarray, object_mask: np.ndarray) -> np.ndarray:
@@ -170,10 +188,11 @@ def ball_shadows(obj, L: np.ndarray, object_mask: np.ndarray) -> np.ndarray:
     return hit.sum(axis=0) / max(1, int(object_mask.sum()))
 
 
-def scene_material(params: dict, disc: np.ndarray):
+def scene_material(params: dict, disc: np.ndarray, table: np.ndarray | None = None):
     """The per-pixel material: a callable ``mask -> material dict`` (the form
-    :class:`cnnps.synth.render.scene.Scene` takes) giving ``disc`` chrome and every other
-    pixel the object's paper parameters ``params``."""
+    :class:`cnnps.synth.render.scene.Scene` takes) giving ``disc`` chrome, the pixels of
+    ``table`` (S, S) bool :data:`TABLE_PARAMS` and every other pixel the object's paper
+    parameters ``params``."""
     from cnnps.synth.bsdf import PARAM_NAMES
     from cnnps.synth.render.materials import principled_material
 
@@ -189,6 +208,9 @@ def scene_material(params: dict, disc: np.ndarray):
             a, b = np.asarray(chrome[k], np.float64), np.asarray(params[k], np.float64)
             sel = disc[:, :, None] if a.ndim else disc
             maps[k] = np.where(sel, a, b) * np.ones(disc.shape + a.shape)
+            if table is not None:
+                c = np.asarray(TABLE_PARAMS[k], np.float64)
+                maps[k] = np.where(table[:, :, None] if c.ndim else table, c, maps[k])
         return principled_material(maps)
 
     return material
@@ -227,7 +249,8 @@ def develop(linear: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
 
 
 def _render(work: Path, tm, material_params: dict, L: np.ndarray, size: int, samples: int, seed: int,
-            max_bounces: int, environment: float, threads: int, progress: bool, info: dict) -> Path:
+            max_bounces: int, environment: float, threads: int, progress: bool, info: dict,
+            table: np.ndarray | None = None) -> Path:
     from cnnps.synth.capture_render import render_into
     from cnnps.synth.render.keys import capture_key, mesh_sha256
     from cnnps.synth.render.scene import Scene
@@ -240,10 +263,12 @@ def _render(work: Path, tm, material_params: dict, L: np.ndarray, size: int, sam
     key = capture_key({"phone_capture": VERSION, "mesh": mesh_hash, "material": material_params,
                        "chrome": PHONE_CHROME_ROUGHNESS, "margin": BALL_MARGIN_PX, "layout": layout,
                        "lights": np.round(L, 12).tolist(), "size": size, "samples": samples, "seed": seed,
-                       "max_bounces": max_bounces}, environment)
+                       "max_bounces": max_bounces,
+                       **({} if table is None else {"table": TABLE_PARAMS, "table_margin": TABLE_BALL_MARGIN_PX})},
+                      environment)
     out = work / "scene"
     settings = RenderSettings(size=size, samples=samples, seed=seed, max_bounces=max_bounces, threads=threads)
-    material = scene_material(material_params, ball_disc(layout, BALL_MARGIN_PX))
+    material = scene_material(material_params, ball_disc(layout, BALL_MARGIN_PX), table)
     render_into(out, Scene(vertices, faces, material, L, environment=environment), settings, key=key,
                 meta={"phone_capture": True, "mesh_sha256": mesh_hash, **info}, progress=progress, desc="phone")
     return out
@@ -298,6 +323,7 @@ def render_phone_capture(
     environment: float = CHROME_ENVIRONMENT,
     material: dict | None = None,
     max_bounces: int = 4,
+    table: bool = False,
     progress: bool = False,
     threads: int | None = None,
 ) -> dict:
@@ -309,7 +335,9 @@ def render_phone_capture(
     exposures, noise and Cycles' sampling; material: the object's paper parameters
     (:data:`OBJECT_PARAMS`); environment: the room's uniform white light, relative to the
     lamp (a white Lambertian patch reads ``environment`` times what the lamp gives it
-    facing it); threads: Cycles threads (None or 0: all cores).
+    facing it); table: the object stands on a lit matt table (:data:`TABLE_PARAMS`) that fills
+    the rest of the frame, the ball still hanging in front (the twin's mask is the object's
+    alone); threads: Cycles threads (None or 0: all cores).
     Returns ``{"photos": Path, "twin": Path, "truth": dict}``.
     """
     from cnnps.infra.atomic import write_text
@@ -329,13 +357,15 @@ def render_phone_capture(
     work = out_root / ".render"
     work.mkdir(parents=True, exist_ok=True)
     obj_mesh, info = placed_object(mesh)
-    src = _render(work, scene_mesh(obj_mesh), params, L, size, int(samples), seed, int(max_bounces), float(environment),
-                  int(threads or 0), progress, info)
+    disc = ball_disc(layout, BALL_MARGIN_PX)
+    seen = object_pixels(obj_mesh, size) & ~disc if table else None
+    top = None if seen is None else ~seen & ~ball_disc(layout, TABLE_BALL_MARGIN_PX)  # the table's pixels
+    src = _render(work, scene_mesh(obj_mesh, table), params, L, size, int(samples), seed, int(max_bounces),
+                  float(environment), int(threads or 0), progress, info, top)
 
     frames = scan_images(src)
     mask = read_mask_file(src, None)
-    disc = ball_disc(layout, BALL_MARGIN_PX)
-    obj = mask & ~disc
+    obj = mask & ~disc if seen is None else mask & seen
     normals = read_normal_gt(src, mask.shape) * obj[:, :, None]
     lamp = np.asarray(LAMP_RGB, np.float64)
     renders = [read_exr(p).astype(np.float64)[:, :, :3] * lamp for p in frames.paths]
@@ -355,11 +385,13 @@ def render_phone_capture(
         "ball": {**layout["ball"], "roughness": PHONE_CHROME_ROUGHNESS, "pixels": int((mask & disc).sum())},
         "object": {**layout["object"], **info, "material": params, "pixels": int(obj.sum())},
         "ball_shadow": np.round(ball_shadows(obj_mesh, L, obj), 4).tolist(),
+        "table": TABLE_PARAMS if table else None,
         "seed": seed,
         "settings": {"size": size, "lights": n, "samples": int(samples), "max_bounces": int(max_bounces),
                      "environment": float(environment), "exposure_range": [float(v) for v in exposure_range],
                      "noise": ({"full_well": FULL_WELL, "read_noise_dn": READ_NOISE_DN} if noise else None),
-                     "jpeg_quality": int(jpeg_quality), "target": [TARGET_PERCENTILE, TARGET_LEVEL]},
+                     "jpeg_quality": int(jpeg_quality), "target": [TARGET_PERCENTILE, TARGET_LEVEL],
+                     "table": bool(table)},
         "version": VERSION,
     }
     write_text(out_root / "truth.json", json.dumps(truth, indent=2) + "\n")

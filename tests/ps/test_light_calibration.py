@@ -189,3 +189,17 @@ def test_matte_fit_leaves_clipped_pixels_out():
     assert biased[0] / biased.mean() < 0.98 * e[0] / e.mean()  # without the exclusion red is too dark
     with pytest.raises(CalibrationError, match="dark"):
         fit_intensities(np.zeros(SHAPE + (3,)), BALL, l)
+
+
+def test_a_dark_ball_on_a_lit_table_is_found_and_its_rim_mirrors_no_lamp():
+    """The ball mirrors a dim room (body 0.05) on a table lit to 0.5 around it; a lit thing
+    beside it shows in its rim (0.9 r from the centre, as bright as the lamp's highlight):
+    no lamp in front of the ball mirrors that far out, so it is not a second highlight."""
+    cover = disc_mask(BALL)  # a hard edge: the circle is found to a tenth of a pixel, the lights to 0.3 deg
+    rim = (BALL.cx + 0.9 * BALL.radius, BALL.cy)
+    images = np.array([chrome_image(l, extra_spots=[rim]) * cover + 0.5 * (1 - cover) for l in LIGHTS])
+    peaks = [np.unravel_index(np.argmax(chrome_image(l) * cover), SHAPE) for l in LIGHTS]  # the lamps' own
+    ball = find_ball(np.median(images, axis=0), peaks=peaks)
+    assert abs(ball.cx - BALL.cx) < 0.1 and abs(ball.cy - BALL.cy) < 0.1 and abs(ball.radius - BALL.radius) < 0.1
+    err = angles_deg(chrome_directions(images, ball)[0], LIGHTS)
+    assert err.mean() < 0.3 and err.max() < 0.5, err
