@@ -30,6 +30,11 @@ highlight is on the ball's visible half); and a dim uniform white world
 (``environment``) in every image: the room's ambient light, which makes the chrome ball
 visible and which no lights file describes.
 
+With ``table=True`` a matt table (:data:`TABLE_PARAMS`, a square facing the camera that
+touches the object's lowest point and fills the frame) stands under the object: it is lit
+with it and takes its cast shadows, the ball (still in front) reads darker than it, and
+the twin's mask is the object's raster alone (``benchmarks.pipeline.phone_capture --table``).
+
 Two choices make the photos calibratable by ``cnnps calibrate`` as it stands:
 
 - the ball hangs 4 nearer the camera than the object (z = 4; the camera is at z = 5,

@@ -160,3 +160,29 @@ def test_rerun_renders_nothing_and_writes_the_same(phone):
     assert scene.stat().st_mtime_ns == before
     assert (again["photos"] / "003.jpg").read_bytes() == photo
     assert again["truth"] == out["truth"]
+
+
+@pytest.mark.blender
+def test_on_a_lit_table_the_made_mask_leaves_the_table_out_and_calibrate_finds_the_dark_ball(tmp_path):
+    pytest.importorskip("bpy")
+    from cnnps.api.calibration import calibrate
+    from cnnps.io.capture import load_capture
+    from cnnps.io.images import read_mask
+    from cnnps.ps.mask_estimate import estimate_mask
+    from cnnps.synth.phone_capture import ball_disc, phone_layout
+
+    out = render_phone_capture(tmp_path, **{**RUN, "samples": 32}, table=True)
+    truth, twin = out["truth"], out["twin"]
+    assert truth["table"] is not None and truth["settings"]["table"]
+    cal = calibrate(out["photos"], linearize="srgb")  # a chrome ball darker than the lit table around it
+    b = truth["ball"]
+    assert np.hypot(cal.ball.cx - b["centre_px"][0], cal.ball.cy - b["centre_px"][1]) < 0.5
+    assert abs(cal.ball.radius - b["radius_px"]) < 0.5
+    assert angles_deg(cal.directions, truth["lights"]).mean() <= 3.0  # benchmark (64 samples): 1.5-1.6 deg
+    obj = read_mask(twin / "mask.png")  # the object alone
+    assert 0.05 < obj.mean() < 0.3
+    stack = load_capture(twin, linearize="srgb").grey_images()  # the made mask's input, as predict reads it
+    stack[:, ball_disc(phone_layout(truth["settings"]["size"]), 2.0)] = 0.0
+    with_step, without = estimate_mask(stack), estimate_mask(stack, backdrop=False)
+    iou = lambda m: (m & obj).sum() / (m | obj).sum()  # noqa: E731
+    assert iou(with_step.mask) > 0.97 and iou(without.mask) < 0.5  # benchmark: 0.991-0.994 and 0.111
