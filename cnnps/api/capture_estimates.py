@@ -87,10 +87,11 @@ def made_mask(capture: Capture, ball=None) -> tuple[np.ndarray, dict, str]:
     mask = est.mask if disc is None else est.mask & ~disc
     record = {"pixels": int(mask.sum()), "fraction": round(float(mask.mean()), 4),
               "threshold": float(est.threshold), "components": int(est.components),
-              "holes_filled": int(est.holes_filled),
+              "holes_filled": int(est.holes_filled), "backdrop_pixels": int(est.backdrop),
               **({} if ball is None else {"ball_left_out": [round(v, 2) for v in (ball.cx, ball.cy, ball.radius)]})}
     note = (f"mask.png: made from the photos ({int(mask.sum())} pixels, {mask.mean():.0%} of the frame"
-            f"{'' if ball is None else ', the chrome ball left out'}; written to the output folder): check it, "
+            f"{'' if ball is None else ', the chrome ball left out'}"
+            f"{', a lit backdrop left out' if est.backdrop else ''}; written to the output folder): check it, "
             "or give the capture a mask.png of its own")
     return mask, record, note
 

@@ -151,3 +151,26 @@ def test_intensities_from_the_exif_exposure(sphere, tmp_path):
 
     with pytest.raises(InputError, match=f"{jpgs[3]}: no EXIF exposure time"):  # check refuses it alike
         check_capture(root, intensities="exif")
+
+
+def test_a_made_mask_says_a_lit_backdrop_was_left_out(tmp_path):
+    """A sphere on a lit table, no mask: the made mask leaves the table out and says so."""
+    from cnnps.io.capture import write_filenames, write_light_directions
+    from cnnps.io.images import write_png
+    from tests.ps.test_backdrop import lights, on_a_table
+
+    L = lights(24)
+    images, truth = on_a_table(L)
+    root = tmp_path / "table"
+    root.mkdir()
+    names = [f"{j:03d}.png" for j in range(len(L))]
+    for name, img in zip(names, images / images.max()):
+        write_png(root / name, np.repeat(np.round(img * 65535).astype(np.uint16)[:, :, None], 3, 2))
+    write_filenames(root, names)
+    write_light_directions(root, L)
+    result = predict_folder(root, tmp_path / "out", method="lambertian", report=False, progress=False)
+    made = result["estimated"]["mask"]
+    assert made["backdrop_pixels"] > 0.95 * (~truth).sum()
+    assert _iou(read_mask(tmp_path / "out" / "mask.png"), truth) > 0.97
+    assert any(n.startswith("mask.png: made from the photos") and "a lit backdrop left out" in n
+               for n in result["notes"])

@@ -104,3 +104,4 @@ def test_a_face_turned_like_the_table_stays_when_the_objects_rim_parts_it_from_i
 def test_the_ring_is_the_frames_edge():
     edge = ring((6, 8), 2)
     assert edge.sum() == 6 * 8 - 2 * 4 and not edge[2:4, 2:6].any()
+
