@@ -221,10 +221,11 @@ def find_backdrop(images: np.ndarray, response: np.ndarray, saturated: np.ndarra
     model = _fit_model(u, np.flatnonzero(edge), shape, DEGREE)
     if model is None:
         return none
-    dist, level = (a.reshape(shape) for a in _distance(u, model, m_min, lit_min))
-    noise = float(np.median(dist[edge]))
+    on_ring = np.flatnonzero(edge)
+    noise = float(np.median(_distance(u[:, on_ring], model[:, on_ring], m_min, lit_min)[0]))
     if not noise <= MAX_RING_DISTANCE:  # the ring is not shaded alike: an object, not a backdrop
         return none
+    dist, level = (a.reshape(shape) for a in _distance(u, model, m_min, lit_min))
     found = _connected(dist <= max(TOL, NOISE_FACTOR * noise), level, edge)
     # the second fit, on the backdrop found (its inside too: a near lamp's fall-off)
     pixels = np.flatnonzero(found)
