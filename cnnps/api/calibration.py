@@ -1,7 +1,7 @@
 """Light calibration from ball folders: what ``cnnps calibrate`` and :func:`cnnps.calibrate` run.
 
-The maths on arrays (finding the ball, the highlights, the directions and intensities)
-is :mod:`cnnps.ps.light_calibration`; this module reads the folders, checks them,
+The maths on arrays is :mod:`cnnps.ps.ball` (finding the ball) and
+:mod:`cnnps.ps.light_calibration` (the highlights, the directions and intensities); this module reads the folders, checks them,
 draws the overlay picture, and writes the outputs.
 
 Folders (:func:`calibrate`, :func:`write_calibration`): a ball folder holds
@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,18 +44,15 @@ from cnnps.io.capture import (
     scan_images,
 )
 from cnnps.io.srgb import Linearize
+from cnnps.ps.ball import Ball, CalibrationError, find_ball, fit_circle
 from cnnps.ps.light_calibration import (
     CENTROID_LEVEL,
     MATTE_RADIUS_FRACTION,
     MAX_SATURATED_FRACTION,
     MIN_SHADING,
     SCALE_NOTE,
-    Ball,
-    CalibrationError,
     Highlight,
     chrome_directions,
-    find_ball,
-    fit_circle,
     fit_intensities,
     normalise_intensities,
 )
@@ -206,8 +203,8 @@ def locate_ball(photos: BallPhotos, picture: np.ndarray, picture_name: str, peak
         except CalibrationError as exc:
             raise InputError(photos.root / MASK_FILE, str(exc)) from None
     try:
-        where = "the bright region holding the highlights" if peaks is not None else "the bright region"
-        return find_ball(picture, source=f"circle fit to {where} of the {picture_name} (no mask.png)", peaks=peaks)
+        ball = find_ball(picture, picture=picture_name, peaks=peaks)
+        return replace(ball, source=f"{ball.source} (no mask.png)")
     except CalibrationError as exc:
         raise InputError(photos.root, f"{exc} in the {picture_name}; add a mask.png of the ball") from None
 

@@ -48,7 +48,7 @@ def wanted(capture: Capture, options: dict) -> list[str]:
 
 
 def calibrated_ball(lights_dir, capture_dir):
-    """The chrome ball's image circle (a :class:`cnnps.ps.light_calibration.Ball`) from
+    """The chrome ball's image circle (a :class:`cnnps.ps.ball.Ball`) from
     ``lights_dir``'s ``calibration.json`` (``cnnps calibrate``'s output) when the ball was
     found in the capture's own photos (its folder is ``capture_dir``, or has its name);
     None when it was photographed apart or the folder has no record."""
@@ -56,7 +56,7 @@ def calibrated_ball(lights_dir, capture_dir):
 
     from cnnps.api.calibration import REPORT_FILE
     from cnnps.infra.errors import InputError
-    from cnnps.ps.light_calibration import Ball
+    from cnnps.ps.ball import Ball
 
     path = Path(lights_dir) / REPORT_FILE
     if not path.is_file():

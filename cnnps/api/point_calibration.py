@@ -38,10 +38,10 @@ from cnnps.api.calibration import (
 )
 from cnnps.infra.errors import ConfigError, InputError
 from cnnps.io.capture import FILENAMES_FILE
+from cnnps.ps.ball import CalibrationError
 from cnnps.ps.light_calibration import (
     MATTE_RADIUS_FRACTION,
     MIN_SHADING,
-    CalibrationError,
     chrome_directions,
     fit_scale,
 )

@@ -2,7 +2,7 @@
 
 On arrays; the highlights and the balls' image circles come from
 :mod:`cnnps.ps.light_calibration` (:func:`~cnnps.ps.light_calibration.locate_highlight`,
-:func:`~cnnps.ps.light_calibration.find_ball`). Frame: the capture frame (x right, y up,
+:func:`~cnnps.ps.ball.find_ball`). Frame: the capture frame (x right, y up,
 z toward the camera, origin at the optical centre); pixel coordinates x = column, y = row
 (OpenCV's, (0, 0) the centre of the top-left pixel).
 

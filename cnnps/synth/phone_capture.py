@@ -129,7 +129,7 @@ def phone_layout(size: int) -> dict:
 
 def ball_disc(layout: dict, margin_px: float = 0.0) -> np.ndarray:
     """(S, S) bool: the pixels whose centres lie within the ball's image circle plus ``margin_px``."""
-    from cnnps.ps.light_calibration import Ball
+    from cnnps.ps.ball import Ball
 
     ball = Ball(*layout["ball"]["centre_px"], layout["ball"]["radius_px"])
     return ball.disc((layout["size"],) * 2, ball.radius + margin_px)

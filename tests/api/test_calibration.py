@@ -116,7 +116,7 @@ def test_the_ball_beside_an_object_in_the_same_photos_is_found_by_its_highlights
     """A chrome ball and, beside it, a larger matte sphere that is brighter on average (the
     object): no mask.png; the ball is the bright region holding each photo's brightest
     pixel, and the directions are those of the ball alone."""
-    from cnnps.ps.light_calibration import Ball
+    from cnnps.ps.ball import Ball
 
     shape = (72, 160)
     obj = Ball(118.0, 36.0, 33.0)

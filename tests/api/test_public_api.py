@@ -21,7 +21,7 @@ EXAMPLE_MODULES = ("cnnps.api", "cnnps.api.prediction", "cnnps.api.prediction_op
                    "cnnps.api.rendering", "cnnps.infra.options", "cnnps.ps.least_squares", "cnnps.ps.camera",
                    "cnnps.ps.near_lights", "cnnps.ps.point_light_calibration", "cnnps.io.raw",
                    "cnnps.api.solvers", "cnnps.api.cameras", "cnnps.api.light_models", "cnnps.infra.registry", "cnnps.ps.lights", "cnnps.ps.solver", "cnnps.models.inference",
-                   "cnnps.ps.confidence", "cnnps.ps.patches", "cnnps.ps.intensity_estimate", "cnnps.ps.intensity_mirror", "cnnps.ps.ball_search",
+                   "cnnps.ps.confidence", "cnnps.ps.patches", "cnnps.ps.intensity_estimate", "cnnps.ps.intensity_mirror", "cnnps.ps.ball_search", "cnnps.ps.ball",
                    "cnnps.train.step_processes", "cnnps.train.optimiser", "cnnps.train.params",
                    "cnnps.train.observation_data")
 

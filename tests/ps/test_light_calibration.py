@@ -6,18 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cnnps.ps.ball import Ball, CalibrationError, find_ball, fit_circle, sphere_normal
 from cnnps.ps.light_calibration import (
-    Ball,
-    CalibrationError,
     chrome_directions,
-    find_ball,
-    fit_circle,
     fit_intensities,
     light_from_highlight,
     locate_highlight,
     normalise_intensities,
     reflect,
-    sphere_normal,
 )
 from cnnps.synth.lights import hemisphere_lights
 from tests.support.calibration import (

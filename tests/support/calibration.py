@@ -16,7 +16,7 @@ import numpy as np
 
 from cnnps.io.images import write_exr, write_png
 from cnnps.io.srgb import linear_to_srgb
-from cnnps.ps.light_calibration import Ball
+from cnnps.ps.ball import Ball
 
 SHAPE = (72, 80)  # H, W
 BALL = Ball(41.3, 35.6, 29.4)  # x = column, y = row, radius (px)

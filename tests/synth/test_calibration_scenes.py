@@ -67,7 +67,7 @@ def balls(tmp_path_factory):
 @pytest.mark.blender
 def test_folders_and_matte_physics(balls):
     from cnnps.io.images import read_image
-    from cnnps.ps.light_calibration import Ball
+    from cnnps.ps.ball import Ball
 
     sets, L, E = balls
     truth = json.loads((sets["chrome"].parent / "truth.json").read_text())
