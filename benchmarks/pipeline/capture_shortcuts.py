@@ -4,7 +4,7 @@ changed 0.5-2x as a phone's auto exposure does.
 
     .venv/bin/python -m benchmarks.pipeline.capture_shortcuts [--rotations 10] [--seed 0]
         [--method cnn] [--captures ballPNG cowPNG ...] [--without mask intensities] [--rescale]
-        [--shared ../shared] [--out benchmarks/results/pipeline/capture_shortcuts.json]
+        [--rescaled-twin] [--shared ../shared] [--out benchmarks/results/pipeline/capture_shortcuts.json]
 
 For each real capture with ground truth (DiLiGenT BALL and the four 8-bit crops under
 ``../shared/data``): ``cnnps.predict_folder`` on the capture as it is (``calibrated``), then
@@ -12,12 +12,15 @@ on a copy that lacks the files of ``--without`` (``shortcuts``: ``mask.png``, ma
 photos; ``light_intensities.txt``, estimated from the object), with ``--rescale`` every
 image of the copy multiplied by a seeded factor log-uniform in 0.5-2 (rounded and clipped
 to the format's range; a copy that keeps its intensities file keeps it unchanged, as a
-capture whose exposure was not locked does). Reported per capture: the made mask's IoU
+capture whose exposure was not locked does). ``--rescaled-twin`` adds a third run
+(``rescaled_twin``): the same rescaled photos with their true intensities times the factors
+and the true mask, so what rescaling and re-quantising the photos cost alone is apart from
+what the shortcuts cost. Reported per capture: the made mask's IoU
 with the true one; the estimated intensities' relative error against the true ones times
 the factors (``|e / e_true - 1|`` with both at mean 1; mean and max over the images); the
 mean angular error of each run on the true mask's pixels the made mask also holds, and the
 share of true-mask pixels it leaves out; and the times. The dev-real mean (the crops, BALL
-beside) of both runs closes the table.
+beside) of each run closes the table.
 """
 
 from __future__ import annotations
@@ -77,7 +80,7 @@ def relative_errors(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 
 def one_capture(name: str, src: Path, work: Path, options: dict, seed: int, rescale: bool,
-                without=("mask",)) -> dict:
+                without=("mask",), rescaled_twin: bool = False) -> dict:
     from cnnps.api.prediction import predict_folder
     from cnnps.io.capture.files import read_light_intensities, read_normal_gt
     from cnnps.io.images import read_mask
@@ -95,6 +98,16 @@ def one_capture(name: str, src: Path, work: Path, options: dict, seed: int, resc
         made = predict_folder(work / f"{name}-phone", work / f"{name}-shortcuts", report=False, progress=False,
                               **options)
     row["shortcuts_s"] = round(clock.seconds, 1)
+    if rescale and rescaled_twin:  # the same rescaled photos, told their true intensities and mask
+        from cnnps.io.capture.files import write_light_intensities
+
+        phone_copy(src, work / f"{name}-rescaled", seed, rescale, without=())
+        write_light_intensities(work / f"{name}-rescaled", read_light_intensities(src, len(factors)) * factors[:, None])
+        clock = Stopwatch()
+        with clock:
+            predict_folder(work / f"{name}-rescaled", work / f"{name}-rescaled-twin", report=False, progress=False,
+                           **options)
+        row["rescaled_twin_s"] = round(clock.seconds, 1)
     mask = read_mask(work / f"{name}-shortcuts" / MASK_FILE) if "mask" in without else truth_mask
     row["mask_iou"] = round(float((mask & truth_mask).sum() / (mask | truth_mask).sum()), 4)
     if "intensities" in without:
@@ -105,9 +118,9 @@ def one_capture(name: str, src: Path, work: Path, options: dict, seed: int, resc
     if normal_gt is not None:
         has_gt = truth_mask & (np.linalg.norm(normal_gt, axis=-1) > 0.5)
         both = has_gt & mask
-        for run in ("calibrated", "shortcuts"):
+        for run in ("calibrated", "shortcuts") + (("rescaled-twin",) if "rescaled_twin_s" in row else ()):
             normal = np.load(work / f"{name}-{run}" / "normal.npy")
-            row[f"{run}_deg"] = round(angular_mean(normal, normal_gt, both), 3)
+            row[f"{run.replace('-', '_')}_deg"] = round(angular_mean(normal, normal_gt, both), 3)
         row["true_pixels_left_out"] = round(float((has_gt & ~mask).sum() / has_gt.sum()), 4)
     return row
 
@@ -118,6 +131,8 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="cnn")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rescale", action="store_true", help="change each image's exposure 0.5-2x in the copy")
+    ap.add_argument("--rescaled-twin", action="store_true",
+                    help="with --rescale, also the rescaled copy told its true intensities (times the factors) and mask")
     ap.add_argument("--captures", nargs="+", default=list(CAPTURES), choices=list(CAPTURES))
     ap.add_argument("--without", nargs="+", default=list(WITHOUT), choices=list(WITHOUT),
                     help="what the copy lacks (made from the photos)")
@@ -134,11 +149,11 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="cnnps-shortcuts-") as tmp:
         for i, name in enumerate(present):
             rows.append(one_capture(name, data / CAPTURES[name] / name, Path(tmp), options, a.seed + i, a.rescale,
-                                    a.without))
+                                    a.without, a.rescaled_twin))
             print(json.dumps(rows[-1]), flush=True)
     crops = [r for r in rows if r["capture"] != REFERENCE and "calibrated_deg" in r]
-    summary = {run: round(float(np.mean([r[f"{run}_deg"] for r in crops])), 3) if crops else None
-               for run in ("calibrated", "shortcuts")}
+    runs = ("calibrated", "shortcuts") + (("rescaled_twin",) if any("rescaled_twin_deg" in r for r in crops) else ())
+    summary = {run: round(float(np.mean([r[f"{run}_deg"] for r in crops])), 3) if crops else None for run in runs}
     print("| capture | mask IoU | intensities: mean / max error % | calibrated deg | shortcuts deg "
           "| true pixels left out |")
     print("| --- | --- | --- | --- | --- | --- |")
@@ -147,7 +162,7 @@ def main(argv=None) -> int:
         ie = "" if ie is None else f"{ie['mean']:.2f} / {ie['max']:.2f}"
         print(f"| {r['capture']} | {r['mask_iou']:.4f} | {ie} "
               f"| {r.get('calibrated_deg')} | {r.get('shortcuts_deg')} | {r.get('true_pixels_left_out', 0):.2%} |")
-    print(f"dev-real (the crops' mean): calibrated {summary['calibrated']}, shortcuts {summary['shortcuts']}")
+    print("dev-real (the crops' mean): " + ", ".join(f"{k} {v}" for k, v in summary.items()))
     write_result(a.out, __spec__.name, vars(a), {"captures": rows, "dev_real": summary})
     print(f"(saved {a.out})")
     return 0
