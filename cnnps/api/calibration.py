@@ -57,9 +57,6 @@ from cnnps.ps.light_calibration import (
     normalise_intensities,
 )
 
-DARK_BALL_NOTE = ("the chrome ball is darker than what surrounds it (a lit table?): its outline, and so its "
-                  "directions, are less sure; a black cloth under it or a mask.png of it does better "
-                  "(docs/capture.md)")
 REPORT_FILE = "calibration.json"
 PICTURE_FILE = "calibration.png"
 OUTPUT_FILES = (LIGHT_DIRECTIONS_FILE, LIGHT_INTENSITIES_FILE, REPORT_FILE, PICTURE_FILE,
@@ -306,7 +303,6 @@ def calibrate(chrome_dir, matte_dir=None, *, linearize: Linearize | None = None,
         E = _matte_intensities(matte_dir, matte_ball, mpaths, L, linearize, progress, report)
     kinds = _image_types(report, chrome, matte)
     notices = order_notes + ([UNCHOSEN_8BIT_NOTE] if linearize is None and kinds.get("uint8") else [])
-    notices += [DARK_BALL_NOTE] if ball.dark else []
     picture = overlay_picture(chrome.max_image, ball, [(h.x, h.y) for h in highs], [str(i) for i in range(len(highs))])
     report["seconds"] = round(time.perf_counter() - t0, 3)
     return Calibration(list(names), L, E, ball, highs, matte_ball, report, picture, notices)

@@ -40,7 +40,7 @@ Example:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -68,7 +68,6 @@ class Ball:
     source: str = ""  # how it was found (for the report)
     rms_px: float = 0.0  # RMS distance of the boundary points to the circle
     points: int = 0  # boundary points used (RANSAC inliers)
-    dark: bool = False  # found as a region darker than what surrounds it (a chrome ball on a lit table)
 
     def distance(self, shape: tuple[int, int]) -> np.ndarray:
         """(H, W) distance of every pixel centre from the centre, in pixels."""
@@ -232,7 +231,7 @@ def find_ball(image: np.ndarray, picture: str = "picture", peaks=None) -> Ball:
     pic = img.copy()
     pic[~binary_dilation(region, iterations=2)] = min(float(img.min()), level) - 1.0
     pic[binary_erosion(region, iterations=2)] = max(float(img.max()), level) + 1.0
-    return replace(_fit_points(_boundary_points(pic, level), source), dark=dark)
+    return _fit_points(_boundary_points(pic, level), source)
 
 
 def sphere_normal(x, y, ball: Ball) -> np.ndarray:
