@@ -57,7 +57,6 @@ class CalibrationError(ValueError):
         self.kind = kind
 
 
-
 @dataclass(frozen=True)
 class Ball:
     """A circle in pixel coordinates (x = column, y = row, pixel centres at integers)."""

@@ -192,7 +192,6 @@ def locate_highlight(
     )
 
 
-
 def highlight_normal(h: Highlight, ball: Ball) -> np.ndarray:
     """The sphere's unit normal (3,) at the highlight."""
     return sphere_normal(h.x, h.y, ball)
