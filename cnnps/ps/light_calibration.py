@@ -158,7 +158,8 @@ def locate_highlight(
     if n >= 2:
         raise CalibrationError(
             f"{n} separate highlights on the ball (brightest at x={x1}, y={y1} and x={x2}, y={y2} px): "
-            "one light per image, and no other bright reflections", "two")
+            "one light per image, and no other bright reflections (a lit object or wall mirrored in the ball: "
+            "move the ball away from it, or raise it toward the camera)", "two")
 
     sat_px = 0
     if saturated is not None:
