@@ -202,7 +202,7 @@ def find_backdrop(images: np.ndarray, response: np.ndarray, saturated: np.ndarra
                   seed: int = 0) -> Backdrop:
     """The lit backdrop of (m, H, W) linear grey ``images`` given each pixel's (H, W)
     ``response`` to the lights (:func:`cnnps.ps.mask_estimate.response`); the method is
-    the module's docstring. ``tol`` None: :data:`TOL`, or the fit's noise when larger;
+    the module's docstring. ``tol`` (both passes) None: :data:`TOL`, or the fit's noise when larger;
     ``floor`` None: :data:`FLOOR_SHARE` of the stack's 99th percentile; ``seed``: the
     sample of the second fit's pixels. Deterministic."""
     images = np.asarray(images)
@@ -226,7 +226,7 @@ def find_backdrop(images: np.ndarray, response: np.ndarray, saturated: np.ndarra
     if not noise <= MAX_RING_DISTANCE:  # the ring is not shaded alike: an object, not a backdrop
         return none
     dist, level = (a.reshape(shape) for a in _distance(u, model, m_min, lit_min))
-    found = _connected(dist <= max(TOL, NOISE_FACTOR * noise), level, edge)
+    found = _connected(dist <= (max(TOL, NOISE_FACTOR * noise) if tol is None else float(tol)), level, edge)
     # the second fit, on the backdrop found (its inside too: a near lamp's fall-off)
     pixels = np.flatnonzero(found)
     if pixels.size > REFIT_PIXELS:

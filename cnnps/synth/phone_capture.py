@@ -34,6 +34,9 @@ With ``table=True`` a matt table (:data:`TABLE_PARAMS`, a square facing the came
 touches the object's lowest point and fills the frame) stands under the object: it is lit
 with it and takes its cast shadows, the ball (still in front) reads darker than it, and
 the twin's mask is the object's raster alone (``benchmarks.pipeline.phone_capture --table``).
+The ball's rim is only approximate there: a reflected ray takes the material of the pixel
+its hit point projects to, so the table the rim mirrors is chrome where it lies behind the
+ball and table elsewhere, cut at pixel edges (its circle comes out about 0.2 px off).
 
 Two choices make the photos calibratable by ``cnnps calibrate`` as it stands:
 

@@ -67,6 +67,8 @@ def test_a_sphere_on_a_lit_table_is_its_disc_and_the_table_its_backdrop(lamp_dis
     est = estimate_mask(images)
     assert iou(est.mask, truth) > 0.97 and est.backdrop == found.mask.sum()
     assert iou(estimate_mask(images, backdrop=False).mask, truth) < 0.6  # the table joins it otherwise
+    strict = find_backdrop(images, response(images), tol=1e-6)  # a tolerance given holds in both passes
+    assert strict.tol == 1e-6 and strict.mask.sum() < 0.1 * found.mask.sum()
 
 
 def test_a_black_background_has_no_backdrop_and_the_mask_is_unchanged():
